@@ -376,7 +376,7 @@ def contact_query(
             else:
                 rows.append((con.dist, p2, p1, n))
         rows.sort(key=lambda r: r[0])
-        for j, (d, po, ps, nn) in enumerate(rows[:c]):
+        for j, (_d, po, ps, nn) in enumerate(rows[:c]):
             opts[i, j], spts[i, j], nrm[i, j], mask[i, j] = po, ps, nn, True
         if rows:
             pen[i] = max(0.0, -rows[0][0])
