@@ -120,8 +120,14 @@ def scene_xml(
     physics: PhysicsConfig = PhysicsConfig(),
     pose: np.ndarray | None = None,
     mesh_dir: str | None = None,
+    mjx: bool = False,
 ) -> tuple[str, dict[str, np.ndarray]]:
     """MJCF text of the pair, and the convex mesh vertices it references by name.
+
+    ``mjx=True`` writes the variant for the MJX backend: no contact sensors (MJX lacks
+    body-matching contact sensors), default collisions off and explicit contact pairs
+    between each object geom and each support/wall geom only (the floor is detected from
+    the object's height instead, which MJX does not need a collision for).
 
     ``pose`` [7] (position, quaternion wxyz) places the object; by default it is parked.
     With ``mesh_dir`` set, meshes are referenced as ``<name>.stl`` files there, otherwise
@@ -173,6 +179,21 @@ def scene_xml(
         '<contact name="support_touch" body1="object" subtree2="world" num="1" '
         'data="found dist" reduce="mindist"/>'
     )
+    contact_block = ""
+    if mjx:
+        sensors = []
+        targets = [f"support_{i}" for i in range(len(support.parts))]
+        if support.wall_y is not None:
+            targets.append("wall")
+        pairs = [
+            f'<pair geom1="object_{i}" geom2="{t}"/>'
+            for i in range(len(obj.parts))
+            for t in targets
+        ]
+        contact_block = "<contact>\n    " + "\n    ".join(pairs) + "\n  </contact>"
+        collide = 'contype="0" conaffinity="0" '
+    else:
+        collide = ""
     meshdir_attr = f' meshdir="{mesh_dir}"' if mesh_dir else ""
     xml = f"""<mujoco model="{obj.name}__{support.name}">
   <compiler angle="radian" autolimits="true"{meshdir_attr}/>
@@ -180,7 +201,7 @@ def scene_xml(
           iterations="{physics.iterations}" ls_iterations="{physics.ls_iterations}"
           gravity="0 0 {physics.gravity}"/>
   <default>
-    <geom condim="4" solref="{physics.contact_timeconst} 1" friction="{physics.friction} 0.005 0.0001" rgba=".6 .6 .65 1"/>
+    <geom {collide}condim="4" solref="{physics.contact_timeconst} 1" friction="{physics.friction} 0.005 0.0001" rgba=".6 .6 .65 1"/>
   </default>
   <visual><global offwidth="640" offheight="480"/></visual>
   <asset>
@@ -195,6 +216,7 @@ def scene_xml(
       {chr(10).join("      " + o for o in object_lines).strip()}
     </body>
   </worldbody>
+  {contact_block}
   <sensor>
     {chr(10).join("    " + s for s in sensors).strip()}
   </sensor>
