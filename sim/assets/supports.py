@@ -146,6 +146,21 @@ def _tip_stop(
     return []
 
 
+def _leave_distance(
+    a0: np.ndarray, da: np.ndarray, b0: np.ndarray, db: np.ndarray, radius: float
+) -> float:
+    """Arc length s >= 0 at which the axis point ``a0 + s da`` is ``radius`` from the line
+    ``b0 + u db`` (two diverging rods; unit directions)."""
+    w = a0 - b0
+    # |w + s da|^2 - ((w + s da) . db)^2 = radius^2, a quadratic in s.
+    qa = 1.0 - np.dot(da, db) ** 2
+    qb = 2.0 * (np.dot(w, da) - np.dot(w, db) * np.dot(da, db))
+    qc = np.dot(w, w) - np.dot(w, db) ** 2 - radius**2
+    if qc >= 0.0:
+        return 0.0
+    return float((-qb + np.sqrt(qb * qb - 4 * qa * qc)) / (2 * qa))
+
+
 def _pick(rng: np.random.Generator, options: list[str], p: list[float] | None = None) -> str:
     return str(rng.choice(options, p=p))
 
@@ -186,15 +201,18 @@ def single_rod_hook(rng: np.random.Generator) -> AssetSpec:
     direction = _rod_direction(tilt)
     exit_point = np.array([0.0, thick, exit_z])
     collar_len = 0.0
-    if rng.uniform() < 0.4:  # a round collar (rosette) between plate and rod
-        collar_len = rng.uniform(0.005, 0.015)
-        collar_r = rng.uniform(1.6, 2.2) * rod_r
+    if tilt <= np.deg2rad(12.0) and rng.uniform() < 0.5:  # a round collar between plate and rod
+        collar_len = rng.uniform(0.004, 0.012)
+        # The collar sticks straight out of the plate; its front face still holds the whole
+        # (slightly tilted) rod.
+        front_r = rod_r + collar_len * np.tan(tilt) + 0.0005
+        back_r = max(rng.uniform(1.6, 2.2) * rod_r, front_r + 0.001)
         parts.append(
             g.frustum(
                 [0.0, thick - 0.001, exit_z],
                 [0.0, thick + collar_len, exit_z],
-                collar_r,
-                rod_r * 1.15,
+                back_r,
+                front_r,
                 sides=12,
             )
         )
@@ -249,14 +267,12 @@ def two_rod_hook(rng: np.random.Generator) -> AssetSpec:
         width = rng.uniform(max(0.03, gap + 6 * rod_r), 0.06)
         height = width if plate_shape == "round" else rng.uniform(max(0.04, width), 0.09)
         exit_z = rng.uniform(-0.1, 0.15) * height
-        # Each peg starts where its rod has cleared the other one by 1 mm, so that the whole
-        # Peg is free rod (the two axes are cos(a) (gap + 2 s sin(a)) apart at arc length s).
-        clear = max(0.0, ((rod_r + 0.001) / np.cos(half_angle) - gap) / (2 * np.sin(half_angle)))
-        clear /= np.cos(tilt)
-        for sign in (-1.0, 1.0):
-            direction = _rod_direction(tilt, sign * half_angle)
-            exit_point = np.array([sign * gap / 2, thick, exit_z]) + clear * direction
-            rods.append((exit_point, direction, length, tip, 0.035))
+        exits = [np.array([sign * gap / 2, thick, exit_z]) for sign in (-1.0, 1.0)]
+        dirs = [_rod_direction(tilt, sign * half_angle) for sign in (-1.0, 1.0)]
+        # Each Peg starts where its rod's axis leaves the other rod, so the whole Peg is free.
+        clear = _leave_distance(exits[0], dirs[0], exits[1], dirs[1], rod_r)
+        for exit_point, direction in zip(exits, dirs):
+            rods.append((exit_point + clear * direction, direction, length, tip, 0.035))
         params.update(
             spread_deg=float(np.rad2deg(2 * half_angle)),
             tilt_deg=float(np.rad2deg(tilt)),
@@ -390,12 +406,19 @@ def mug_tree(rng: np.random.Generator) -> AssetSpec:
     pole_start = max(base_thick, pole_r + 0.001)  # round end buried in the base, off the floor
     parts.append(g.capsule([0, 0, pole_start], [0, 0, top], pole_r))
     if finial:
-        finial_r = height - top
-        parts.append(g.ellipsoid([0, 0, top], [finial_r] * 3, rings=4, sides=6))
+        parts.append(g.ellipsoid([0, 0, top], [height - top] * 3, rings=4, sides=6))
 
-    rise = arm_len * np.sin(tilt)
-    z_hi = min(rng.uniform(0.72, 0.88) * height, height - 0.01 - rise)
-    z_lo = rng.uniform(0.45, 0.60) * height
+    finial_r = height - top if finial else 0.0
+    # Upper arms: tips (with their knobs) stay below the top, and arms leave the pole's
+    # straight part below the finial.
+    stop_r = _MAX_BALL_RADIUS if tip_style == "ball" else arm_r
+    rise = (pole_r / np.cos(tilt) + arm_len) * np.sin(tilt) + stop_r
+    z_hi = min(
+        rng.uniform(0.72, 0.88) * height,
+        height - 0.005 - rise,
+        top - finial_r - pole_r * np.tan(tilt) - arm_r - 0.002,
+    )
+    z_lo = min(rng.uniform(0.45, 0.60) * height, z_hi - 0.04)
     per_level = [n_arms] if levels == 1 else [n_arms - n_arms // 2, n_arms // 2]
     heights = [z_hi] if levels == 1 else [z_lo, z_hi]
     phase = rng.uniform(0, 2 * np.pi)
