@@ -221,14 +221,15 @@ class Library:
         config = dataclasses.asdict(self.config)
         config["object_categories"] = list(self.config.categories())
         config["support_families"] = list(self.config.families())
+        split_of = {n: s for s, groups in self.split.items() for g in groups.values() for n in g}
         return dict(
             format=MANIFEST_FORMAT,
             config=config,
             objects_per_category=self.objects_per_category(),
             supports_per_family=self.supports_per_family(),
             split={s: {k: list(v) for k, v in g.items()} for s, g in self.split.items()},
-            objects=[_record(a, self.split_of(a.name)) for a in self.objects.values()],
-            supports=[_record(a, self.split_of(a.name)) for a in self.supports.values()],
+            objects=[_record(a, split_of[a.name]) for a in self.objects.values()],
+            supports=[_record(a, split_of[a.name]) for a in self.supports.values()],
         )
 
     def save_manifest(self, path: str | os.PathLike) -> None:

@@ -172,6 +172,7 @@ def test_decomposition_is_cached(tmp_path, monkeypatch):
     assert len(first.hulls) >= 4  # a ring needs several convex pieces
     assert all(isinstance(h, ConvexMesh) for h in first.hulls)
     assert max(first.stats["hull_vertices"]) <= MAX_HULL_VERTICES
+    assert first.stats["volume_kept"] > 0.97
     # The hulls cover the torus: its vertices lie inside (or on) the union of hulls.
     hull_meshes = [h.to_trimesh() for h in first.hulls]
     inside = np.zeros(len(mesh.vertices), bool)
