@@ -102,7 +102,7 @@ def load_user_mesh(
         )
 
     if up == "y":  # +y -> +z, +z -> -y (a right-handed rotation of +90 degrees about x)
-        vertices = vertices @ np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]).T
+        vertices = vertices @ np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]).T
     factor = 1.0 if scale is None else float(scale)
     if not np.isfinite(factor) or factor <= 0:
         raise MeshError(f"{path}: scale must be a positive number, got {scale!r}")

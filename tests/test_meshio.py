@@ -75,6 +75,13 @@ def test_target_size_and_scale(tmp_path):
     assert report["scale"] == pytest.approx(0.2 / 124.0, rel=1e-5)
 
 
+def test_y_up_files_are_turned_z_up(tmp_path):
+    path = tmp_path / "tall.gltf"
+    trimesh.creation.box(extents=[0.02, 0.3, 0.05]).export(path)  # tall along +y
+    mesh, _ = load_user_mesh(path, up="y")
+    np.testing.assert_allclose(mesh.extents, [0.02, 0.05, 0.3], atol=1e-6)
+
+
 def _write(path, text):
     path.write_text(text)
     return path
