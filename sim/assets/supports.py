@@ -15,7 +15,8 @@ both ends (``closed=True``): base and tip are the two ends of the free span betw
 standoffs.
 
 Families: ``single_rod_hook``, ``two_rod_hook``, ``towel_bar``, ``mug_tree``,
-``pegboard_hook`` (see ``docs/assets_supports.md`` for their randomised ranges).
+``pegboard_hook``, ``coat_rack_knob`` (``docs/assets_supports.md`` lists their randomised
+ranges).
 """
 
 from __future__ import annotations
@@ -254,9 +255,7 @@ def two_rod_hook(rng: np.random.Generator) -> AssetSpec:
         height = rng.uniform(0.03, 0.08)
         exit_z = rng.uniform(-0.1, 0.2) * height
         for x in (-spacing / 2, spacing / 2):
-            rods.append(
-                (np.array([x, thick, exit_z]), _rod_direction(tilt), length, tip, 0.035)
-            )
+            rods.append((np.array([x, thick, exit_z]), _rod_direction(tilt), length, tip, 0.035))
         params.update(spacing=spacing, tilt_deg=float(np.rad2deg(tilt)), length=length, tip=tip)
     elif layout == "v_spread":
         half_angle = np.deg2rad(rng.uniform(10.0, 30.0))
@@ -517,5 +516,52 @@ def pegboard_hook(rng: np.random.Generator) -> AssetSpec:
             tilt_deg=float(np.rad2deg(tilt)),
             tip=tip_style,
             shape=shape,
+        ),
+    )
+
+
+# ----------------------------------------------------------------------------- coat rack
+
+
+@register_support("coat_rack_knob")
+def coat_rack_knob(rng: np.random.Generator) -> AssetSpec:
+    """A wall rail (coat rack board) with 2-5 evenly spaced knob pegs, Shaker style: a thick
+    short shaft tilted 0-25 deg up, ending plain or in a ball knob."""
+    n_pegs = int(rng.integers(2, 6))
+    peg_r = rng.uniform(0.004, 0.008)
+    peg_len = rng.uniform(0.04, 0.09)
+    tilt = np.deg2rad(rng.uniform(0.0, 25.0))
+    tip_style = _pick(rng, ["ball", "ball", "plain"])
+    pitch = rng.uniform(0.08, 0.14)  # peg centre to peg centre
+    margin = rng.uniform(0.03, 0.07)  # rail beyond the outer pegs
+    width = min((n_pegs - 1) * pitch + 2 * margin, 0.58)
+    pitch = min(pitch, (width - 2 * margin) / (n_pegs - 1))
+    height = rng.uniform(0.06, 0.12)
+    thick = rng.uniform(max(0.015, 1.7 * peg_r + 0.001), max(0.022, 1.7 * peg_r + 0.004))
+    rail_shape = _pick(rng, ["rect", "rounded"])
+    exit_z = rng.uniform(-0.15, 0.1) * height
+    parts: list[Part] = [_wall_plate(rail_shape, width, height, thick)]
+    direction = _rod_direction(tilt)
+    pegs = []
+    for k in range(n_pegs):
+        x = (k - 0.5 * (n_pegs - 1)) * pitch
+        rod, base, tip = _wall_rod(np.array([x, thick, exit_z]), direction, peg_len, peg_r)
+        parts.append(rod)
+        parts += _tip_stop(rng, tip_style, tip, direction, peg_r)
+        pegs.append(Peg(base, tip, peg_r))
+    return AssetSpec(
+        parts=parts,
+        features=pegs,
+        params=dict(
+            n_pegs=n_pegs,
+            peg_radius=peg_r,
+            length=peg_len,
+            tilt_deg=float(np.rad2deg(tilt)),
+            tip=tip_style,
+            pitch=pitch,
+            rail=rail_shape,
+            rail_width=width,
+            rail_height=height,
+            rail_thickness=thick,
         ),
     )
