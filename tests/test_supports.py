@@ -31,7 +31,7 @@ SIZES = {
     "towel_bar": dict(radius=(0.0025, 0.010), length=(0.15, 0.60), x=(0.25, 0.60)),
     "mug_tree": dict(radius=(0.0025, 0.008), length=(0.04, 0.20), z=(0.25, 0.45)),
     "pegboard_hook": dict(radius=(0.002, 0.004), length=(0.04, 0.20)),
-    "coat_rack_knob": dict(radius=(0.004, 0.008), length=(0.04, 0.10), x=(0.10, 0.60)),
+    "coat_rack_knob": dict(radius=(0.004, 0.006), length=(0.04, 0.10), x=(0.10, 0.60)),
 }
 DEFAULT_SIZE = dict(radius=(0.002, 0.012), length=(0.04, 0.60))
 

@@ -528,7 +528,7 @@ def coat_rack_knob(rng: np.random.Generator) -> AssetSpec:
     """A wall rail (coat rack board) with 2-5 evenly spaced knob pegs, Shaker style: a thick
     short shaft tilted 0-25 deg up, ending plain or in a ball knob."""
     n_pegs = int(rng.integers(2, 6))
-    peg_r = rng.uniform(0.004, 0.008)
+    peg_r = rng.uniform(0.004, 0.006)  # knob heads (<= 9 mm) stay 1.5x the shaft
     peg_len = rng.uniform(0.04, 0.09)
     tilt = np.deg2rad(rng.uniform(0.0, 25.0))
     tip_style = _pick(rng, ["ball", "ball", "plain"])
