@@ -27,7 +27,10 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
+import hashlib
 import json
+import os
+import pickle
 import platform
 import time
 from collections.abc import Sequence
@@ -65,7 +68,7 @@ class AssetsJobConfig:
     cloud_width: int = 320  # depth camera for the partial clouds (original 640 x 480)
     cloud_height: int = 240
     cloud_points: int = 2048  # points per partial cloud in the figure (original 4096)
-    cache_dir: str | None = None  # union-mesh / CoACD cache (None: <out>/cache)
+    cache_dir: str | None = None  # built library + union meshes (None: <out>/cache)
     progress: bool = True
 
 
@@ -86,6 +89,46 @@ QUICK = AssetsJobConfig(
 
 
 # ----------------------------------------------------------------------------- library
+
+
+LIBRARY_SOURCES = (
+    "sim/geometry.py",
+    "sim/assets/base.py",
+    "sim/assets/objects.py",
+    "sim/assets/supports.py",
+    "sim/library.py",
+)
+
+
+def load_or_build_library(
+    config: LibraryConfig, cache_dir: Path, progress: bool = True
+) -> tuple[Library, bool]:
+    """The library of ``config``, from ``cache_dir`` if this exact config and generator code
+    built it before (key: SHA-256 of the config and of :data:`LIBRARY_SOURCES`), else built
+    and stored there. Returns (library, loaded_from_cache)."""
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha256(json.dumps(dataclasses.asdict(config), sort_keys=True).encode())
+    for rel in LIBRARY_SOURCES:
+        h.update((root / rel).read_bytes())
+    path = cache_dir / f"library-{h.hexdigest()[:20]}.pkl"
+    if path.exists():
+        try:
+            with path.open("rb") as f:
+                library = pickle.load(f)
+            library.cache_dir = cache_dir
+            return library, True
+        except Exception as exc:  # stale or corrupt: rebuild below
+            print(f"ignoring unreadable library cache {path}: {exc}")
+    library = build_library(config, cache_dir=cache_dir, progress=progress)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".tmp{os.getpid()}")
+    with tmp.open("wb") as f:
+        pickle.dump(library, f, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(tmp, path)  # atomic: a killed run never leaves half a cache file
+    for old in cache_dir.glob("library-*.pkl"):  # libraries of older code or configs
+        if old != path:
+            old.unlink(missing_ok=True)
+    return library, False
 
 
 def library_figures(library: Library, build_seconds: float) -> dict:
@@ -133,7 +176,7 @@ def library_figures(library: Library, build_seconds: float) -> dict:
             max_hull_vertices=max(r["max_hull_vertices"] for r in records),
             # procedural assets are built from convex parts; only user meshes go through CoACD
             n_needing_coacd=sum(r["source"] != "procedural" for r in records),
-            build_seconds=round(build_seconds, 3),
+            build_seconds=round(build_seconds, 3),  # or load time, see library_from_cache
         ),
         wall_supports=sum(r.get("wall", False) for r in manifest["supports"]),
     )
@@ -412,10 +455,11 @@ def run(out_dir: str | Path, config: AssetsJobConfig = AssetsJobConfig()) -> dic
         n_objects=config.n_objects, n_supports=config.n_supports, seed=config.seed
     )
     cache = Path(config.cache_dir) if config.cache_dir else out / "cache"
-    library = build_library(lib_config, cache_dir=cache, progress=config.progress)
+    library, cached = load_or_build_library(lib_config, cache, progress=config.progress)
     timings["library"] = round(time.perf_counter() - t0, 3)
     library.save_manifest(out / "manifest.json")
     figures = library_figures(library, timings["library"])
+    figures["decomposition"]["library_from_cache"] = cached
 
     t0 = time.perf_counter()
     groups = sheet_groups(library, config.per_row)
@@ -498,7 +542,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="smoke-test settings: 22 objects, 10 supports, 2 hangs, small pictures "
         "(explicit --n-objects/--n-supports/--hangs/--per-row still win)",
     )
-    p.add_argument("--cache-dir", default=None, help="union-mesh/CoACD cache (default OUT/cache)")
+    p.add_argument(
+        "--cache-dir",
+        default=None,
+        help="where the built library (and union meshes) are kept between runs (default OUT/cache)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     return p.parse_args(argv)
 

@@ -58,7 +58,7 @@ class RenderConfig:
 KEY_LIGHT = (-0.5, -0.8, -0.6)
 
 
-# Distinct, mid-saturation colours for the rows of a contact sheet (Tableau 20, darker half).
+# Distinct, mid-saturation colours for the rows of a contact sheet (Tableau 10, then more).
 PALETTE = (
     (0.12, 0.47, 0.71),
     (1.00, 0.50, 0.05),
@@ -70,6 +70,14 @@ PALETTE = (
     (0.50, 0.50, 0.50),
     (0.74, 0.74, 0.13),
     (0.09, 0.75, 0.81),
+    (0.60, 0.35, 0.60),
+    (0.30, 0.60, 0.55),
+    (0.95, 0.70, 0.20),
+    (0.40, 0.45, 0.80),
+    (0.80, 0.35, 0.45),
+    (0.45, 0.65, 0.30),
+    (0.25, 0.30, 0.45),
+    (0.85, 0.55, 0.40),
 )
 
 
