@@ -101,7 +101,7 @@ class StabilityResult(NamedTuple):
 class TakeoffResult(NamedTuple):
     removable: np.ndarray  # [B] bool
     direction: np.ndarray  # [B] int, first direction index that removed it, -1 if none
-    removed: np.ndarray  # [B, 11] bool per direction
+    removed: np.ndarray  # [B, 11] bool: removed by this direction (later ones not tried)
 
 
 class ContactResult(NamedTuple):
@@ -302,8 +302,10 @@ def takeoff_forces(poses: np.ndarray, config: TakeoffConfig) -> np.ndarray:
 
 
 def _takeoff_cpu(
-    scene: Scene, poses, config: TakeoffConfig, nthread: int | None = None, chunk: int = 64
+    scene: Scene, poses, config: TakeoffConfig, nthread: int | None = None, chunk: int = 512
 ):
+    """Directions are tried in the original order; a pose removed by one direction is not
+    pushed along the later ones (its remaining ``removed`` entries stay False)."""
     poses = check_poses(poses)
     model = with_material(scene, config.mass, config.friction)
     dt = model.opt.timestep
@@ -315,21 +317,24 @@ def _takeoff_cpu(
     forces = takeoff_forces(poses, config)
     removed = np.zeros((len(poses), 11), dtype=bool)
     spec = mujoco.mjtState.mjSTATE_XFRC_APPLIED
-    for start in range(0, len(poses), chunk):
-        idx = np.arange(start, min(start + chunk, len(poses)))
-        nb = len(idx) * 11
-        states = _initial_states(scene, np.repeat(poses[idx], 11, axis=0))
-        control = np.zeros((nb, push + free, model.nbody * 6))
-        f = forces[idx].reshape(nb, 3)
-        control[:, :push, 6 * scene.object_body : 6 * scene.object_body + 3] = f[:, None, :]
-        st, _ = _run(model, states, push + free, nthread, control, spec)
-        q = st[:, checks, 1:8].reshape(-1, 7)
-        finite = np.isfinite(q).all(axis=1) & (
-            np.linalg.norm(np.nan_to_num(q[:, :3]), axis=1) < 1e3
-        )
-        q = np.where(finite[:, None], q, np.array([0, 0, 1e3, 1, 0, 0, 0.0]))  # diverged: far away
-        sep = ~boxes_overlap(object_boxes(scene, check_poses(q)), scene.support_bounds)
-        removed[idx] = sep.reshape(len(idx), 11, len(checks)).any(axis=2)
+    body = scene.object_body
+    for k in range(11):
+        todo = np.flatnonzero(~removed.any(axis=1))
+        for start in range(0, len(todo), chunk):
+            idx = todo[start : start + chunk]
+            states = _initial_states(scene, poses[idx])
+            control = np.zeros((len(idx), push + free, model.nbody * 6))
+            control[:, :push, 6 * body : 6 * body + 3] = forces[idx, k][:, None, :]
+            st, _ = _run(model, states, push + free, nthread, control, spec)
+            q = st[:, checks, 1:8].reshape(-1, 7)
+            finite = np.isfinite(q).all(axis=1) & (
+                np.linalg.norm(np.nan_to_num(q[:, :3]), axis=1) < 1e3
+            )
+            q = np.where(
+                finite[:, None], q, np.array([0, 0, 1e3, 1, 0, 0, 0.0])
+            )  # diverged: far away
+            sep = ~boxes_overlap(object_boxes(scene, check_poses(q)), scene.support_bounds)
+            removed[idx, k] = sep.reshape(len(idx), len(checks)).any(axis=1)
     first = np.where(removed.any(1), removed.argmax(1), -1)
     return TakeoffResult(removed.any(1), first, removed)
 

@@ -53,6 +53,7 @@ def thread_pose(
     s: float,
     sign: float,
     config: ProposalConfig = ProposalConfig(),
+    com: np.ndarray | None = None,
 ) -> np.ndarray:
     """The pose [7] hanging ``loop`` on ``peg`` at arc length ``s`` from the peg's base.
 
@@ -65,7 +66,7 @@ def thread_pose(
         up_perp = np.array([1.0, 0.0, 0.0]) - d[0] * d
     up_perp = _unit(up_perp)
     axis = _unit(np.asarray(loop.axis))
-    com = _center_of_mass(obj)
+    com = _center_of_mass(obj) if com is None else com
     offset = com - loop.center
     in_plane = offset - np.dot(offset, axis) * axis
     if np.linalg.norm(in_plane) < 1e-6:
@@ -112,13 +113,14 @@ def hang_poses(
     if not pegs:
         raise ValueError(f"support {support.name} has no pegs; use uniform_poses")
     poses = np.zeros((n, 7))
+    com = _center_of_mass(obj)
     for i in range(n):
         loop = loops[rng.integers(len(loops))]
         peg = pegs[rng.integers(len(pegs))]
         sign = rng.choice([-1.0, 1.0])
         lo, hi, _ = _peg_range(obj, loop, peg, sign, config)
         s = rng.uniform(lo, hi) if hi > lo else hi
-        pose = thread_pose(obj, loop, peg, s, sign, config)
+        pose = thread_pose(obj, loop, peg, s, sign, config, com)
         if config.jitter_angle > 0 or config.jitter_position > 0:
             pose = jitter_pose(pose, rng, config.jitter_angle, config.jitter_position)
         poses[i] = pose

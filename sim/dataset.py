@@ -1,0 +1,541 @@
+"""The hanging dataset engine: per (object, support) pair, stable poses that can be taken off,
+near-miss negatives, collision-labelled poses, one camera view per body, contact annotations.
+
+Format (version :data:`FORMAT`)
+-------------------------------
+``DIR/recipe.json``         the config, library config, versions: everything needed to rebuild.
+``DIR/shards/shard_NNNNN.npz``  labels of ``shard_size`` consecutive pairs (compressed):
+    ``pair_index [P]``, ``object_id [P]``, ``support_id [P]`` (indices into the recipe's
+    name lists), ``pair_seed [P] uint64``, ``mass [P]``, ``friction [P]``,
+    ``object_eye [P, 3]``, ``support_eye [P, 3]`` (chosen camera positions, float32),
+    ``n_candidates``, ``n_penetrating``, ``n_fallen``, ``n_stable_raw``, ``n_takeoff_rejected``
+    ``[P]`` (counts), ``stable_offsets [P + 1]`` + ``stable_poses [S, 7]``,
+    ``negative_offsets [P + 1]`` + ``negative_poses [N, 7]``, ``collision_offsets [P + 1]`` +
+    ``collision_kept [C] bool`` + ``collision_label [C] bool`` (colliding) for the
+    collision poses, which are *not* stored but regenerated from ``pair_seed``.
+    Poses are position (m) + quaternion (w, x, y, z), float32, object frame in the support
+    frame. Every shard is written to a temporary file and renamed, so a shard that exists is
+    complete; a killed job loses at most the shard in progress.
+``DIR/dataset_card.json`` / ``.md``  counts, yields, timings, device (written at the end).
+Heavy arrays (partial clouds, contact maps, contact pairs) are derived from the labels by
+:func:`derive_pair` (deterministic ray casting on the CPU) and cached by the caller.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from sim import annotate, camera, kernels, proposals
+from sim.assets.base import Asset
+from sim.library import Library, LibraryConfig, build_library, check_split
+from sim.scene import build_scene
+
+FORMAT = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetConfig:
+    library: LibraryConfig = LibraryConfig()
+    max_objects_per_category: int | None = None  # None: all of the library's objects
+    max_supports_per_family: int | None = None
+    max_candidates: int = 10_000  # original: up to 10,000 candidates per pair
+    batch: int = 512  # candidates per kernel call
+    max_stable: int = 50  # original: at most 50 stable poses per pair
+    max_negatives: int = 50  # original: at most 50 near misses per pair
+    hang_fraction: float = 0.75  # share of candidates from hang-feature threading (rest uniform)
+    n_collision: int = 1000  # original: 1000 random poses per pair for collision labels
+    collision_free_within: float = 0.02  # m; farther poses are dropped (original 2 cm)
+    collision_expand: float = 1.5  # support box grown by object extent / 1.5 (original)
+    n_views: int = 4  # candidate views per body; the one seeing most contact mass is kept
+    camera: camera.CameraConfig = camera.CameraConfig()
+    mass_range: tuple[float, float] = (0.3, 0.8)  # kg, take-off test (original)
+    friction_range: tuple[float, float] = (0.1, 0.5)  # take-off test (original)
+    shard_size: int = 16  # pairs per shard file
+    seed: int = 0
+    stability: kernels.StabilityConfig = kernels.StabilityConfig()
+    takeoff: kernels.TakeoffConfig = kernels.TakeoffConfig()
+
+
+PRESETS = {
+    # a few minutes on 2 CPU cores: one object per category x one support per family
+    "demo": DatasetConfig(
+        max_objects_per_category=1,
+        max_supports_per_family=1,
+        max_candidates=256,
+        batch=256,
+        max_stable=10,
+        max_negatives=10,
+        n_collision=100,
+        n_views=3,
+        camera=camera.CameraConfig(width=320, height=240, n_points=2048),
+        shard_size=8,
+    ),
+    # the paper's scale: 340 objects x 72 supports
+    "paper": DatasetConfig(),
+}
+
+
+# ----------------------------------------------------------------------------- pairs
+
+
+def pair_list(library: Library, config: DatasetConfig) -> list[tuple[str, str, str]]:
+    """Deterministic (object, support, split) list. A pair is "test" if its object or its
+    support is held out, "train" if both are training assets."""
+
+    def pick(table: dict[str, Asset], limit: int | None, test_first: bool) -> list[str]:
+        by_group: dict[str, list[str]] = {}
+        for name in sorted(table):
+            by_group.setdefault(table[name].category, []).append(name)
+        chosen = []
+        for names in by_group.values():
+            if limit is None:
+                chosen += names
+            else:  # keep train and test represented: alternate from each end of the split
+                train = [n for n in names if library.split_of(n) == "train"]
+                test = [n for n in names if library.split_of(n) == "test"]
+                mix = (
+                    [x for pair in zip(train, test) for x in pair]
+                    + train[len(test) :]
+                    + test[len(train) :]
+                )
+                chosen += mix[:limit]
+        return sorted(chosen)
+
+    objs = pick(library.objects, config.max_objects_per_category, test_first=True)
+    sups = pick(library.supports, config.max_supports_per_family, test_first=False)
+    pairs = []
+    for o in objs:
+        for s in sups:
+            split = "train" if library.split_of(o) == library.split_of(s) == "train" else "test"
+            pairs.append((o, s, split))
+    return pairs
+
+
+def pair_seed(base: int, obj: str, sup: str) -> int:
+    return int.from_bytes(hashlib.sha256(f"{base}/{obj}/{sup}".encode()).digest()[:8], "little")
+
+
+def collision_poses(obj: Asset, support: Asset, seed: int, config: DatasetConfig) -> np.ndarray:
+    """The pair's collision-label candidates [n_collision, 7], regenerated from its seed."""
+    rng = np.random.default_rng([seed, 2])
+    lo, hi = support.bounds()
+    grow = obj.extents.max() / config.collision_expand
+    cfg = proposals.ProposalConfig(uniform_margin=grow, uniform_up=0.0)
+    del lo, hi
+    return proposals.uniform_poses(obj, support, config.n_collision, rng, cfg)
+
+
+# ----------------------------------------------------------------------------- one pair
+
+
+def generate_pair(
+    obj: Asset, support: Asset, seed: int, config: DatasetConfig, backend: str = "cpu"
+) -> dict:
+    """Labels of one pair (see the module docstring for the fields)."""
+    rng = np.random.default_rng([seed, 1])
+    scene = build_scene(obj, support)
+    stable, negatives = [], []
+    counts = dict(n_candidates=0, n_penetrating=0, n_fallen=0, n_stable_raw=0)
+    has_features = bool(obj.features) and bool(support.features)
+    while counts["n_candidates"] < config.max_candidates and len(stable) < 2 * config.max_stable:
+        n = min(config.batch, config.max_candidates - counts["n_candidates"])
+        n_hang = int(round(n * config.hang_fraction)) if has_features else 0
+        cand = np.concatenate(
+            [
+                proposals.hang_poses(obj, support, n_hang, rng) if n_hang else np.zeros((0, 7)),
+                proposals.uniform_poses(obj, support, n - n_hang, rng),
+            ]
+        )
+        res = kernels.stability(scene, cand, config.stability, backend=backend)
+        counts["n_candidates"] += n
+        counts["n_penetrating"] += int((res.status == kernels.PENETRATING).sum())
+        counts["n_fallen"] += int((res.status == kernels.FALLEN).sum())
+        counts["n_stable_raw"] += int(res.stable.sum())
+        stable.extend(res.settled_pose[res.stable])
+        # near misses: hang-threaded candidates that started clear of the support and fell
+        near = (
+            (res.status == kernels.FALLEN)
+            & (np.arange(n) < n_hang)
+            & (res.initial_penetration == 0)
+        )
+        negatives.extend(cand[near])
+    stable_arr = np.asarray(stable, dtype=float).reshape(-1, 7)[: 2 * config.max_stable]
+    mass = float(rng.uniform(*config.mass_range))
+    friction = float(rng.uniform(*config.friction_range))
+    removable = np.zeros(len(stable_arr), dtype=bool)
+    if len(stable_arr):
+        take_cfg = dataclasses.replace(config.takeoff, mass=mass, friction=friction)
+        removable = kernels.takeoff(scene, stable_arr, take_cfg, backend=backend).removable
+    kept = stable_arr[removable][: config.max_stable]
+    negatives_arr = np.asarray(negatives, dtype=float).reshape(-1, 7)[: config.max_negatives]
+
+    col_poses = collision_poses(obj, support, seed, config)
+    con = kernels.contact_query(
+        scene, col_poses, kernels.ContactConfig(distance_cutoff=config.collision_free_within + 1e-3)
+    )
+    colliding = con.penetration > 0
+    free = (~colliding) & (con.distance <= config.collision_free_within)
+    # eyes: the view of each body that sees the most contact-map mass at the stable poses
+    obj_eye, sup_eye = choose_views(scene, kept, seed, config)
+    return dict(
+        **counts,
+        n_takeoff_rejected=int((~removable).sum()),
+        mass=mass,
+        friction=friction,
+        stable_poses=kept.astype(np.float32),
+        negative_poses=negatives_arr.astype(np.float32),
+        collision_kept=colliding | free,
+        collision_label=colliding,
+        object_eye=obj_eye.astype(np.float32),
+        support_eye=sup_eye.astype(np.float32),
+    )
+
+
+def choose_views(scene, stable_poses: np.ndarray, seed: int, config: DatasetConfig):
+    """Among ``n_views`` random views per body, the one whose cloud carries the most contact
+    map mass at the first stable pose (original: the view covering the most contact mass)."""
+    rng = np.random.default_rng([seed, 3])
+    cam = config.camera
+    eyes = [camera.default_eyes(scene, rng, cam) for _ in range(max(1, config.n_views))]
+    if len(stable_poses) == 0 or len(eyes) == 1:
+        return eyes[0]
+    pose = stable_poses[0].astype(float)
+    con = kernels.contact_query(scene, pose[None])
+    m = con.mask[0]
+    if not m.any():
+        return eyes[0]
+    best_o, best_s = (-1.0, eyes[0][0]), (-1.0, eyes[0][1])
+    for i, (oe, se) in enumerate(eyes):
+        crng = np.random.default_rng([seed, 4, i])
+        oc = camera.partial_cloud(scene, "object", oe, crng, cam)
+        sc = camera.partial_cloud(scene, "support", se, crng, cam)
+        ann = annotate.annotate(con.object_points[0, m], con.support_points[0, m], pose, oc, sc)
+        # mass seen: how close the visible cloud comes to the contacts, as soft-map mass
+        o_mass = _visible_contact_mass(oc.points, ann.object_points)
+        s_mass = _visible_contact_mass(sc.points, ann.support_points)
+        if o_mass > best_o[0]:
+            best_o = (o_mass, oe)
+        if s_mass > best_s[0]:
+            best_s = (s_mass, se)
+    return best_o[1], best_s[1]
+
+
+def _visible_contact_mass(points: np.ndarray, contacts: np.ndarray, scale: float = 0.01) -> float:
+    if len(contacts) == 0:
+        return 0.0
+    d = np.linalg.norm(points[:, None, :] - contacts[None, :, :], axis=-1).min(0)
+    return float(np.exp(-d / scale).sum())
+
+
+def derive_pair(obj: Asset, support: Asset, record: dict, config: DatasetConfig) -> dict:
+    """Heavy arrays of one pair from its labels: clouds with normals (object frame / world
+    frame) and, per stable pose, soft contact maps and contact pairs. Deterministic."""
+    scene = build_scene(obj, support)
+    seed = int(record["pair_seed"])
+    rng = np.random.default_rng([seed, 5])
+    oc = camera.partial_cloud(
+        scene, "object", np.asarray(record["object_eye"], float), rng, config.camera
+    )
+    sc = camera.partial_cloud(
+        scene, "support", np.asarray(record["support_eye"], float), rng, config.camera
+    )
+    poses = np.asarray(record["stable_poses"], float)
+    n, m = len(oc.points), len(sc.points)
+    obj_maps = np.zeros((len(poses), n), np.float32)
+    sup_maps = np.zeros((len(poses), m), np.float32)
+    pairs = []
+    if len(poses):
+        con = kernels.contact_query(scene, poses)
+        for i in range(len(poses)):
+            k = con.mask[i]
+            ann = annotate.annotate(
+                con.object_points[i, k], con.support_points[i, k], poses[i], oc, sc
+            )
+            obj_maps[i], sup_maps[i] = ann.object_map, ann.support_map
+            pairs.append(ann.pairs)
+    return dict(
+        object_points=oc.points,
+        object_normals=oc.normals,
+        support_points=sc.points,
+        support_normals=sc.normals,
+        object_contact_maps=obj_maps,
+        support_contact_maps=sup_maps,
+        contact_pairs=pairs,
+    )
+
+
+# ----------------------------------------------------------------------------- shards
+
+
+def _pack(records: list[dict], indices: list[int], ids: list[tuple[int, int, int]]) -> dict:
+    out: dict[str, np.ndarray] = {
+        "pair_index": np.asarray(indices, np.int64),
+        "object_id": np.asarray([i[0] for i in ids], np.int32),
+        "support_id": np.asarray([i[1] for i in ids], np.int32),
+        "pair_seed": np.asarray([i[2] for i in ids], np.uint64),
+    }
+    for key in ("n_candidates", "n_penetrating", "n_fallen", "n_stable_raw", "n_takeoff_rejected"):
+        out[key] = np.asarray([r[key] for r in records], np.int32)
+    for key in ("mass", "friction"):
+        out[key] = np.asarray([r[key] for r in records], np.float32)
+    for key in ("object_eye", "support_eye"):
+        out[key] = np.stack([r[key] for r in records]).astype(np.float32)
+    for name, fields in (
+        ("stable", ["stable_poses"]),
+        ("negative", ["negative_poses"]),
+        ("collision", ["collision_kept", "collision_label"]),
+    ):
+        lengths = [len(r[fields[0]]) for r in records]
+        out[f"{name}_offsets"] = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+        for f in fields:
+            arrays = [np.asarray(r[f]) for r in records]
+            out[f] = np.concatenate(arrays) if arrays else np.zeros(0)
+    return out
+
+
+def unpack(shard: dict) -> list[dict]:
+    """Per-pair records from a loaded shard (``np.load`` result or dict)."""
+    recs = []
+    n = len(shard["pair_index"])
+    for i in range(n):
+        r = {
+            k: shard[k][i]
+            for k in (
+                "pair_index",
+                "object_id",
+                "support_id",
+                "pair_seed",
+                "mass",
+                "friction",
+                "object_eye",
+                "support_eye",
+                "n_candidates",
+                "n_penetrating",
+                "n_fallen",
+                "n_stable_raw",
+                "n_takeoff_rejected",
+            )
+        }
+        for name, fields in (
+            ("stable", ["stable_poses"]),
+            ("negative", ["negative_poses"]),
+            ("collision", ["collision_kept", "collision_label"]),
+        ):
+            a, b = shard[f"{name}_offsets"][i], shard[f"{name}_offsets"][i + 1]
+            for f in fields:
+                r[f] = shard[f][a:b]
+        recs.append(r)
+    return recs
+
+
+def _atomic_savez(path: Path, arrays: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp_", suffix=".npz")
+    os.close(fd)
+    try:
+        np.savez_compressed(tmp, **arrays)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp_")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+
+
+def recipe(config: DatasetConfig, library: Library, pairs, preset: str) -> dict:
+    import mujoco
+
+    return {
+        "format": FORMAT,
+        "preset": preset,
+        "config": json.loads(json.dumps(dataclasses.asdict(config), default=str)),
+        "objects": sorted(library.objects),
+        "supports": sorted(library.supports),
+        "pairs": [list(p) for p in pairs],
+        "versions": {
+            "mujoco": mujoco.__version__,
+            "numpy": np.__version__,
+            "python": platform.python_version(),
+        },
+    }
+
+
+def generate(
+    config: DatasetConfig,
+    out_dir: str | os.PathLike,
+    preset: str = "custom",
+    backend: str = "cpu",
+    progress: bool = True,
+) -> dict:
+    """Generate (or resume) the dataset into ``out_dir``; returns the dataset card."""
+    out = Path(out_dir)
+    (out / "shards").mkdir(parents=True, exist_ok=True)
+    library = build_library(config.library, progress=progress)
+    check_split(library)
+    pairs = pair_list(library, config)
+    rec = recipe(config, library, pairs, preset)
+    recipe_path = out / "recipe.json"
+    if recipe_path.exists():
+        old = json.loads(recipe_path.read_text())
+        if old["config"] != rec["config"] or old["pairs"] != rec["pairs"]:
+            raise ValueError(
+                f"{recipe_path} was written for another config; use a new --out or delete it"
+            )
+    else:
+        _atomic_write(recipe_path, json.dumps(rec, indent=1))
+    obj_index = {n: i for i, n in enumerate(rec["objects"])}
+    sup_index = {n: i for i, n in enumerate(rec["supports"])}
+    n_shards = (len(pairs) + config.shard_size - 1) // config.shard_size
+    t0 = time.time()
+    done_pairs = 0
+    bar = tqdm(total=len(pairs), desc="pairs", unit="pair", disable=not progress, smoothing=0.1)
+    timings = {"generate_s": 0.0}
+    for k in range(n_shards):
+        path = out / "shards" / f"shard_{k:05d}.npz"
+        chunk = list(range(k * config.shard_size, min((k + 1) * config.shard_size, len(pairs))))
+        if path.exists():
+            bar.update(len(chunk))
+            continue
+        records, ids = [], []
+        for i in chunk:
+            o, s, _ = pairs[i]
+            seed = pair_seed(config.seed, o, s)
+            records.append(
+                generate_pair(library.objects[o], library.supports[s], seed, config, backend)
+            )
+            ids.append((obj_index[o], sup_index[s], seed))
+            bar.update(1)
+            done_pairs += 1
+            elapsed = time.time() - t0
+            bar.set_postfix(pairs_per_min=f"{60 * done_pairs / max(elapsed, 1e-9):.1f}")
+        _atomic_savez(path, _pack(records, chunk, ids))
+    bar.close()
+    timings["generate_s"] = time.time() - t0
+    card = dataset_card(out, library, pairs, rec, timings, backend, done_pairs)
+    return card
+
+
+def load_records(out_dir: str | os.PathLike) -> list[dict]:
+    out = Path(out_dir)
+    recs = []
+    for path in sorted((out / "shards").glob("shard_*.npz")):
+        with np.load(path) as z:
+            recs.extend(unpack({k: z[k] for k in z.files}))
+    return recs
+
+
+def dataset_card(
+    out: Path, library: Library, pairs, rec: dict, timings: dict, backend: str, new_pairs: int
+) -> dict:
+    records = load_records(out)
+    by_index = {int(r["pair_index"]): r for r in records}
+    n_stable = {i: len(r["stable_poses"]) for i, r in by_index.items()}
+    with_stable = [i for i, n in n_stable.items() if n > 0]
+    train_pairs = [i for i in with_stable if pairs[i][2] == "train"]
+    test_pairs = [i for i in with_stable if pairs[i][2] == "test"]
+    train_objects = sorted({pairs[i][0] for i in train_pairs})
+    test_objects = sorted(
+        {pairs[i][0] for i in test_pairs if library.split_of(pairs[i][0]) == "test"}
+    )
+    leaked = set(train_objects) & {n for n in library.objects if library.split_of(n) == "test"}
+    if leaked:
+        raise AssertionError(f"test objects leaked into training pairs: {sorted(leaked)[:5]}")
+    per_cat: dict[str, dict] = {}
+    per_fam: dict[str, dict] = {}
+    for i, r in by_index.items():
+        o, s, _ = pairs[i]
+        for table, key in (
+            (per_cat, library.objects[o].category),
+            (per_fam, library.supports[s].category),
+        ):
+            e = table.setdefault(
+                key, dict(pairs=0, pairs_with_stable_poses=0, stable_poses=0, candidates=0)
+            )
+            e["pairs"] += 1
+            e["pairs_with_stable_poses"] += int(n_stable[i] > 0)
+            e["stable_poses"] += n_stable[i]
+            e["candidates"] += int(r["n_candidates"])
+    tot = lambda k: int(sum(int(r[k]) for r in records))  # noqa: E731
+    device = platform.processor() or platform.machine()
+    card = {
+        "format": FORMAT,
+        "preset": rec["preset"],
+        "pairs_total": len(pairs),
+        "pairs_done": len(records),
+        "pairs_with_stable_poses": len(with_stable),
+        "train_pairs": len(train_pairs),
+        "test_pairs": len(test_pairs),
+        "train_objects": train_objects,
+        "test_objects": test_objects,
+        "objects": len({p[0] for p in pairs}),
+        "supports": len({p[1] for p in pairs}),
+        "stable_poses": int(sum(n_stable.values())),
+        "negative_poses": int(sum(len(r["negative_poses"]) for r in records)),
+        "collision_labels": int(sum(int(r["collision_kept"].sum()) for r in records)),
+        "colliding_fraction": float(
+            sum(int(r["collision_label"].sum()) for r in records)
+            / max(1, sum(int(r["collision_kept"].sum()) for r in records))
+        ),
+        "candidates": tot("n_candidates"),
+        "stable_yield": tot("n_stable_raw") / max(1, tot("n_candidates")),
+        "penetrating_fraction": tot("n_penetrating") / max(1, tot("n_candidates")),
+        "takeoff_rejections": tot("n_takeoff_rejected"),
+        "per_category": per_cat,
+        "per_family": per_fam,
+        "timings": {
+            **timings,
+            "pairs_this_run": new_pairs,
+            "pairs_per_min_this_run": 60 * new_pairs / max(timings["generate_s"], 1e-9),
+        },
+        "backend": backend,
+        "device": f"{device} x{os.cpu_count()} ({platform.platform()})",
+        "versions": rec["versions"],
+    }
+    _atomic_write(out / "dataset_card.json", json.dumps(card, indent=1))
+    _atomic_write(out / "dataset_card.md", card_markdown(card))
+    return card
+
+
+def card_markdown(card: dict) -> str:
+    lines = [
+        f"# Dataset card ({card['preset']})",
+        "",
+        f"- pairs with stable poses: {card['pairs_with_stable_poses']} of {card['pairs_done']} generated ({card['pairs_total']} planned)",
+        f"- train / test pairs: {card['train_pairs']} / {card['test_pairs']}",
+        f"- objects / supports: {card['objects']} / {card['supports']}",
+        f"- stable poses kept: {card['stable_poses']}; negatives: {card['negative_poses']}; collision labels: {card['collision_labels']} ({100 * card['colliding_fraction']:.1f}% colliding)",
+        f"- candidates: {card['candidates']}; stable yield {100 * card['stable_yield']:.2f}%; penetrating {100 * card['penetrating_fraction']:.1f}%; take-off rejections {card['takeoff_rejections']}",
+        f"- backend {card['backend']} on {card['device']}; {card['timings']['pairs_per_min_this_run']:.1f} pairs/min this run",
+        "",
+        "| category | pairs | with stable poses | stable poses | candidates |",
+        "|---|---|---|---|---|",
+    ]
+    for name, e in sorted(card["per_category"].items()):
+        lines.append(
+            f"| {name} | {e['pairs']} | {e['pairs_with_stable_poses']} | {e['stable_poses']} | {e['candidates']} |"
+        )
+    lines += [
+        "",
+        "| support family | pairs | with stable poses | stable poses | candidates |",
+        "|---|---|---|---|---|",
+    ]
+    for name, e in sorted(card["per_family"].items()):
+        lines.append(
+            f"| {name} | {e['pairs']} | {e['pairs_with_stable_poses']} | {e['stable_poses']} | {e['candidates']} |"
+        )
+    return "\n".join(lines) + "\n"
