@@ -959,10 +959,10 @@ def scissors(rng: np.random.Generator) -> AssetSpec:
     shank = _uniform(rng, 0.012, 0.03)
     gap = _uniform(rng, 0.002, 0.008)
     style = _choice(rng, ["round", "long"])
-    small = _uniform(rng, 0.013, 0.017)
+    small = _uniform(rng, 0.014, 0.018)
     rings = [(small * _uniform(rng, 1.0, 1.15), small)]
     if style == "long":
-        rings.append((_uniform(rng, 0.02, 0.032), _uniform(rng, 0.013, 0.016)))
+        rings.append((_uniform(rng, 0.02, 0.032), _uniform(rng, 0.014, 0.017)))
     else:
         rings.append((small * _uniform(rng, 1.0, 1.15), small))
     parts: list[Part] = []
