@@ -1,0 +1,421 @@
+"""Data contract between the dataset engine and the goal-pose networks.
+
+One record per (object, supporting item) pair: ``HangSample``. The same NamedTuple holds a batch
+(every field gains a leading B axis). Frames: object points live in the OBJECT frame (origin at
+the mesh's bounding-box centre), support points in the SUPPORT frame; a stable pose maps the
+first into the second (``omnihang_jax.poses``).
+
+On disk (``load_hang_dataset``): one ``.npz`` per pair whose keys are the ``HangSample`` field
+names (unbatched, unpadded D and C allowed; ``pose_mask`` / ``contact_mask`` may be omitted when
+every row is valid).
+
+Also here: ``synthetic_batch`` (ring-on-peg scenes for tests and dry runs), ``stack_samples``
+(padding), ``validate_sample`` / ``check_point_clouds`` (clear errors at the Python boundary) and
+the host-side datasets used by the training loop.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from collections.abc import Sequence
+from typing import NamedTuple, Protocol
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from omnihang_jax.poses import pose6_to_pose7, pose7_to_pose6
+
+__all__ = [
+    "HangSample",
+    "MAX_STABLE_POSES",
+    "synthetic_sample",
+    "synthetic_batch",
+    "stack_samples",
+    "validate_sample",
+    "check_point_clouds",
+    "HangDataset",
+    "ArrayDataset",
+    "NpzDirectoryDataset",
+    "load_hang_dataset",
+    "pose7_to_pose6",
+    "pose6_to_pose7",
+]
+
+MAX_STABLE_POSES = 50  # at most 50 stable poses are kept per pair (facts)
+
+
+class HangSample(NamedTuple):
+    """One (object, support) pair, or a batch of them (leading B axis on every field).
+
+    object_points: [N, 3] float32, metres, object frame (N = 4096 in the original).
+    object_normals: [N, 3] float32 unit outward normals.
+    support_points: [M, 3] float32, metres, support frame.
+    support_normals: [M, 3] float32.
+    stable_poses: [D, 7] float32 -- object frame in support frame: xyz (metres) + quaternion wxyz.
+    pose_mask: [D] bool, True for real poses (padding rows False); D <= 50.
+    object_contact_maps: [D, N] float32 in [0, 1], soft contact map of each stable pose.
+    support_contact_maps: [D, M] float32 in [0, 1].
+    contact_pairs: [D, C, 2] int32 (object point index, support point index) of the contacts
+      at each stable pose.
+    contact_mask: [D, C] bool, True for real contact pairs.
+    """
+
+    object_points: np.ndarray | jax.Array
+    object_normals: np.ndarray | jax.Array
+    support_points: np.ndarray | jax.Array
+    support_normals: np.ndarray | jax.Array
+    stable_poses: np.ndarray | jax.Array
+    pose_mask: np.ndarray | jax.Array
+    object_contact_maps: np.ndarray | jax.Array
+    support_contact_maps: np.ndarray | jax.Array
+    contact_pairs: np.ndarray | jax.Array
+    contact_mask: np.ndarray | jax.Array
+
+
+_DTYPES = {
+    "object_points": np.float32,
+    "object_normals": np.float32,
+    "support_points": np.float32,
+    "support_normals": np.float32,
+    "stable_poses": np.float32,
+    "pose_mask": np.bool_,
+    "object_contact_maps": np.float32,
+    "support_contact_maps": np.float32,
+    "contact_pairs": np.int32,
+    "contact_mask": np.bool_,
+}
+
+
+# ----------------------------------------------------------------------------------------------
+# Validation at the Python boundary (never inside jit).
+
+
+def check_point_clouds(object_points, support_points, batched: bool = True) -> None:
+    """Raise ValueError unless both clouds are finite float arrays of shape [B, *, 3]."""
+    for name, pts in (("object_points", object_points), ("support_points", support_points)):
+        pts = np.asarray(pts)
+        want = 3 if batched else 2
+        if pts.ndim != want or pts.shape[-1] != 3:
+            raise ValueError(
+                f"{name} must have shape {'[B, N, 3]' if batched else '[N, 3]'}, got {pts.shape}"
+            )
+        if not np.all(np.isfinite(pts)):
+            bad = int(np.sum(~np.isfinite(pts).all(-1)))
+            raise ValueError(f"{name} contains {bad} non-finite (NaN/inf) points")
+
+
+def validate_sample(sample: HangSample, name: str = "sample") -> None:
+    """Check shapes and finiteness of one unbatched HangSample; raise ValueError if wrong."""
+    s = HangSample(*(np.asarray(x) for x in sample))
+    check_point_clouds(s.object_points, s.support_points, batched=False)
+    n, m = s.object_points.shape[0], s.support_points.shape[0]
+    d = s.stable_poses.shape[0]
+    expect = {
+        "object_normals": (n, 3),
+        "support_normals": (m, 3),
+        "stable_poses": (d, 7),
+        "pose_mask": (d,),
+        "object_contact_maps": (d, n),
+        "support_contact_maps": (d, m),
+    }
+    for field, shape in expect.items():
+        if getattr(s, field).shape != shape:
+            raise ValueError(f"{name}: {field} has shape {getattr(s, field).shape}, want {shape}")
+    if s.contact_pairs.ndim != 3 or s.contact_pairs.shape[::2] != (d, 2):
+        raise ValueError(f"{name}: contact_pairs has shape {s.contact_pairs.shape}, want [D, C, 2]")
+    if s.contact_mask.shape != s.contact_pairs.shape[:2]:
+        raise ValueError(f"{name}: contact_mask shape {s.contact_mask.shape} != [D, C]")
+    for field in ("object_normals", "support_normals", "stable_poses"):
+        if not np.all(np.isfinite(getattr(s, field))):
+            raise ValueError(f"{name}: {field} contains NaN/inf")
+    if not np.any(s.pose_mask):
+        raise ValueError(f"{name}: no valid stable pose (pose_mask all False)")
+    if np.any(s.contact_pairs[..., 0] >= n) or np.any(s.contact_pairs[..., 1] >= m):
+        raise ValueError(f"{name}: contact_pairs index out of range")
+
+
+# ----------------------------------------------------------------------------------------------
+# Padding / batching (host side, numpy).
+
+
+def _pad_axis(x: np.ndarray, axis: int, size: int) -> np.ndarray:
+    if x.shape[axis] > size:
+        raise ValueError(f"cannot pad axis {axis} of size {x.shape[axis]} down to {size}")
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (0, size - x.shape[axis])
+    return np.pad(x, pad)
+
+
+def stack_samples(
+    samples: Sequence[HangSample], max_poses: int | None = None, max_contacts: int | None = None
+) -> HangSample:
+    """Stack unbatched samples into a batch, padding D (poses) and C (contacts) with masked rows.
+
+    All samples must share N and M (the dataset engine resamples clouds to a fixed count).
+    max_poses / max_contacts default to the largest D / C in ``samples``. Padded poses are the
+    identity (never used: masked). Returns a HangSample of numpy arrays with leading B axis.
+    """
+    samples = [HangSample(*(np.asarray(x) for x in s)) for s in samples]
+    d = max_poses or max(s.stable_poses.shape[0] for s in samples)
+    c = max_contacts or max(s.contact_pairs.shape[1] for s in samples)
+    shapes = {(s.object_points.shape[0], s.support_points.shape[0]) for s in samples}
+    if len(shapes) != 1:
+        raise ValueError(f"all samples must share (N, M) point counts, got {sorted(shapes)}")
+    out = []
+    for s in samples:
+        poses = _pad_axis(s.stable_poses, 0, d)
+        poses[s.stable_poses.shape[0] :, 3] = 1.0  # identity quaternion in padding rows
+        out.append(
+            HangSample(
+                object_points=s.object_points,
+                object_normals=s.object_normals,
+                support_points=s.support_points,
+                support_normals=s.support_normals,
+                stable_poses=poses,
+                pose_mask=_pad_axis(s.pose_mask, 0, d),
+                object_contact_maps=_pad_axis(s.object_contact_maps, 0, d),
+                support_contact_maps=_pad_axis(s.support_contact_maps, 0, d),
+                contact_pairs=_pad_axis(_pad_axis(s.contact_pairs, 0, d), 1, c),
+                contact_mask=_pad_axis(_pad_axis(s.contact_mask, 0, d), 1, c),
+            )
+        )
+    return HangSample(
+        *(np.stack(xs).astype(_DTYPES[f]) for f, xs in zip(HangSample._fields, zip(*out)))
+    )
+
+
+def unstack(batch: HangSample) -> list[HangSample]:
+    """Inverse of ``stack_samples`` (padding kept)."""
+    b = np.asarray(batch.object_points).shape[0]
+    return [HangSample(*(np.asarray(x)[i] for x in batch)) for i in range(b)]
+
+
+# ----------------------------------------------------------------------------------------------
+# Synthetic ring-on-peg scenes (JAX, jittable, vmapped over the batch).
+
+
+def _ring_cloud(key, n, major, minor):
+    """Torus around the object z axis (angles uniform; not exactly area-uniform)."""
+    ku, kv = jax.random.split(key)
+    u = jax.random.uniform(ku, (n,), maxval=2 * jnp.pi)
+    v = jax.random.uniform(kv, (n,), maxval=2 * jnp.pi)
+    normals = jnp.stack([jnp.cos(v) * jnp.cos(u), jnp.cos(v) * jnp.sin(u), jnp.sin(v)], -1)
+    centre_line = jnp.stack([major * jnp.cos(u), major * jnp.sin(u), jnp.zeros_like(u)], -1)
+    return centre_line + minor * normals, normals
+
+
+def _peg_cloud(key, m, radius, length, plate_half):
+    """Horizontal peg along +x from a square wall plate at x = 0 (support frame)."""
+    m_peg = (m * 4) // 5
+    kx, kt, kp = jax.random.split(key, 3)
+    x = jax.random.uniform(kx, (m_peg,), maxval=length)
+    theta = jax.random.uniform(kt, (m_peg,), maxval=2 * jnp.pi)
+    peg_normals = jnp.stack([jnp.zeros_like(x), jnp.cos(theta), jnp.sin(theta)], -1)
+    peg = jnp.stack([x, radius * jnp.cos(theta), radius * jnp.sin(theta)], -1)
+    yz = jax.random.uniform(kp, (m - m_peg, 2), minval=-plate_half, maxval=plate_half)
+    plate = jnp.concatenate([jnp.zeros((m - m_peg, 1)), yz], -1)
+    plate_normals = jnp.tile(jnp.array([[1.0, 0.0, 0.0]]), (m - m_peg, 1))
+    return jnp.concatenate([peg, plate]), jnp.concatenate([peg_normals, plate_normals])
+
+
+def _soft_map(points, contact, sigma):
+    d2 = jnp.sum(jnp.square(points - contact), -1)
+    w = jnp.exp(-0.5 * d2 / sigma**2)
+    return w / jnp.max(w)
+
+
+def synthetic_sample(
+    key: jax.Array,
+    n_object: int = 128,
+    n_support: int = 128,
+    max_poses: int = 4,
+    max_contacts: int = 2,
+    contact_sigma: float = 0.01,
+) -> HangSample:
+    """One synthetic ring-on-peg pair (unbatched HangSample of jax arrays).
+
+    Object: a torus (major radius 3-5 cm, tube 4-7 mm) centred at its bounding-box centre.
+    Support: a horizontal peg (radius 3-6 mm, length 12 cm) along +x from a wall plate.
+    Stable poses (1..max_poses valid): the ring's axis along the peg, spun by a random angle
+    about it (|spin| <= 90 deg), centred at x in [3, 9] cm with its inner top edge resting on the peg's top.
+    One contact pair per pose (the nearest cloud points to the contact), padded to max_contacts.
+    Contact maps: Gaussian of the distance to the contact point (sigma 1 cm), max-normalised
+    (the real engine uses geodesic/normal weights; the shape of the signal is the same).
+    """
+    keys = jax.random.split(key, 8)
+    major = jax.random.uniform(keys[0], minval=0.03, maxval=0.05)
+    minor = jax.random.uniform(keys[1], minval=0.004, maxval=0.007)
+    peg_radius = jax.random.uniform(keys[2], minval=0.003, maxval=0.006)
+    object_points, object_normals = _ring_cloud(keys[3], n_object, major, minor)
+    support_points, support_normals = _peg_cloud(keys[4], n_support, peg_radius, 0.12, 0.03)
+
+    num_valid = jax.random.randint(keys[5], (), 1, max_poses + 1)
+    pose_mask = jnp.arange(max_poses) < num_valid
+    # The torus is symmetric about its axis; spins within +-90 deg keep the axis-angle away from
+    # the pi wrap-around (the angle of Ry(90) Rz(spin) is arccos((cos(spin) - 1) / 2) <= 2.1).
+    spin = jax.random.uniform(keys[6], (max_poses,), minval=-jnp.pi / 2, maxval=jnp.pi / 2)
+    x_centre = jax.random.uniform(keys[7], (max_poses,), minval=0.03, maxval=0.09)
+    z_centre = peg_radius - (major - minor)  # inner top of the tube touches the top of the peg
+    # R = Ry(+90 deg) @ Rz(spin): object z (ring axis) -> support x (peg axis).
+    ry = jnp.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    c, s = jnp.cos(spin), jnp.sin(spin)
+    zeros, ones = jnp.zeros_like(c), jnp.ones_like(c)
+    rz = jnp.stack(
+        [
+            jnp.stack([c, -s, zeros], -1),
+            jnp.stack([s, c, zeros], -1),
+            jnp.stack([zeros, zeros, ones], -1),
+        ],
+        axis=-2,
+    )
+    rotation = jnp.einsum("ij,djk->dik", ry, rz)  # [D, 3, 3]
+    translation = jnp.stack(
+        [x_centre, jnp.zeros_like(x_centre), jnp.full_like(x_centre, z_centre)], -1
+    )
+    wxyz = jaxlie.SO3.from_matrix(rotation).wxyz
+    stable_poses = pose6_to_pose7(pose7_to_pose6(jnp.concatenate([translation, wxyz], -1)))
+
+    contact_support = jnp.stack(
+        [x_centre, jnp.zeros_like(x_centre), jnp.full_like(x_centre, peg_radius)], -1
+    )
+    contact_object = jnp.einsum("dji,dj->di", rotation, contact_support - translation)  # R^T(.)
+    object_maps = jax.vmap(_soft_map, (None, 0, None))(object_points, contact_object, contact_sigma)
+    support_maps = jax.vmap(_soft_map, (None, 0, None))(
+        support_points, contact_support, contact_sigma
+    )
+    nearest = lambda pts, q: jnp.argmin(jnp.sum(jnp.square(pts[None] - q[:, None]), -1), -1)
+    pair = jnp.stack(
+        [nearest(object_points, contact_object), nearest(support_points, contact_support)], -1
+    )
+    contact_pairs = jnp.zeros((max_poses, max_contacts, 2), jnp.int32).at[:, 0].set(pair)
+    contact_mask = jnp.zeros((max_poses, max_contacts), bool).at[:, 0].set(True)
+    contact_mask = contact_mask & pose_mask[:, None]
+
+    return HangSample(
+        object_points=object_points.astype(jnp.float32),
+        object_normals=object_normals.astype(jnp.float32),
+        support_points=support_points.astype(jnp.float32),
+        support_normals=support_normals.astype(jnp.float32),
+        stable_poses=stable_poses,
+        pose_mask=pose_mask,
+        object_contact_maps=object_maps.astype(jnp.float32),
+        support_contact_maps=support_maps.astype(jnp.float32),
+        contact_pairs=contact_pairs,
+        contact_mask=contact_mask,
+    )
+
+
+def synthetic_batch(
+    key: jax.Array,
+    batch: int,
+    n_points: int = 128,
+    n_support: int | None = None,
+    max_poses: int = 4,
+    max_contacts: int = 2,
+) -> HangSample:
+    """A batch of ``synthetic_sample`` pairs as numpy arrays (host side, like a real loader).
+
+    n_points: object cloud size N; n_support: support cloud size M (default N).
+    """
+    fn = jax.jit(
+        jax.vmap(
+            lambda k: synthetic_sample(k, n_points, n_support or n_points, max_poses, max_contacts)
+        )
+    )
+    return HangSample(*(np.asarray(x) for x in fn(jax.random.split(key, batch))))
+
+
+# ----------------------------------------------------------------------------------------------
+# Host-side datasets for the training loop.
+
+
+class HangDataset(Protocol):
+    """What the training loop needs from a dataset."""
+
+    def __len__(self) -> int: ...
+
+    def sample_batch(self, rng: np.random.Generator, batch_size: int) -> HangSample:
+        """A batch (numpy, leading B axis) drawn uniformly with replacement."""
+        ...
+
+
+class ArrayDataset:
+    """All pairs in memory as one padded batched HangSample (synthetic pools, small sets)."""
+
+    def __init__(self, samples: HangSample):
+        self.samples = HangSample(*(np.asarray(x) for x in samples))
+
+    def __len__(self) -> int:
+        return self.samples.object_points.shape[0]
+
+    def sample_batch(self, rng: np.random.Generator, batch_size: int) -> HangSample:
+        idx = rng.integers(0, len(self), batch_size)
+        return HangSample(*(x[idx] for x in self.samples))
+
+
+def _load_npz_sample(path: str) -> HangSample:
+    with np.load(path) as f:
+        missing = [k for k in HangSample._fields if k not in f and not k.endswith("_mask")]
+        if missing:
+            raise ValueError(f"{path}: missing keys {missing}; expected HangSample fields")
+        data = {k: f[k] for k in f.files}
+    d = data["stable_poses"].shape[0]
+    data.setdefault("pose_mask", np.ones(d, bool))
+    data.setdefault("contact_mask", np.ones(data["contact_pairs"].shape[:2], bool))
+    sample = HangSample(**{k: np.asarray(data[k], _DTYPES[k]) for k in HangSample._fields})
+    validate_sample(sample, name=path)
+    return sample
+
+
+class NpzDirectoryDataset:
+    """Pairs stored one per ``.npz`` file, read lazily per batch and padded to ``max_poses``."""
+
+    def __init__(self, files: Sequence[str], max_poses: int = MAX_STABLE_POSES, max_contacts=None):
+        self.files = list(files)
+        self.max_poses = max_poses
+        self.max_contacts = max_contacts or _max_contacts(self.files[:1])
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def sample_batch(self, rng: np.random.Generator, batch_size: int) -> HangSample:
+        idx = rng.integers(0, len(self), batch_size)
+        samples = [_load_npz_sample(self.files[i]) for i in idx]
+        c = max(self.max_contacts, *(s.contact_pairs.shape[1] for s in samples))
+        return stack_samples(samples, self.max_poses, c)
+
+
+def _max_contacts(files: Sequence[str]) -> int:
+    c = 1
+    for path in files:
+        with np.load(path) as f:
+            c = max(c, f["contact_pairs"].shape[1])
+    return c
+
+
+def load_hang_dataset(
+    directory: str | os.PathLike, split: str = "train", max_poses: int = MAX_STABLE_POSES
+) -> NpzDirectoryDataset:
+    """Loader hook for the dataset engine's output.
+
+    Expected layout: ``<directory>/<split>/*.npz`` (or ``<directory>/*.npz``), one file per
+    (object, support) pair, keys = ``HangSample`` field names, unbatched (see module docstring).
+    Raises FileNotFoundError with the expected layout when no such file exists, ValueError
+    when a file breaks the contract (checked per file when it is read).
+    """
+    directory = os.fspath(directory)
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"dataset directory {directory!r} does not exist")
+    files = sorted(glob.glob(os.path.join(directory, split, "*.npz")))
+    files = files or sorted(glob.glob(os.path.join(directory, "*.npz")))
+    if not files:
+        raise FileNotFoundError(
+            f"no pair files in {directory!r}: expected {directory}/{split}/*.npz (or "
+            f"{directory}/*.npz), one .npz per (object, support) pair with keys "
+            f"{', '.join(HangSample._fields)} (see omnihang_jax.data.HangSample). "
+            "Use --data synthetic for a dry run."
+        )
+    return NpzDirectoryDataset(files, max_poses=max_poses)

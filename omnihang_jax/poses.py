@@ -1,0 +1,55 @@
+"""Pose conventions shared by every stage.
+
+A hanging pose is the pose of the OBJECT frame expressed in the SUPPORT frame:
+``p_support = R @ p_object + t``.
+
+* ``pose7``: [..., 7] float32 = translation xyz (metres) + unit quaternion **wxyz** (the dataset
+  format, ``HangSample.stable_poses``).
+* ``pose6``: [..., 6] float32 = translation xyz (metres) + axis-angle / rotation vector (radians,
+  angle in [0, pi]) -- what Stage 1 regresses (paper, "Stage One").
+
+Conversions go through ``jaxlie.SO3``; all functions broadcast over leading axes.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+
+__all__ = [
+    "pose7_to_pose6",
+    "pose6_to_pose7",
+    "rotation_matrix",
+    "transform_points",
+]
+
+
+def pose7_to_pose6(pose7: jax.Array) -> jax.Array:
+    """[..., 7] (xyz + quaternion wxyz) -> [..., 6] (xyz + axis-angle, angle <= pi)."""
+    pose7 = jnp.asarray(pose7, jnp.float32)
+    wxyz = pose7[..., 3:]
+    wxyz = wxyz / jnp.linalg.norm(wxyz, axis=-1, keepdims=True)
+    return jnp.concatenate([pose7[..., :3], jaxlie.SO3(wxyz=wxyz).log()], axis=-1)
+
+
+def pose6_to_pose7(pose6: jax.Array) -> jax.Array:
+    """[..., 6] (xyz + axis-angle) -> [..., 7] (xyz + quaternion wxyz, w >= 0)."""
+    pose6 = jnp.asarray(pose6, jnp.float32)
+    wxyz = jaxlie.SO3.exp(pose6[..., 3:]).wxyz
+    wxyz = jnp.where(wxyz[..., :1] < 0, -wxyz, wxyz)
+    return jnp.concatenate([pose6[..., :3], wxyz], axis=-1)
+
+
+def rotation_matrix(axis_angle: jax.Array) -> jax.Array:
+    """[..., 3] rotation vector -> [..., 3, 3] rotation matrix."""
+    return jaxlie.SO3.exp(jnp.asarray(axis_angle, jnp.float32)).as_matrix()
+
+
+def transform_points(pose6: jax.Array, points: jax.Array) -> jax.Array:
+    """Move object-frame points into the support frame.
+
+    pose6: [..., 6]; points: [..., N, 3] (same leading axes). Returns [..., N, 3] = R p + t.
+    """
+    rot = rotation_matrix(pose6[..., 3:])
+    return jnp.einsum("...ij,...nj->...ni", rot, points) + pose6[..., None, :3]

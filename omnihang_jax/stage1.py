@@ -1,0 +1,138 @@
+"""Stage One: rough pose prediction (paper, "Stage One: Rough Pose Prediction").
+
+Two PointNet++ encoders give F^O (object) and F^S (support); noise z ~ N(0, I) goes through FC
+layers to F^R; F^OSR = [F^O, F^S, F^R] goes through FC 512-512 and two heads
+[128, 64, 64, 32, 3] for translation (metres) and axis-angle (radians). Different z give
+different poses, so Z samples approximate the distribution of stable poses (trained with the
+set loss L_M, Eq. 1, ``losses.pose_set_loss``).
+
+Usage::
+
+    net = make_stage1(STAGE1_TINY)
+    params = net.init(key)
+    poses6 = net.propose(params, object_points, support_points, key, num_samples=5)  # [B, 5, 6]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from omnihang_jax import pointnet2
+from omnihang_jax.losses import TRANSLATION_WEIGHT
+from omnihang_jax.pointnet2 import PointNet2Config, PointNet2Encoder, SharedMLP
+
+__all__ = [
+    "Stage1Config",
+    "STAGE1_ORIGINAL",
+    "STAGE1_TINY",
+    "Stage1Net",
+    "Stage1Network",
+    "make_stage1",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage1Config:
+    """Stage-1 architecture and its loss settings."""
+
+    encoder: PointNet2Config = pointnet2.ORIGINAL
+    noise_dim: int = 32  # dimension of z (facts)
+    noise_mlp: tuple[int, ...] = (64, 64)  # FC layers z -> F^R; widths not given, our choice
+    trunk: tuple[int, ...] = (512, 512)  # FC on F^OSR (facts)
+    head: tuple[int, ...] = (128, 64, 64, 32, 3)  # translation and axis-angle heads (facts)
+    num_train_samples: int = 15  # Z during training (facts)
+    num_eval_samples: int = 5  # Z at evaluation (facts)
+    translation_weight: float = TRANSLATION_WEIGHT  # w_t of L, see losses.TRANSLATION_WEIGHT
+
+
+STAGE1_ORIGINAL = Stage1Config()
+STAGE1_TINY = Stage1Config(
+    encoder=pointnet2.TINY,
+    noise_dim=8,
+    noise_mlp=(16,),
+    trunk=(64, 64),
+    head=(32, 16, 3),
+    num_train_samples=4,
+    num_eval_samples=3,
+)
+
+
+class Stage1Net(nn.Module):
+    """The Stage-1 network as a linen module (use ``make_stage1`` for plain functions)."""
+
+    config: Stage1Config
+
+    def setup(self):
+        cfg = self.config
+        self.object_encoder = PointNet2Encoder(cfg.encoder)
+        self.support_encoder = PointNet2Encoder(cfg.encoder)
+        self.noise_mlp = SharedMLP(cfg.noise_mlp)
+        self.trunk = SharedMLP(cfg.trunk)
+        self.translation_head = SharedMLP(cfg.head, activate_last=False)
+        self.rotation_head = SharedMLP(cfg.head, activate_last=False)
+
+    def encode(self, object_points: jax.Array, support_points: jax.Array):
+        """object_points [B, N, 3], support_points [B, M, 3] float32 metres.
+
+        Returns (F^O [B, C], F^S [B, C]), C = 1024 in ORIGINAL.
+        """
+        f_object, _ = self.object_encoder(object_points)
+        f_support, _ = self.support_encoder(support_points)
+        return f_object, f_support
+
+    def decode(self, f_object: jax.Array, f_support: jax.Array, z: jax.Array) -> jax.Array:
+        """f_object, f_support: [B, C]; z: [B, Z, noise_dim]. Returns pose6 [B, Z, 6]."""
+        num_samples = z.shape[1]
+        f_noise = self.noise_mlp(z)  # F^R
+        tile = lambda f: jnp.broadcast_to(f[:, None, :], (f.shape[0], num_samples, f.shape[-1]))
+        f_osr = jnp.concatenate([tile(f_object), tile(f_support), f_noise], axis=-1)
+        h = self.trunk(f_osr)
+        return jnp.concatenate([self.translation_head(h), self.rotation_head(h)], axis=-1)
+
+    def __call__(self, object_points, support_points, z):
+        """Encode once, decode Z noise samples: [B, N, 3], [B, M, 3], [B, Z, nz] -> [B, Z, 6]."""
+        return self.decode(*self.encode(object_points, support_points), z)
+
+
+class Stage1Network(NamedTuple):
+    """Plain functions around ``Stage1Net`` (un-jitted; callers jit).
+
+    init(key) -> params.
+    apply(params, object_points [B,N,3], support_points [B,M,3], z [B,Z,nz]) -> pose6 [B,Z,6].
+    propose(params, object_points, support_points, key, num_samples) -> pose6 [B,Z,6]
+      (samples z ~ N(0, I) itself; ``num_samples`` must be static under jit).
+    """
+
+    config: Stage1Config
+    init: Callable
+    apply: Callable
+    propose: Callable
+
+
+def make_stage1(config: Stage1Config) -> Stage1Network:
+    """Build the Stage-1 network's pure functions for ``config``."""
+    module = Stage1Net(config)
+    num_points = max(config.encoder.num_points, config.encoder.sa_levels[0].npoint)
+
+    def init(key: jax.Array):
+        pts = jnp.zeros((1, num_points, 3), jnp.float32)
+        # Distinct points so FPS/ball query see a non-degenerate cloud during init.
+        pts = pts + jnp.linspace(0.0, 0.1, num_points)[None, :, None]
+        z = jnp.zeros((1, 1, config.noise_dim), jnp.float32)
+        return module.init(key, pts, pts, z)["params"]
+
+    def apply(params, object_points, support_points, z):
+        return module.apply({"params": params}, object_points, support_points, z)
+
+    def propose(params, object_points, support_points, key, num_samples: int):
+        batch = object_points.shape[0]
+        z = jax.random.normal(key, (batch, num_samples, config.noise_dim), jnp.float32)
+        return apply(params, object_points, support_points, z)
+
+    return Stage1Network(config=config, init=init, apply=apply, propose=propose)

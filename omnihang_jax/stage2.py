@@ -1,0 +1,341 @@
+"""Stage Two: contact point matching (paper, "Stage Two: Contact Point Matching").
+
+2a. The object cloud, moved by the Stage-1 pose, and the support cloud are combined into one
+    cloud with a 4th channel flag (1 object, 0 support). A PointNet++ segmentation net gives
+    per-point features F^OS (W = 64) and a contact score s_hat in [0, 1] (sigmoid), fitted to the
+    soft contact maps with a Huber loss (``losses.contact_score_loss``).
+2b. The top-K1 object and top-K2 support points by score are paired; the pairwise feature map
+    [K1, K2, 2W] goes through 1x1 convolutions (Dense over the last axis) 128-64-2, giving
+    correspondence logits. Loss: two-class cross-entropy L_c + ListNet ranking loss L_r (Eq. 2).
+    The top-K3 pairs with probability above ``threshold`` (delta) are kept -- the single best pair
+    if none passes -- and the translation is solved in closed form with the Stage-1 rotation R:
+    t = sum_i w_i (s_i - R o_i) / sum_i w_i (least squares for R o_i + t = s_i).
+
+Ground-truth correspondence labels (our definition; the paper stores "contact point
+correspondences" without fixing the matching rule): a candidate pair (u, v) is positive when the
+object point u lies within ``correspondence_radius`` of the object point of some ground-truth
+contact pair (object frame) AND the support point v lies within the same radius of that pair's
+support point (support frame). See ``correspondence_labels``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from omnihang_jax import pointnet2
+from omnihang_jax.pointnet2 import (
+    PointNet2Config,
+    PointNet2Segmentation,
+    SharedMLP,
+    gather_points,
+    squared_distance,
+)
+from omnihang_jax.poses import rotation_matrix, transform_points
+
+__all__ = [
+    "Stage2Config",
+    "STAGE2_ORIGINAL",
+    "STAGE2_TINY",
+    "Stage2Net",
+    "Stage2Network",
+    "Stage2Output",
+    "Correspondences",
+    "make_stage2",
+    "combine_clouds",
+    "top_contact_points",
+    "correspondence_labels",
+    "positive_scores",
+    "select_correspondences",
+    "solve_translation",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage2Config:
+    """Stage-2 architecture, selection and training settings."""
+
+    # Segmentation net on the combined (object + support) cloud: 2 x 4096 = 8192 points.
+    pointnet: PointNet2Config = dataclasses.replace(pointnet2.ORIGINAL, num_points=8192)
+    k_object: int = 128  # K1: object points kept by contact score (facts)
+    k_support: int = 128  # K2: support points kept by contact score (facts)
+    k_pairs: int = 3  # K3: correspondences used to solve the translation (facts)
+    threshold: float = 0.5  # delta: minimum pair probability (paper; value ours)
+    correspondence_mlp: tuple[int, ...] = (128, 64)  # hidden 1x1 convs before the 2 logits
+    huber_delta: float = 1.0  # Huber transition; 1 = TF default, i.e. plain 0.5 L2 on [0, 1] maps
+    correspondence_radius: float = 0.01  # 1 cm: GT label radius, ~ the contact-map spread
+    # Training inputs: the GT stable pose perturbed to mimic Stage-1 errors (ours).
+    pose_noise_translation: float = 0.01  # metres, std per axis
+    pose_noise_rotation: float = 0.05  # radians, std per axis-angle component
+    # Which scores pick the K1/K2 candidates while training 2b: "ground_truth" soft maps
+    # (guarantees positives, decouples 2b from 2a's quality) or "predicted" (as at inference).
+    train_selection: str = "ground_truth"
+    # 2b also fine-tunes the segmentation features; its loss then keeps the 2a Huber term so the
+    # contact scores stay calibrated. False freezes the features (stop_gradient).
+    train_features_in_2b: bool = True
+
+    @property
+    def feature_dim(self) -> int:
+        return self.pointnet.point_feature_dim
+
+
+STAGE2_ORIGINAL = Stage2Config()
+STAGE2_TINY = Stage2Config(
+    pointnet=dataclasses.replace(pointnet2.TINY, num_points=256),
+    k_object=16,
+    k_support=16,
+    k_pairs=3,
+    correspondence_mlp=(32, 16),
+)
+
+
+class Stage2Net(nn.Module):
+    """Stage-2 network as a linen module (use ``make_stage2`` for plain functions)."""
+
+    config: Stage2Config
+
+    def setup(self):
+        cfg = self.config
+        self.segmentation = PointNet2Segmentation(cfg.pointnet)
+        self.score_head = nn.Dense(1)
+        # First 1x1 conv on [f_o, f_s] written as Wo f_o + Ws f_s + b: the same layer, without
+        # materialising the [K1, K2, 2W] map.
+        self.pair_object = nn.Dense(cfg.correspondence_mlp[0])
+        self.pair_support = nn.Dense(cfg.correspondence_mlp[0], use_bias=False)
+        self.pair_mlp = SharedMLP(tuple(cfg.correspondence_mlp[1:]) + (2,), activate_last=False)
+
+    def contact(self, points: jax.Array, flags: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """points [B, P, 3] metres, flags [B, P, 1] (1 object, 0 support).
+
+        Returns (point_features F^OS [B, P, W], contact_scores [B, P] in [0, 1]).
+        """
+        features, _ = self.segmentation(points, flags)
+        scores = jax.nn.sigmoid(self.score_head(features)[..., 0])
+        return features, scores
+
+    def correspond(self, object_features: jax.Array, support_features: jax.Array) -> jax.Array:
+        """object_features [B, K1, W], support_features [B, K2, W] -> logits [B, K1, K2, 2]."""
+        h = (
+            self.pair_object(object_features)[:, :, None]
+            + self.pair_support(support_features)[:, None]
+        )
+        return self.pair_mlp(nn.relu(h))
+
+    def __call__(self, points, flags, num_object: int):
+        """Full forward pass (used for init): contact scores, top-K selection, logits."""
+        features, scores = self.contact(points, flags)
+        object_idx, support_idx = top_contact_points(
+            scores, num_object, self.config.k_object, self.config.k_support
+        )
+        object_features = gather_points(features[:, :num_object], object_idx)
+        support_features = gather_points(features[:, num_object:], support_idx)
+        return scores, self.correspond(object_features, support_features)
+
+
+# ----------------------------------------------------------------------------------------------
+# Pure helpers
+
+
+def combine_clouds(
+    object_points_posed: jax.Array, support_points: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """object_points_posed [B, N, 3] (support frame), support_points [B, M, 3].
+
+    Returns (points [B, N+M, 3], flags [B, N+M, 1] float32: 1 object, 0 support).
+    """
+    batch, n, _ = object_points_posed.shape
+    m = support_points.shape[1]
+    points = jnp.concatenate([object_points_posed, support_points], axis=1)
+    flags = jnp.concatenate(
+        [jnp.ones((batch, n, 1), jnp.float32), jnp.zeros((batch, m, 1), jnp.float32)], axis=1
+    )
+    return points, flags
+
+
+def top_contact_points(
+    scores: jax.Array, num_object: int, k_object: int, k_support: int
+) -> tuple[jax.Array, jax.Array]:
+    """Top-K1 object and top-K2 support points by contact score.
+
+    scores: [B, N+M] (first ``num_object`` = object points). Returns (object_idx [B, K1] into the
+    object cloud, support_idx [B, K2] into the support cloud), int32, best first.
+    """
+    scores = jax.lax.stop_gradient(scores)
+    _, object_idx = jax.lax.top_k(scores[:, :num_object], k_object)
+    _, support_idx = jax.lax.top_k(scores[:, num_object:], k_support)
+    return object_idx.astype(jnp.int32), support_idx.astype(jnp.int32)
+
+
+def correspondence_labels(
+    object_points: jax.Array,
+    support_points: jax.Array,
+    object_idx: jax.Array,
+    support_idx: jax.Array,
+    contact_pairs: jax.Array,
+    contact_mask: jax.Array,
+    radius: float,
+) -> jax.Array:
+    """Ground-truth labels of the K1 x K2 candidate pairs.
+
+    object_points [B, N, 3] (object frame), support_points [B, M, 3] (support frame),
+    object_idx [B, K1], support_idx [B, K2] int32 candidates; contact_pairs [B, C, 2] int32
+    (object index, support index) of the ground-truth contacts at one stable pose, contact_mask
+    [B, C] bool. Pair (u, v) is positive iff for some valid contact c both
+    ||o_u - o_c|| < radius and ||s_v - s_c|| < radius. Returns [B, K1, K2] bool.
+    """
+    r2 = radius**2
+    contact_mask = contact_mask.astype(bool)
+    o_contact = gather_points(object_points, contact_pairs[..., 0])  # [B, C, 3]
+    s_contact = gather_points(support_points, contact_pairs[..., 1])
+    o_cand = gather_points(object_points, object_idx)  # [B, K1, 3]
+    s_cand = gather_points(support_points, support_idx)
+    near_o = (squared_distance(o_cand[:, :, None], o_contact[:, None]) < r2) & contact_mask[:, None]
+    near_s = (squared_distance(s_cand[:, :, None], s_contact[:, None]) < r2) & contact_mask[:, None]
+    both = jnp.einsum("bkc,blc->bkl", near_o.astype(jnp.float32), near_s.astype(jnp.float32))
+    return both > 0
+
+
+def positive_scores(logits: jax.Array) -> jax.Array:
+    """Log-odds of the positive class, logit_1 - logit_0: [..., 2] -> [...].
+
+    sigmoid(positive_scores) == softmax(logits)[..., 1], the pair probability y_hat.
+    """
+    return logits[..., 1] - logits[..., 0]
+
+
+class Correspondences(NamedTuple):
+    """Chosen contact pairs, K3 slots, best first.
+
+    object_slot, support_slot: [B, K3] int32 indices into the K1 / K2 candidates.
+    probability: [B, K3] float32 pair probabilities.
+    weight: [B, K3] float32, 1 for pairs used to solve the translation, else 0.
+    """
+
+    object_slot: jax.Array
+    support_slot: jax.Array
+    probability: jax.Array
+    weight: jax.Array
+
+
+def select_correspondences(
+    probabilities: jax.Array, k_pairs: int, threshold: float
+) -> Correspondences:
+    """Top-K3 pairs with probability > threshold (delta); the best pair if none passes.
+
+    probabilities: [B, K1, K2] float32.
+    """
+    batch, _, k_support = probabilities.shape
+    top_p, flat = jax.lax.top_k(probabilities.reshape(batch, -1), k_pairs)
+    keep = (top_p > threshold).at[:, 0].set(True)  # sorted, so slot 0 is the fallback
+    return Correspondences(
+        object_slot=(flat // k_support).astype(jnp.int32),
+        support_slot=(flat % k_support).astype(jnp.int32),
+        probability=top_p,
+        weight=keep.astype(jnp.float32),
+    )
+
+
+def solve_translation(
+    rotation: jax.Array, object_points: jax.Array, support_points: jax.Array, weights: jax.Array
+) -> jax.Array:
+    """Closed-form translation aligning paired contact points under a fixed rotation.
+
+    Minimises sum_i w_i ||R o_i + t - s_i||^2, solved by t = sum_i w_i (s_i - R o_i) / sum_i w_i.
+    rotation [B, 3, 3]; object_points [B, K, 3] (object frame); support_points [B, K, 3]
+    (support frame); weights [B, K] >= 0 with a positive sum. Returns t [B, 3] metres.
+    """
+    residual = support_points - jnp.einsum("bij,bkj->bki", rotation, object_points)
+    w = weights[..., None]
+    return jnp.sum(w * residual, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1e-12)
+
+
+class Stage2Output(NamedTuple):
+    """Result of ``Stage2Network.refine`` for B poses.
+
+    pose6: [B, 6] Stage-2 pose (Stage-1 axis-angle, solved translation).
+    object_indices, support_indices: [B, K3] int32 indices into the object / support clouds.
+    probability, weight: [B, K3] as in ``Correspondences``.
+    contact_scores: [B, N+M] per-point scores (object first).
+    """
+
+    pose6: jax.Array
+    object_indices: jax.Array
+    support_indices: jax.Array
+    probability: jax.Array
+    weight: jax.Array
+    contact_scores: jax.Array
+
+
+class Stage2Network(NamedTuple):
+    """Plain functions around ``Stage2Net`` (un-jitted; callers jit).
+
+    init(key) -> params.
+    contact(params, points [B,P,3], flags [B,P,1]) -> (features [B,P,W], scores [B,P]).
+    correspond(params, object_features [B,K1,W], support_features [B,K2,W]) -> logits.
+    refine(params, object_points [B,N,3], support_points [B,M,3], pose6 [B,6]) -> Stage2Output.
+    """
+
+    config: Stage2Config
+    init: Callable
+    contact: Callable
+    correspond: Callable
+    refine: Callable
+
+
+def make_stage2(config: Stage2Config) -> Stage2Network:
+    """Build the Stage-2 network's pure functions for ``config``."""
+    module = Stage2Net(config)
+
+    def init(key: jax.Array):
+        n = max(config.pointnet.num_points // 2, config.pointnet.sa_levels[0].npoint)
+        n = max(n, config.k_object, config.k_support)
+        pts = jnp.zeros((1, 2 * n, 3), jnp.float32) + jnp.linspace(0.0, 0.1, 2 * n)[None, :, None]
+        points, flags = combine_clouds(pts[:, :n], pts[:, n:])
+        return module.init(key, points, flags, n)["params"]
+
+    def contact(params, points, flags):
+        return module.apply({"params": params}, points, flags, method=Stage2Net.contact)
+
+    def correspond(params, object_features, support_features):
+        return module.apply(
+            {"params": params}, object_features, support_features, method=Stage2Net.correspond
+        )
+
+    def refine(params, object_points, support_points, pose6):
+        n = object_points.shape[1]
+        points, flags = combine_clouds(transform_points(pose6, object_points), support_points)
+        features, scores = contact(params, points, flags)
+        object_idx, support_idx = top_contact_points(scores, n, config.k_object, config.k_support)
+        logits = correspond(
+            params,
+            gather_points(features[:, :n], object_idx),
+            gather_points(features[:, n:], support_idx),
+        )
+        chosen = select_correspondences(
+            jax.nn.sigmoid(positive_scores(logits)), config.k_pairs, config.threshold
+        )
+        object_indices = jnp.take_along_axis(object_idx, chosen.object_slot, axis=1)
+        support_indices = jnp.take_along_axis(support_idx, chosen.support_slot, axis=1)
+        translation = solve_translation(
+            rotation_matrix(pose6[:, 3:]),
+            gather_points(object_points, object_indices),
+            gather_points(support_points, support_indices),
+            chosen.weight,
+        )
+        return Stage2Output(
+            pose6=jnp.concatenate([translation, pose6[:, 3:]], axis=-1),
+            object_indices=object_indices,
+            support_indices=support_indices,
+            probability=chosen.probability,
+            weight=chosen.weight,
+            contact_scores=scores,
+        )
+
+    return Stage2Network(
+        config=config, init=init, contact=contact, correspond=correspond, refine=refine
+    )

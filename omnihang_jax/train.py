@@ -1,0 +1,496 @@
+"""Training of the goal-pose networks: Stage 1, Stage 2a (contact scores), Stage 2b
+(correspondences).
+
+Pure pieces (``make_loss_fn``, ``make_init_state``, ``make_train_step``) are factories returning
+un-jitted functions; ``train_stage`` is the host loop: it jits the step once, resumes from the
+latest orbax checkpoint by default, writes ``config.json`` beside the checkpoints (a model is
+rebuilt from its folder alone, ``restore_stage``), appends metrics to ``metrics.jsonl`` and plots
+``loss.png``.
+
+Folder layout written by ``train_where(out=...)``::
+
+    out/stage1/{config.json, checkpoints/<step>/, metrics.jsonl, loss.png}
+    out/stage2a/...
+    out/stage2b/...     (initialised from stage2a's parameters)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import flax
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+
+from omnihang_jax import data as data_lib
+from omnihang_jax import losses
+from omnihang_jax.config import config_from_dict, config_to_dict
+from omnihang_jax.data import HangSample
+from omnihang_jax.pointnet2 import gather_points
+from omnihang_jax.poses import pose7_to_pose6, rotation_matrix, transform_points
+from omnihang_jax.stage1 import STAGE1_ORIGINAL, STAGE1_TINY, Stage1Config, make_stage1
+from omnihang_jax.stage2 import (
+    STAGE2_ORIGINAL,
+    STAGE2_TINY,
+    Stage2Config,
+    combine_clouds,
+    correspondence_labels,
+    make_stage2,
+    positive_scores,
+    select_correspondences,
+    solve_translation,
+    top_contact_points,
+)
+
+__all__ = [
+    "STAGES",
+    "TrainConfig",
+    "WhereConfig",
+    "WHERE_ORIGINAL",
+    "WHERE_TINY",
+    "PRESETS",
+    "TrainState",
+    "make_loss_fn",
+    "make_init_state",
+    "make_train_step",
+    "train_stage",
+    "restore_stage",
+    "train_where",
+    "make_dataset",
+    "plot_metrics",
+]
+
+STAGES = ("1", "2a", "2b")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation and bookkeeping settings."""
+
+    batch_size: int = 32  # pairs per step (facts)
+    lr_stage1: float = 5e-4  # Adam (facts)
+    lr_stage2: float = 1e-4  # Adam, both 2a and 2b (facts)
+    steps: int = 100_000  # default steps per stage when the caller gives none (ours)
+    log_every: int = 50
+    checkpoint_every: int = 1000
+    max_to_keep: int = 3
+    seed: int = 0
+    synthetic_pairs: int = 256  # size of the synthetic pool for --data synthetic dry runs
+
+
+@dataclasses.dataclass(frozen=True)
+class WhereConfig:
+    """Everything needed to rebuild and train the "where to hang" networks."""
+
+    stage1: Stage1Config = STAGE1_ORIGINAL
+    stage2: Stage2Config = STAGE2_ORIGINAL
+    train: TrainConfig = TrainConfig()
+    preset: str = "original"
+
+    @property
+    def num_object_points(self) -> int:
+        return self.stage1.encoder.num_points
+
+
+WHERE_ORIGINAL = WhereConfig()
+WHERE_TINY = WhereConfig(
+    stage1=STAGE1_TINY,
+    stage2=STAGE2_TINY,
+    train=TrainConfig(batch_size=8, log_every=10, checkpoint_every=100, synthetic_pairs=32),
+    preset="tiny",
+)
+PRESETS = {"original": WHERE_ORIGINAL, "tiny": WHERE_TINY}
+
+
+@flax.struct.dataclass
+class TrainState:
+    """step: [] int32; params: the stage's parameter tree; opt_state: optax state."""
+
+    step: jax.Array
+    params: Any
+    opt_state: Any
+
+
+# ----------------------------------------------------------------------------------------------
+# Losses per stage
+
+
+def _take_pose(x: jax.Array, d: jax.Array) -> jax.Array:
+    """x: [B, D, ...], d: [B] -> x[b, d[b]]: [B, ...]."""
+    return jax.vmap(lambda xb, db: xb[db])(x, d)
+
+
+def _stage2_inputs(config: Stage2Config, batch: HangSample, key: jax.Array):
+    """Pick one valid stable pose per pair, perturb it, build the combined cloud and targets."""
+    k_pose, k_t, k_r = jax.random.split(key, 3)
+    d = jax.random.categorical(k_pose, jnp.where(batch.pose_mask, 0.0, -jnp.inf), axis=-1)
+    gt_pose6 = pose7_to_pose6(_take_pose(batch.stable_poses, d))  # [B, 6]
+    noise = jnp.concatenate(
+        [
+            config.pose_noise_translation * jax.random.normal(k_t, gt_pose6[:, :3].shape),
+            config.pose_noise_rotation * jax.random.normal(k_r, gt_pose6[:, 3:].shape),
+        ],
+        axis=-1,
+    )
+    input_pose6 = gt_pose6 + noise
+    points, flags = combine_clouds(
+        transform_points(input_pose6, batch.object_points), batch.support_points
+    )
+    target = jnp.concatenate(
+        [
+            _take_pose(batch.object_contact_maps, d),
+            _take_pose(batch.support_contact_maps, d),
+        ],
+        axis=-1,
+    )
+    pairs = _take_pose(batch.contact_pairs, d)
+    pair_mask = _take_pose(batch.contact_mask, d)
+    return gt_pose6, points, flags, target, pairs, pair_mask
+
+
+def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
+    """Loss of one stage: ``loss_fn(params, batch: HangSample, key) -> (loss, metrics)``.
+
+    "1": set loss L_M (Eq. 1) between ``num_train_samples`` proposals and the stable poses.
+    "2a": Huber loss of contact scores vs the soft contact maps of one random stable pose.
+    "2b": L_c + L_r (Eq. 2) of the correspondence logits (+ the 2a Huber term when the
+      segmentation features are fine-tuned, ``Stage2Config.train_features_in_2b``).
+    Metrics are scalars (means over the batch).
+    """
+    if stage == "1":
+        cfg1 = config.stage1
+        net1 = make_stage1(cfg1)
+
+        def stage1_loss(params, batch: HangSample, key):
+            pred = net1.propose(
+                params, batch.object_points, batch.support_points, key, cfg1.num_train_samples
+            )
+            gt = pose7_to_pose6(batch.stable_poses)
+            loss = jnp.mean(
+                losses.pose_set_loss(pred, gt, batch.pose_mask, cfg1.translation_weight)
+            )
+            # Coverage of the ground truth: nearest proposal per stable pose.
+            dt = jnp.linalg.norm(pred[:, :, None, :3] - gt[:, None, :, :3], axis=-1)
+            dr = jnp.linalg.norm(pred[:, :, None, 3:] - gt[:, None, :, 3:], axis=-1)
+            mask = batch.pose_mask.astype(jnp.float32)
+            mean_valid = lambda x: jnp.sum(jnp.min(x, 1) * mask) / jnp.sum(mask)
+            return loss, {
+                "loss": loss,
+                "translation_error_m": mean_valid(dt),
+                "rotation_error_rad": mean_valid(dr),
+            }
+
+        return stage1_loss
+
+    if stage not in ("2a", "2b"):
+        raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+    cfg2 = config.stage2
+    net2 = make_stage2(cfg2)
+
+    if stage == "2a":
+
+        def stage2a_loss(params, batch: HangSample, key):
+            _, points, flags, target, _, _ = _stage2_inputs(cfg2, batch, key)
+            _, scores = net2.contact(params, points, flags)
+            loss = jnp.mean(losses.contact_score_loss(scores, target, cfg2.huber_delta))
+            n = batch.object_points.shape[1]
+            object_idx, support_idx = top_contact_points(scores, n, cfg2.k_object, cfg2.k_support)
+            # Mean ground-truth map value at the predicted top-K points (1 = perfect choice).
+            hit = jnp.mean(jnp.take_along_axis(target[:, :n], object_idx, 1)) + jnp.mean(
+                jnp.take_along_axis(target[:, n:], support_idx, 1)
+            )
+            return loss, {"loss": loss, "huber": loss, "top_k_map_value": hit / 2}
+
+        return stage2a_loss
+
+    def stage2b_loss(params, batch: HangSample, key):
+        gt_pose6, points, flags, target, pairs, pair_mask = _stage2_inputs(cfg2, batch, key)
+        n = batch.object_points.shape[1]
+        features, scores = net2.contact(params, points, flags)
+        huber = jnp.mean(losses.contact_score_loss(scores, target, cfg2.huber_delta))
+        if not cfg2.train_features_in_2b:
+            features = jax.lax.stop_gradient(features)
+        selection = target if cfg2.train_selection == "ground_truth" else scores
+        object_idx, support_idx = top_contact_points(selection, n, cfg2.k_object, cfg2.k_support)
+        logits = net2.correspond(
+            params,
+            gather_points(features[:, :n], object_idx),
+            gather_points(features[:, n:], support_idx),
+        )
+        labels = correspondence_labels(
+            batch.object_points,
+            batch.support_points,
+            object_idx,
+            support_idx,
+            pairs,
+            pair_mask,
+            cfg2.correspondence_radius,
+        )
+        ce = jnp.mean(losses.correspondence_cross_entropy(logits, labels))
+        ranking_per_pair = losses.listnet_loss(positive_scores(logits), labels)
+        ranking = jnp.mean(ranking_per_pair)
+        # L_r minus its floor, the entropy log(#positives) of the normalised targets (= KL >= 0).
+        num_pos = jnp.sum(labels, axis=(1, 2))
+        excess = jnp.where(num_pos > 0, ranking_per_pair - jnp.log(jnp.maximum(num_pos, 1)), 0.0)
+        loss = ce + ranking + (huber if cfg2.train_features_in_2b else 0.0)
+        # Quality of the chosen pairs: label of the best pair, and the translation solved with
+        # the ground-truth rotation (error in metres).
+        probs = jax.nn.sigmoid(positive_scores(logits))
+        chosen = select_correspondences(probs, cfg2.k_pairs, cfg2.threshold)
+        best_label = jax.vmap(lambda lab, u, v: lab[u, v])(
+            labels, chosen.object_slot[:, 0], chosen.support_slot[:, 0]
+        )
+        o = gather_points(
+            batch.object_points, jnp.take_along_axis(object_idx, chosen.object_slot, 1)
+        )
+        s = gather_points(
+            batch.support_points, jnp.take_along_axis(support_idx, chosen.support_slot, 1)
+        )
+        t = solve_translation(rotation_matrix(gt_pose6[:, 3:]), o, s, chosen.weight)
+        return loss, {
+            "loss": loss,
+            "cross_entropy": ce,
+            "listnet": ranking,
+            "listnet_excess": jnp.mean(excess),
+            "huber": huber,
+            "positive_fraction": jnp.mean(labels),
+            "top1_precision": jnp.mean(best_label),
+            "translation_error_m": jnp.mean(jnp.linalg.norm(t - gt_pose6[:, :3], axis=-1)),
+        }
+
+    return stage2b_loss
+
+
+# ----------------------------------------------------------------------------------------------
+# Train state and step
+
+
+def make_optimizer(stage: str, config: WhereConfig) -> optax.GradientTransformation:
+    lr = config.train.lr_stage1 if stage == "1" else config.train.lr_stage2
+    return optax.adam(lr)
+
+
+def make_init_state(stage: str, config: WhereConfig) -> Callable[..., TrainState]:
+    """``init(key, params=None) -> TrainState``; ``params`` overrides the random init (2b from
+    2a)."""
+    tx = make_optimizer(stage, config)
+    net_init = make_stage1(config.stage1).init if stage == "1" else make_stage2(config.stage2).init
+
+    def init(key, params=None) -> TrainState:
+        params = net_init(key) if params is None else params
+        return TrainState(step=jnp.array(0, jnp.int32), params=params, opt_state=tx.init(params))
+
+    return init
+
+
+def make_train_step(stage: str, config: WhereConfig) -> Callable:
+    """``train_step(state, batch: HangSample, key) -> (state, metrics)``: one Adam step.
+
+    Pure; jit it once at the top (``jax.jit(make_train_step(stage, config))``).
+    """
+    loss_fn = make_loss_fn(stage, config)
+    tx = make_optimizer(stage, config)
+
+    def train_step(state: TrainState, batch: HangSample, key):
+        grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, batch, key)
+        updates, opt_state = tx.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        metrics = dict(metrics, grad_norm=optax.global_norm(grads))
+        return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
+
+    return train_step
+
+
+# ----------------------------------------------------------------------------------------------
+# Host loop, checkpoints, logs
+
+
+def _stage_dir(workdir: str, stage: str) -> str:
+    return os.path.join(os.path.abspath(workdir), f"stage{stage}")
+
+
+def _write_config(stage_dir: str, stage: str, config: WhereConfig) -> None:
+    """Write config.json; refuse to resume a folder trained with another architecture."""
+    path = os.path.join(stage_dir, "config.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            old = config_from_dict(WhereConfig, json.load(f)["config"])
+        if (old.stage1, old.stage2) != (config.stage1, config.stage2):
+            raise ValueError(
+                f"{stage_dir} holds a model with a different architecture (preset "
+                f"{old.preset!r}); use another --out folder or the same preset"
+            )
+    with open(path, "w") as f:
+        json.dump({"stage": stage, "config": config_to_dict(config)}, f, indent=2)
+
+
+def _checkpoint_manager(stage_dir: str, config: WhereConfig) -> ocp.CheckpointManager:
+    return ocp.CheckpointManager(
+        os.path.join(stage_dir, "checkpoints"),
+        options=ocp.CheckpointManagerOptions(max_to_keep=config.train.max_to_keep, create=True),
+    )
+
+
+def _restore(manager: ocp.CheckpointManager, target: TrainState, step: int) -> TrainState:
+    abstract = jax.tree.map(
+        ocp.utils.to_shape_dtype_struct, flax.serialization.to_state_dict(target)
+    )
+    restored = manager.restore(step, args=ocp.args.StandardRestore(abstract))
+    return flax.serialization.from_state_dict(target, restored)
+
+
+def restore_stage(stage_dir: str, step: int | None = None) -> tuple[WhereConfig, Any, int]:
+    """Rebuild a trained stage from its folder alone.
+
+    stage_dir: e.g. ``out/stage1``. Returns (config, params, step) of the latest (or given)
+    checkpoint. Raises FileNotFoundError when the folder has no config or checkpoint.
+    """
+    stage_dir = os.path.abspath(stage_dir)
+    path = os.path.join(stage_dir, "config.json")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path} not found: not a trained stage folder")
+    with open(path) as f:
+        saved = json.load(f)
+    stage, config = saved["stage"], config_from_dict(WhereConfig, saved["config"])
+    manager = _checkpoint_manager(stage_dir, config)
+    step = manager.latest_step() if step is None else step
+    if step is None:
+        raise FileNotFoundError(f"no checkpoint under {stage_dir}/checkpoints")
+    target = jax.eval_shape(make_init_state(stage, config), jax.random.key(0))
+    state = _restore(manager, target, step)
+    manager.close()
+    return config, state.params, step
+
+
+def _to_float(metrics: dict) -> dict:
+    return {k: float(v) for k, v in metrics.items()}
+
+
+def plot_metrics(metrics_path: str, png_path: str) -> None:
+    """Plot every loss-like key of a metrics.jsonl against the step (log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(metrics_path) as f:
+        rows = [json.loads(line) for line in f if line.strip()]
+    if not rows:
+        return
+    keys = [k for k in rows[-1] if k not in ("step", "grad_norm")]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    steps = [r["step"] for r in rows]
+    for k in keys:
+        ax.plot(steps, [r.get(k, np.nan) for r in rows], label=k)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_title(os.path.basename(os.path.dirname(metrics_path)))
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=100)
+    plt.close(fig)
+
+
+def train_stage(
+    stage: str,
+    config: WhereConfig,
+    dataset: data_lib.HangDataset,
+    workdir: str,
+    steps: int | None = None,
+    init_params: Any = None,
+    progress: bool = True,
+) -> TrainState:
+    """Train one stage to ``steps`` total steps, resuming from ``workdir/stage<stage>``.
+
+    init_params: parameters to start from when no checkpoint exists (2b starts from 2a).
+    Data and noise are keyed by (seed, step), so a resumed run continues the same stream.
+    Returns the final TrainState.
+    """
+    from tqdm.auto import tqdm
+
+    if stage not in STAGES:
+        raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+    steps = config.train.steps if steps is None else steps
+    stage_dir = _stage_dir(workdir, stage)
+    os.makedirs(stage_dir, exist_ok=True)
+    _write_config(stage_dir, stage, config)
+
+    seed, stage_id = config.train.seed, STAGES.index(stage)
+    init_key, base_key = jax.random.split(jax.random.fold_in(jax.random.key(seed), stage_id))
+    state = jax.jit(make_init_state(stage, config))(init_key, init_params)
+    manager = _checkpoint_manager(stage_dir, config)
+    if manager.latest_step() is not None:
+        state = _restore(manager, state, manager.latest_step())
+    start = int(state.step)
+
+    train_step = jax.jit(make_train_step(stage, config))
+    metrics_path = os.path.join(stage_dir, "metrics.jsonl")
+    log_every, ckpt_every = config.train.log_every, config.train.checkpoint_every
+    bar = tqdm(
+        range(start, steps), desc=f"stage {stage}", disable=not progress, initial=start, total=steps
+    )
+    for step in bar:
+        rng = np.random.default_rng([seed, stage_id, step])
+        batch = dataset.sample_batch(rng, config.train.batch_size)
+        state, metrics = train_step(state, batch, jax.random.fold_in(base_key, step))
+        done = step + 1
+        if done % log_every == 0 or done == steps:
+            row = {"step": done, **_to_float(metrics)}
+            with open(metrics_path, "a") as f:
+                f.write(json.dumps(row) + "\n")
+            bar.set_postfix(loss=f"{row['loss']:.4g}")
+        if done % ckpt_every == 0 or done == steps:
+            manager.save(done, args=ocp.args.StandardSave(flax.serialization.to_state_dict(state)))
+    manager.wait_until_finished()
+    manager.close()
+    if os.path.exists(metrics_path):
+        plot_metrics(metrics_path, os.path.join(stage_dir, "loss.png"))
+    return state
+
+
+def make_dataset(data: str, config: WhereConfig, split: str = "train") -> data_lib.HangDataset:
+    """``"synthetic"`` -> an in-memory pool of ring-on-peg pairs; else a dataset directory
+    (``data.load_hang_dataset``)."""
+    if data == "synthetic":
+        n = config.num_object_points
+        pool = data_lib.synthetic_batch(
+            jax.random.key(config.train.seed + 12345), config.train.synthetic_pairs, n
+        )
+        return data_lib.ArrayDataset(pool)
+    return data_lib.load_hang_dataset(data, split=split)
+
+
+def train_where(
+    data: str,
+    out: str,
+    stages: Sequence[str] = STAGES,
+    config: WhereConfig = WHERE_ORIGINAL,
+    steps: int | None = None,
+    progress: bool = True,
+) -> dict[str, TrainState]:
+    """Train the requested stages in order (1, 2a, 2b) into ``out``; resumes each stage.
+
+    2b starts from 2a's latest parameters when it has no checkpoint of its own.
+    Returns the final TrainState per stage.
+    """
+    dataset = make_dataset(data, config)
+    states = {}
+    for stage in STAGES:
+        if stage not in stages:
+            continue
+        init_params = None
+        if stage == "2b":
+            if "2a" in states:
+                init_params = states["2a"].params
+            elif os.path.exists(os.path.join(_stage_dir(out, "2a"), "config.json")):
+                init_params = restore_stage(_stage_dir(out, "2a"))[1]
+        states[stage] = train_stage(stage, config, dataset, out, steps, init_params, progress)
+    return states
