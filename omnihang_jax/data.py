@@ -286,7 +286,10 @@ def synthetic_sample(
     support_maps = jax.vmap(_soft_map, (None, 0, None))(
         support_points, contact_support, contact_sigma
     )
-    nearest = lambda pts, q: jnp.argmin(jnp.sum(jnp.square(pts[None] - q[:, None]), -1), -1)
+
+    def nearest(pts, q):
+        return jnp.argmin(jnp.sum(jnp.square(pts[None] - q[:, None]), -1), -1)
+
     pair = jnp.stack(
         [nearest(object_points, contact_object), nearest(support_points, contact_support)], -1
     )

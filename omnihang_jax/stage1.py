@@ -90,7 +90,10 @@ class Stage1Net(nn.Module):
         """f_object, f_support: [B, C]; z: [B, Z, noise_dim]. Returns pose6 [B, Z, 6]."""
         num_samples = z.shape[1]
         f_noise = self.noise_mlp(z)  # F^R
-        tile = lambda f: jnp.broadcast_to(f[:, None, :], (f.shape[0], num_samples, f.shape[-1]))
+
+        def tile(f):
+            return jnp.broadcast_to(f[:, None, :], (f.shape[0], num_samples, f.shape[-1]))
+
         f_osr = jnp.concatenate([tile(f_object), tile(f_support), f_noise], axis=-1)
         h = self.trunk(f_osr)
         return jnp.concatenate([self.translation_head(h), self.rotation_head(h)], axis=-1)

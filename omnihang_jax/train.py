@@ -181,7 +181,10 @@ def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
             dt = jnp.linalg.norm(pred[:, :, None, :3] - gt[:, None, :, :3], axis=-1)
             dr = jnp.linalg.norm(pred[:, :, None, 3:] - gt[:, None, :, 3:], axis=-1)
             mask = batch.pose_mask.astype(jnp.float32)
-            mean_valid = lambda x: jnp.sum(jnp.min(x, 1) * mask) / jnp.sum(mask)
+
+            def mean_valid(x):
+                return jnp.sum(jnp.min(x, 1) * mask) / jnp.sum(mask)
+
             return loss, {
                 "loss": loss,
                 "translation_error_m": mean_valid(dt),
