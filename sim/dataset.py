@@ -97,16 +97,17 @@ def pair_list(library: Library, config: DatasetConfig) -> list[tuple[str, str, s
         for name in sorted(table):
             by_group.setdefault(table[name].category, []).append(name)
         chosen = []
-        for names in by_group.values():
+        for g, names in enumerate(by_group.values()):
             if limit is None:
                 chosen += names
-            else:  # keep train and test represented: alternate from each end of the split
+            else:  # subsets keep both splits: every other group starts from its test assets
                 train = [n for n in names if library.split_of(n) == "train"]
                 test = [n for n in names if library.split_of(n) == "test"]
+                first, second = (test, train) if (g % 2 and test_first) else (train, test)
                 mix = (
-                    [x for pair in zip(train, test) for x in pair]
-                    + train[len(test) :]
-                    + test[len(train) :]
+                    [x for pair in zip(first, second) for x in pair]
+                    + first[len(second) :]
+                    + second[len(first) :]
                 )
                 chosen += mix[:limit]
         return sorted(chosen)
@@ -539,3 +540,41 @@ def card_markdown(card: dict) -> str:
             f"| {name} | {e['pairs']} | {e['pairs_with_stable_poses']} | {e['stable_poses']} | {e['candidates']} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def export_sample(
+    library: Library, record: dict, pairs, out_dir: str | os.PathLike, pose_index: int = 0
+) -> Path:
+    """Write one stable pose as ``object.obj`` (object frame), ``support.obj`` (support frame)
+    and ``pose.json``, so other engines can check it.
+
+    Convention: the pose maps object-frame points into the support frame,
+    ``p_support = R @ p_object + t``; ``quaternion_wxyz`` is scalar-first (MuJoCo order),
+    ``quaternion_xyzw`` scalar-last (PyBullet/SciPy order), metres throughout.
+    """
+    from scipy.spatial.transform import Rotation
+
+    obj_name, sup_name, split = pairs[int(record["pair_index"])]
+    pose = np.asarray(record["stable_poses"][pose_index], float)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    library.objects[obj_name].mesh.export(out / "object.obj")
+    library.supports[sup_name].mesh.export(out / "support.obj")
+    rot = Rotation.from_quat(np.roll(pose[3:], -1))
+    matrix = np.eye(4)
+    matrix[:3, :3] = rot.as_matrix()
+    matrix[:3, 3] = pose[:3]
+    meta = {
+        "object": obj_name,
+        "support": sup_name,
+        "split": split,
+        "convention": "p_support = T @ p_object (homogeneous); metres; quaternion_wxyz scalar-first",
+        "matrix_4x4": matrix.tolist(),
+        "position": pose[:3].tolist(),
+        "quaternion_wxyz": pose[3:].tolist(),
+        "quaternion_xyzw": np.roll(pose[3:], -1).tolist(),
+        "wall_y": library.supports[sup_name].wall_y,
+        "floor_z": library.supports[sup_name].floor_z,
+    }
+    (out / "pose.json").write_text(json.dumps(meta, indent=1))
+    return out
