@@ -8,6 +8,7 @@ tested the moment it exists.
 from __future__ import annotations
 
 import functools
+import json
 
 import numpy as np
 import pytest
@@ -87,6 +88,13 @@ def test_parts_are_few_small_hulls_and_finite(category):
             assert isinstance(loop, HangLoop)
             assert np.isfinite(loop.center).all() and np.isfinite(loop.radius)
             np.testing.assert_allclose(np.linalg.norm(loop.axis), 1.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("category", CATEGORIES)
+def test_params_are_plain_data(category):
+    """Sampled parameters go into the library manifest as JSON."""
+    for seed in SEEDS:
+        json.dumps(_asset(category, seed).params)
 
 
 @pytest.mark.parametrize("category", CATEGORIES)
