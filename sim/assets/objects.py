@@ -891,12 +891,12 @@ def racquet(rng: np.random.Generator) -> AssetSpec:
             a, b = _uniform(rng, 0.115, 0.135), _uniform(rng, 0.15, 0.175)
             frame_r = _uniform(rng, 0.006, 0.009)
             handle_l, handle_r = _uniform(rng, 0.17, 0.2), _uniform(rng, 0.013, 0.016)
-            throat = _uniform(rng, 0.06, 0.09)
+            throat = _uniform(rng, 0.09, 0.13)
         else:
             a, b = _uniform(rng, 0.095, 0.11), _uniform(rng, 0.135, 0.155)
             frame_r = _uniform(rng, 0.005, 0.007)
-            handle_l, handle_r = _uniform(rng, 0.15, 0.18), _uniform(rng, 0.011, 0.014)
-            throat = _uniform(rng, 0.09, 0.14)
+            handle_l, handle_r = _uniform(rng, 0.17, 0.2), _uniform(rng, 0.011, 0.014)
+            throat = _uniform(rng, 0.12, 0.17)
         phi = _deg(rng, 30, 48)  # where the throat arms meet the head, from its bottom
         parts.append(g.cylinder([0, 0, 0], [0, 0, handle_l], handle_r, sides=8))
         apex = np.array([0, 0, handle_l + 0.005])
