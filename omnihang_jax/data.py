@@ -34,6 +34,7 @@ __all__ = [
     "synthetic_sample",
     "synthetic_batch",
     "stack_samples",
+    "make_hang_sample",
     "validate_sample",
     "check_point_clouds",
     "HangDataset",
@@ -93,24 +94,29 @@ _DTYPES = {
 # Validation at the Python boundary (never inside jit).
 
 
-def check_point_clouds(object_points, support_points, batched: bool = True) -> None:
-    """Raise ValueError unless both clouds are finite float arrays of shape [B, *, 3]."""
+def check_point_clouds(
+    object_points, support_points, batched: bool = True, context: str = ""
+) -> None:
+    """Raise ValueError unless both clouds are finite arrays of shape [B, *, 3] ([*, 3] when
+    not ``batched``). ``context`` (e.g. a file name) prefixes the message."""
+    prefix = f"{context}: " if context else ""
     for name, pts in (("object_points", object_points), ("support_points", support_points)):
         pts = np.asarray(pts)
         want = 3 if batched else 2
         if pts.ndim != want or pts.shape[-1] != 3:
             raise ValueError(
-                f"{name} must have shape {'[B, N, 3]' if batched else '[N, 3]'}, got {pts.shape}"
+                f"{prefix}{name} must have shape {'[B, N, 3]' if batched else '[N, 3]'}, "
+                f"got {pts.shape}"
             )
         if not np.all(np.isfinite(pts)):
             bad = int(np.sum(~np.isfinite(pts).all(-1)))
-            raise ValueError(f"{name} contains {bad} non-finite (NaN/inf) points")
+            raise ValueError(f"{prefix}{name} contains {bad} non-finite (NaN/inf) points")
 
 
 def validate_sample(sample: HangSample, name: str = "sample") -> None:
     """Check shapes and finiteness of one unbatched HangSample; raise ValueError if wrong."""
     s = HangSample(*(np.asarray(x) for x in sample))
-    check_point_clouds(s.object_points, s.support_points, batched=False)
+    check_point_clouds(s.object_points, s.support_points, batched=False, context=name)
     n, m = s.object_points.shape[0], s.support_points.shape[0]
     d = s.stable_poses.shape[0]
     expect = {
@@ -185,6 +191,53 @@ def stack_samples(
     return HangSample(
         *(np.stack(xs).astype(_DTYPES[f]) for f, xs in zip(HangSample._fields, zip(*out)))
     )
+
+
+def make_hang_sample(
+    object_points,
+    object_normals,
+    support_points,
+    support_normals,
+    stable_poses,
+    object_contact_maps,
+    support_contact_maps,
+    contact_pairs: Sequence[np.ndarray] | np.ndarray,
+    **_ignored,
+) -> HangSample:
+    """One unbatched HangSample from per-pair arrays, with masks filled in.
+
+    contact_pairs: either [D, C, 2] (all valid) or a list of D arrays [C_d, 2] (ragged, as
+    ``sim.dataset.derive_pair`` returns them), padded here to max C_d with masked rows.
+    Extra keyword arguments are ignored so a ``derive_pair`` dict can be splatted in.
+    """
+    poses = np.asarray(stable_poses, np.float32).reshape(-1, 7)
+    d = poses.shape[0]
+    if isinstance(contact_pairs, np.ndarray) and contact_pairs.ndim == 3:
+        ragged = list(contact_pairs)
+    else:
+        ragged = [np.asarray(p, np.int32).reshape(-1, 2) for p in contact_pairs]
+    if len(ragged) != d:
+        raise ValueError(f"{len(ragged)} contact-pair sets for {d} stable poses")
+    c = max([1] + [len(p) for p in ragged])
+    pairs = np.zeros((d, c, 2), np.int32)
+    mask = np.zeros((d, c), bool)
+    for i, p in enumerate(ragged):
+        pairs[i, : len(p)] = p
+        mask[i, : len(p)] = True
+    sample = HangSample(
+        object_points=np.asarray(object_points, np.float32),
+        object_normals=np.asarray(object_normals, np.float32),
+        support_points=np.asarray(support_points, np.float32),
+        support_normals=np.asarray(support_normals, np.float32),
+        stable_poses=poses,
+        pose_mask=np.ones(d, bool),
+        object_contact_maps=np.asarray(object_contact_maps, np.float32),
+        support_contact_maps=np.asarray(support_contact_maps, np.float32),
+        contact_pairs=pairs,
+        contact_mask=mask,
+    )
+    validate_sample(sample)
+    return sample
 
 
 def unstack(batch: HangSample) -> list[HangSample]:
@@ -414,6 +467,14 @@ def load_hang_dataset(
         raise FileNotFoundError(f"dataset directory {directory!r} does not exist")
     files = sorted(glob.glob(os.path.join(directory, split, "*.npz")))
     files = files or sorted(glob.glob(os.path.join(directory, "*.npz")))
+    if not files and os.path.exists(os.path.join(directory, "recipe.json")):
+        raise FileNotFoundError(
+            f"{directory!r} holds dataset-engine labels (recipe.json + shards/) but no per-pair "
+            f"training files yet: derive each pair's clouds/maps/contacts "
+            f"(sim.dataset.derive_pair), build a HangSample with "
+            f"omnihang_jax.data.make_hang_sample(**derived, stable_poses=...), and save it "
+            f"with np.savez(<dir>/{split}/<pair>.npz, **sample._asdict())."
+        )
     if not files:
         raise FileNotFoundError(
             f"no pair files in {directory!r}: expected {directory}/{split}/*.npz (or "

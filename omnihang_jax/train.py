@@ -17,6 +17,7 @@ Folder layout written by ``train_where(out=...)``::
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 from collections.abc import Callable, Sequence
@@ -316,6 +317,12 @@ def make_train_step(stage: str, config: WhereConfig) -> Callable:
 # Host loop, checkpoints, logs
 
 
+@functools.lru_cache(maxsize=16)
+def _jitted(stage: str, config: WhereConfig) -> tuple[Callable, Callable]:
+    """Jit init and step once per (stage, config): resuming in one process does not recompile."""
+    return jax.jit(make_init_state(stage, config)), jax.jit(make_train_step(stage, config))
+
+
 def _stage_dir(workdir: str, stage: str) -> str:
     return os.path.join(os.path.abspath(workdir), f"stage{stage}")
 
@@ -428,13 +435,13 @@ def train_stage(
 
     seed, stage_id = config.train.seed, STAGES.index(stage)
     init_key, base_key = jax.random.split(jax.random.fold_in(jax.random.key(seed), stage_id))
-    state = jax.jit(make_init_state(stage, config))(init_key, init_params)
+    init_state, train_step = _jitted(stage, config)
+    state = init_state(init_key, init_params)
     manager = _checkpoint_manager(stage_dir, config)
     if manager.latest_step() is not None:
         state = _restore(manager, state, manager.latest_step())
     start = int(state.step)
 
-    train_step = jax.jit(make_train_step(stage, config))
     metrics_path = os.path.join(stage_dir, "metrics.jsonl")
     log_every, ckpt_every = config.train.log_every, config.train.checkpoint_every
     bar = tqdm(

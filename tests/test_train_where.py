@@ -1,0 +1,184 @@
+"""Training loop, checkpoints, predictor, data contract and the train/predict entry points."""
+
+import dataclasses
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from experiments import predict_where, train_where
+from omnihang_jax import data, predict, train
+from omnihang_jax.config import config_from_dict, config_to_dict
+
+
+def _tiny(**train_overrides):
+    cfg = train.WHERE_TINY
+    return dataclasses.replace(
+        cfg, train=dataclasses.replace(cfg.train, batch_size=2, log_every=1, **train_overrides)
+    )
+
+
+@pytest.fixture(scope="module")
+def pool():
+    return data.ArrayDataset(data.synthetic_batch(jax.random.key(0), 6, 128))
+
+
+@pytest.mark.parametrize("preset", sorted(train.PRESETS))
+def test_config_json_round_trip(preset):
+    cfg = train.PRESETS[preset]
+    text = json.dumps(config_to_dict(cfg))
+    assert config_from_dict(train.WhereConfig, json.loads(text)) == cfg
+
+
+def test_checkpoint_resume_round_trip(tmp_path, pool):
+    """3 steps + resume to 6 == 6 straight steps, bit for bit; the folder alone rebuilds it."""
+    cfg = _tiny(checkpoint_every=3)
+    straight = train.train_stage("1", cfg, pool, str(tmp_path / "a"), steps=6, progress=False)
+    first = train.train_stage("1", cfg, pool, str(tmp_path / "b"), steps=3, progress=False)
+    assert int(first.step) == 3
+    resumed = train.train_stage("1", cfg, pool, str(tmp_path / "b"), steps=6, progress=False)
+    assert int(resumed.step) == 6
+    jax.tree.map(np.testing.assert_array_equal, resumed.params, straight.params)
+
+    config, params, step = train.restore_stage(str(tmp_path / "b" / "stage1"))
+    assert config == cfg and step == 6
+    jax.tree.map(np.testing.assert_array_equal, params, straight.params)
+    stage_dir = tmp_path / "b" / "stage1"
+    rows = [json.loads(x) for x in open(stage_dir / "metrics.jsonl")]
+    assert [r["step"] for r in rows] == [1, 2, 3, 4, 5, 6]
+    assert all(np.isfinite(r["loss"]) for r in rows)
+    assert (stage_dir / "loss.png").exists()
+    # A folder trained with another architecture is never silently resumed.
+    other = dataclasses.replace(train.WHERE_ORIGINAL, train=cfg.train)
+    with pytest.raises(ValueError, match="different architecture"):
+        train.train_stage("1", other, pool, str(tmp_path / "b"), steps=7, progress=False)
+
+
+@pytest.fixture(scope="module")
+def trained_dir(tmp_path_factory):
+    """All three stages through the command line, 2 steps each on synthetic pairs."""
+    out = str(tmp_path_factory.mktemp("where"))
+    argv = ["--data", "synthetic", "--out", out, "--preset", "tiny", "--steps", "2"]
+    summary = train_where.main(argv + ["--batch", "2", "--no-progress"])
+    assert summary == {"1": 2, "2a": 2, "2b": 2}
+    return out
+
+
+def test_cli_train_and_predict(trained_dir):
+    for stage in ("stage1", "stage2a", "stage2b"):
+        assert os.path.exists(os.path.join(trained_dir, stage, "config.json"))
+    summary = predict_where.main(["--model", trained_dir, "--pairs", "2", "--proposals", "3"])
+    assert summary["pairs"] == 2
+    assert np.isfinite(summary["mean_stage1_position_error_m"])
+    with open(os.path.join(trained_dir, "predictions.json")) as f:
+        pairs = json.load(f)["pairs"]
+    assert np.asarray(pairs[0]["stage2_poses"]).shape == (3, 7)
+
+
+def test_predictor_is_jitted_batched_and_finite(trained_dir):
+    predictor = predict.load_predictor(trained_dir)
+    batch = data.synthetic_batch(jax.random.key(5), 3, 128)
+    out = predictor(batch.object_points, batch.support_points, jax.random.key(0), num_proposals=4)
+    k3 = predictor.stage2_config.k_pairs
+    assert out.stage1_poses.shape == (3, 4, 7) and out.stage2_poses.shape == (3, 4, 7)
+    assert out.object_indices.shape == (3, 4, k3) and out.object_indices.dtype == np.int32
+    for poses7 in (out.stage1_poses, out.stage2_poses):
+        assert np.all(np.isfinite(poses7))
+        np.testing.assert_allclose(np.linalg.norm(poses7[..., 3:], axis=-1), 1.0, atol=1e-5)
+    # Stage 2 keeps Stage 1's rotation.
+    np.testing.assert_allclose(out.stage2_poses[..., 3:], out.stage1_poses[..., 3:], atol=1e-6)
+    # The pure function itself jits (traced once per static num_proposals).
+    fn = jax.jit(
+        predict.make_predict(predictor.stage1_config, predictor.stage2_config),
+        static_argnames="num_proposals",
+    )
+    again = fn(
+        predictor.stage1_params,
+        predictor.stage2_params,
+        batch.object_points,
+        batch.support_points,
+        jax.random.key(0),
+        num_proposals=4,
+    )
+    np.testing.assert_allclose(again.stage2_poses, out.stage2_poses, atol=1e-6)
+
+
+def test_nan_clouds_raise_at_the_boundary(trained_dir):
+    predictor = predict.load_predictor(trained_dir)
+    batch = data.synthetic_batch(jax.random.key(5), 1, 128)
+    bad = np.array(batch.object_points)
+    bad[0, 3, 1] = np.nan
+    with pytest.raises(ValueError, match="object_points contains 1 non-finite"):
+        predictor(bad, batch.support_points)
+    with pytest.raises(ValueError, match=r"\[B, N, 3\]"):
+        predictor(batch.object_points[..., :2], batch.support_points)
+
+
+def test_dataset_directory_round_trip_and_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        data.load_hang_dataset(tmp_path / "missing")
+    with pytest.raises(FileNotFoundError, match="one .npz per"):
+        data.load_hang_dataset(tmp_path)
+    (tmp_path / "recipe.json").write_text("{}")
+    with pytest.raises(FileNotFoundError, match="derive_pair"):
+        data.load_hang_dataset(tmp_path)
+
+    samples = data.unstack(data.synthetic_batch(jax.random.key(1), 3, 64, max_poses=3))
+    os.makedirs(tmp_path / "train")
+    for i, s in enumerate(samples):
+        d = int(s.pose_mask.sum())  # store unpadded, as the engine would
+        trimmed = s._replace(
+            stable_poses=s.stable_poses[:d],
+            pose_mask=s.pose_mask[:d],
+            object_contact_maps=s.object_contact_maps[:d],
+            support_contact_maps=s.support_contact_maps[:d],
+            contact_pairs=s.contact_pairs[:d, :1],
+            contact_mask=s.contact_mask[:d, :1],
+        )
+        np.savez(tmp_path / "train" / f"pair_{i}.npz", **trimmed._asdict())
+    dataset = data.load_hang_dataset(tmp_path, max_poses=5)
+    assert len(dataset) == 3
+    batch = dataset.sample_batch(np.random.default_rng(0), 4)
+    assert batch.stable_poses.shape == (4, 5, 7) and batch.pose_mask.shape == (4, 5)
+    assert batch.contact_pairs.shape == (4, 5, 1, 2) and batch.contact_pairs.dtype == np.int32
+    assert not batch.pose_mask[:, 3:].any()
+
+    # NaN in a stored cloud -> clear ValueError naming the file, when it is read.
+    bad_points = samples[0].support_points.copy()
+    bad_points[7] = np.nan
+    bad = samples[0]._replace(support_points=bad_points)
+    np.savez(tmp_path / "train" / "pair_0.npz", **bad._asdict())
+    with pytest.raises(ValueError, match="pair_0.npz: support_points contains 1 non-finite"):
+        data.load_hang_dataset(tmp_path).sample_batch(np.random.default_rng(0), 8)
+
+
+def test_make_hang_sample_pads_ragged_contacts():
+    s = data.unstack(data.synthetic_batch(jax.random.key(2), 1, 32, max_poses=2))[0]
+    sample = data.make_hang_sample(
+        **{k: v for k, v in s._asdict().items() if k not in ("contact_pairs",)},
+        contact_pairs=[np.array([[1, 2], [3, 4], [5, 6]]), np.zeros((0, 2))],
+    )
+    assert sample.contact_pairs.shape == (2, 3, 2)
+    np.testing.assert_array_equal(sample.contact_mask, [[1, 1, 1], [0, 0, 0]])
+    nan_sample = s._replace(object_points=s.object_points * np.nan)
+    with pytest.raises(ValueError, match="non-finite"):
+        data.validate_sample(nan_sample)
+
+
+def test_synthetic_batch_is_physically_plausible():
+    """The ring rests on the peg at every stable pose: no penetration, contact at the top."""
+    from omnihang_jax.poses import pose7_to_pose6, transform_points
+
+    batch = data.synthetic_batch(jax.random.key(3), 3, 512)
+    for b in range(3):
+        peg_r = np.linalg.norm(batch.support_points[b, :400, 1:], axis=1).mean()
+        for d in np.flatnonzero(batch.pose_mask[b]):
+            moved = np.asarray(
+                transform_points(pose7_to_pose6(batch.stable_poses[b, d]), batch.object_points[b])
+            )
+            radial = np.linalg.norm(moved[:, 1:], axis=1)
+            assert radial.min() > peg_r - 1e-3  # tube never inside the peg
+            assert radial.min() < peg_r + 2e-3  # and touching it
+        assert batch.object_contact_maps[b][batch.pose_mask[b]].max() == pytest.approx(1.0)
