@@ -30,8 +30,11 @@ class ProposalConfig:
     gap: float = 0.001  # m, rod-to-loop clearance at release: no initial penetration
     mount_clearance: float = 0.004  # m, keep the object this far from the peg's mount
     tip_margin: float = 0.01  # m, keep the loop this far inside an open peg's tip
-    jitter_angle: float = 0.12  # rad, std of random rotation about a random axis
-    jitter_position: float = 0.004  # m, std of random offset
+    # Jitter spreads candidates around the exact threading. It must stay comparable to the
+    # 1 mm rod gap: at 0.12 rad / 4 mm most candidates started pushed 4-6 mm into the rod
+    # (measured over 11 categories: stable 10-75%), at 0 nearly all hang (86-100%, cap 34%).
+    jitter_angle: float = 0.05  # rad, std of random rotation about a random axis
+    jitter_position: float = 0.0015  # m, std of random offset
     uniform_margin: float = 0.03  # m, minimum box expansion of the uniform sampler
     uniform_up: float = 0.06  # m, extra expansion upwards of the uniform sampler
 
