@@ -45,6 +45,12 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--batch", type=int, default=None, help="pairs per step (default 32)")
     parser.add_argument("--seed", type=int, default=None, help="seed for init, data and noise")
+    parser.add_argument(
+        "--synthetic-pairs",
+        type=int,
+        default=None,
+        help="size of the generated pool with --data synthetic (default: preset's)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
 
@@ -54,6 +60,8 @@ def main(argv=None) -> dict:
         overrides["batch_size"] = args.batch
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.synthetic_pairs is not None:
+        overrides["synthetic_pairs"] = args.synthetic_pairs
     config = dataclasses.replace(config, train=dataclasses.replace(config.train, **overrides))
     states = train.train_where(
         args.data,
