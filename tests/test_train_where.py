@@ -182,3 +182,23 @@ def test_synthetic_batch_is_physically_plausible():
             assert radial.min() > peg_r - 1e-3  # tube never inside the peg
             assert radial.min() < peg_r + 2e-3  # and touching it
         assert batch.object_contact_maps[b][batch.pose_mask[b]].max() == pytest.approx(1.0)
+
+
+@pytest.mark.slow
+def test_original_preset_forward_and_train_step():
+    """ORIGINAL sizes (4096-point clouds, 1024-d encodings, K1 = K2 = 128): one train step of
+    every stage and one prediction, all finite."""
+    cfg = dataclasses.replace(
+        train.WHERE_ORIGINAL, train=dataclasses.replace(train.WHERE_ORIGINAL.train, batch_size=2)
+    )
+    batch = data.synthetic_batch(jax.random.key(0), 2, 4096)
+    params = {}
+    for stage in train.STAGES:
+        state = jax.jit(train.make_init_state(stage, cfg))(jax.random.key(1))
+        state, metrics = jax.jit(train.make_train_step(stage, cfg))(state, batch, jax.random.key(2))
+        assert all(np.isfinite(float(v)) for v in metrics.values()), (stage, metrics)
+        params[stage] = state.params
+    predictor = predict.Predictor(cfg.stage1, params["1"], cfg.stage2, params["2b"])
+    out = predictor(batch.object_points, batch.support_points, num_proposals=5)
+    assert out.stage2_poses.shape == (2, 5, 7) and np.all(np.isfinite(out.stage2_poses))
+    assert out.object_indices.shape == (2, 5, 3)
