@@ -384,8 +384,11 @@ def _to_float(metrics: dict) -> dict:
     return {k: float(v) for k, v in metrics.items()}
 
 
+_LOSS_KEYS = ("loss", "huber", "cross_entropy", "listnet", "listnet_excess")
+
+
 def plot_metrics(metrics_path: str, png_path: str) -> None:
-    """Plot every loss-like key of a metrics.jsonl against the step (log scale)."""
+    """Plot a metrics.jsonl: losses (log scale) on the left, other metrics on the right."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -395,15 +398,19 @@ def plot_metrics(metrics_path: str, png_path: str) -> None:
         rows = [json.loads(line) for line in f if line.strip()]
     if not rows:
         return
-    keys = [k for k in rows[-1] if k not in ("step", "grad_norm")]
-    fig, ax = plt.subplots(figsize=(6, 4))
     steps = [r["step"] for r in rows]
-    for k in keys:
-        ax.plot(steps, [r.get(k, np.nan) for r in rows], label=k)
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_title(os.path.basename(os.path.dirname(metrics_path)))
-    ax.legend(fontsize=7)
+    loss_keys = [k for k in rows[-1] if k in _LOSS_KEYS]
+    other_keys = [k for k in rows[-1] if k not in _LOSS_KEYS and k not in ("step", "grad_norm")]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, keys, scale in ((axes[0], loss_keys, "log"), (axes[1], other_keys, "linear")):
+        for k in keys:
+            ax.plot(steps, [r.get(k, np.nan) for r in rows], label=k)
+        ax.set_yscale(scale)
+        ax.set_xlabel("step")
+        if keys:
+            ax.legend(fontsize=7)
+    axes[0].set_title(f"{os.path.basename(os.path.dirname(metrics_path))}: losses")
+    axes[1].set_title("metrics")
     fig.tight_layout()
     fig.savefig(png_path, dpi=100)
     plt.close(fig)
