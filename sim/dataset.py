@@ -504,6 +504,9 @@ def dataset_card(
             "pairs_per_min_this_run": 60 * new_pairs / max(timings["generate_s"], 1e-9),
         },
         "backend": backend,
+        "mujoco_warnings_this_run": dict(
+            kernels.MUJOCO_WARNINGS
+        ),  # diverged worlds, labelled failures
         "device": f"{device} x{os.cpu_count()} ({platform.platform()})",
         "versions": rec["versions"],
     }

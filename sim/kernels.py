@@ -24,8 +24,10 @@ Take-off (original: 20 N for 40 steps of 1/100 s, boxes checked every 10 steps, 
 
 from __future__ import annotations
 
+import collections
 import copy
 import dataclasses
+import logging
 import os
 import threading
 from typing import NamedTuple
@@ -149,8 +151,25 @@ def boxes_overlap(boxes: np.ndarray, bounds: np.ndarray, margin: float = 0.0) ->
 
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
-_POOLS: dict[int, mj_rollout.Rollout] = {}
-_THREAD_DATA = threading.local()
+
+# MuJoCo prints a warning (and writes MUJOCO_LOG.TXT) whenever a world blows up and is
+# reset. The kernels label such worlds DIVERGED themselves, so the warnings are counted
+# here instead of flooding progress bars; ``MUJOCO_WARNINGS`` maps message -> count.
+MUJOCO_WARNINGS: collections.Counter = collections.Counter()
+_WARNING_LOCK = threading.Lock()
+_log = logging.getLogger(__name__)
+
+
+def _count_warning(message: str) -> None:
+    key = message.split("Time =")[0].strip()
+    with _WARNING_LOCK:
+        MUJOCO_WARNINGS[key] += 1
+    _log.debug("MuJoCo: %s", message)
+
+
+def _install_warning_counter() -> None:
+    if mujoco.get_mju_user_warning() is not _count_warning:
+        mujoco.set_mju_user_warning(_count_warning)
 
 
 def _nthread(nthread: int | None) -> int:
@@ -172,6 +191,7 @@ def _initial_states(scene: Scene, poses: np.ndarray) -> np.ndarray:
 
 
 def _run(model, states, nstep, nthread, control=None, control_spec=0):
+    _install_warning_counter()
     n = _nthread(nthread)
     datas = [mujoco.MjData(model) for _ in range(min(n, len(states)))]
     with mj_rollout.Rollout(nthread=len(datas)) as pool:
