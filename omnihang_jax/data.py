@@ -457,7 +457,9 @@ def load_hang_dataset(
 ) -> NpzDirectoryDataset:
     """Loader hook for the dataset engine's output.
 
-    Expected layout: ``<directory>/<split>/*.npz`` (or ``<directory>/*.npz``), one file per
+    Expected layout: ``<directory>/<split>/*.npz`` (or ``<directory>/*.npz``, or
+    ``<directory>/derived/<split>/*.npz`` for a generated dataset derived by
+    ``experiments.derive_dataset``), one file per
     (object, support) pair, keys = ``HangSample`` field names, unbatched (see module docstring).
     Raises FileNotFoundError with the expected layout when no such file exists, ValueError
     when a file breaks the contract (checked per file when it is read).
@@ -467,10 +469,13 @@ def load_hang_dataset(
         raise FileNotFoundError(f"dataset directory {directory!r} does not exist")
     files = sorted(glob.glob(os.path.join(directory, split, "*.npz")))
     files = files or sorted(glob.glob(os.path.join(directory, "*.npz")))
+    # A generated dataset whose pairs were derived (experiments.derive_dataset) into DIR/derived.
+    files = files or sorted(glob.glob(os.path.join(directory, "derived", split, "*.npz")))
     if not files and os.path.exists(os.path.join(directory, "recipe.json")):
         raise FileNotFoundError(
             f"{directory!r} holds dataset-engine labels (recipe.json + shards/) but no per-pair "
-            f"training files yet: derive each pair's clouds/maps/contacts "
+            f"{split!r} files yet: run `python -m experiments.derive_dataset --data {directory}` "
+            f"(writes {directory}/derived/{split}/*.npz), or derive each pair's clouds/maps/contacts "
             f"(sim.dataset.derive_pair), build a HangSample with "
             f"omnihang_jax.data.make_hang_sample(**derived, stable_poses=...), and save it "
             f"with np.savez(<dir>/{split}/<pair>.npz, **sample._asdict())."

@@ -1,0 +1,41 @@
+"""Derive the networks' per-pair training files from a generated dataset.
+
+    python -m experiments.derive_dataset --data out/dataset_demo
+    python -m experiments.train_where --data out/dataset_demo --preset tiny --out runs/demo
+
+Reads DATA/recipe.json + DATA/shards/ and writes DATA/derived/<split>/<pair>.npz (HangSample
+layout: partial clouds with normals, stable poses, soft contact maps, contact pairs) for
+every pair with stable poses. Existing files are skipped: kill the job at any time and run
+the same command again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from omnihang_jax import dataset_bridge
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--data", required=True, help="generated dataset (recipe.json + shards/)")
+    parser.add_argument("--out", default=None, help="output folder (default DATA/derived)")
+    parser.add_argument(
+        "--split", choices=["train", "test", "all"], default="all", help="split(s) to derive"
+    )
+    parser.add_argument("--limit", type=int, default=None, help="at most this many new files")
+    parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
+    args = parser.parse_args(argv)
+    splits = ("train", "test") if args.split == "all" else (args.split,)
+    summary = dataset_bridge.derive_dataset(
+        args.data, args.out, splits=splits, limit=args.limit, progress=not args.no_progress
+    )
+    print(json.dumps(summary, indent=1))
+    return summary
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,238 @@
+"""Bridge from the dataset engine (``sim.dataset``: labels in shards) to the networks'
+``HangSample`` files (``omnihang_jax.data.load_hang_dataset``).
+
+``derive_dataset(dataset_dir)`` reads ``DIR/recipe.json`` + ``DIR/shards/*.npz``, rebuilds the
+asset library from the recipe, and for every pair with at least one stable pose writes::
+
+    DIR/derived/<split>/<pair_index:05d>_<object>__<support>.npz
+
+whose keys are the ``HangSample`` fields (unbatched: object cloud in the OBJECT frame, support
+cloud in the SUPPORT frame = the scene's world frame, stable poses = object frame in support
+frame, xyz + quaternion wxyz) plus metadata used by the evaluation (``pair_index``,
+``object_name``, ``support_name``, ``object_category``, ``support_family``, ``split``).
+The split is the recipe's pair list's (a pair is "test" when its object or its support is
+held out). Files are written to a temporary name and renamed, so an existing file is
+complete and is skipped on a rerun (resumable). ``DIR/derived/derived.json`` summarises the
+run (counts per split, pairs skipped for lack of stable poses, the source dataset).
+
+This module imports both sides (``sim`` for physics and ray casting, ``omnihang_jax.data``
+for the contract); neither side imports it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from omnihang_jax.config import config_from_dict
+from omnihang_jax.data import HangSample, make_hang_sample
+
+__all__ = [
+    "DERIVED_DIRNAME",
+    "META_KEYS",
+    "dataset_config_from_recipe",
+    "read_recipe",
+    "pair_file_name",
+    "derive_dataset",
+    "load_pair_file",
+    "derived_files",
+    "resolve_dataset_dir",
+]
+
+DERIVED_DIRNAME = "derived"
+META_KEYS = (
+    "pair_index",
+    "object_name",
+    "support_name",
+    "object_category",
+    "support_family",
+    "split",
+)
+
+
+def read_recipe(dataset_dir: str | os.PathLike) -> dict:
+    """The dataset's ``recipe.json``; FileNotFoundError with the expected layout if absent."""
+    path = Path(dataset_dir) / "recipe.json"
+    if not path.exists():
+        raise FileNotFoundError(
+            f"{path} not found: {os.fspath(dataset_dir)!r} is not a generated dataset "
+            "(expected recipe.json + shards/shard_*.npz, written by "
+            "`python -m experiments.generate_dataset --preset demo --out DIR`)"
+        )
+    return json.loads(path.read_text())
+
+
+def dataset_config_from_recipe(recipe: dict):
+    """Rebuild the ``sim.dataset.DatasetConfig`` the dataset was generated with.
+
+    Raises ValueError if the rebuilt config does not serialise back to the recipe's (a field
+    was renamed or added since the dataset was made), so derived arrays never silently come
+    from different camera or library settings.
+    """
+    from sim import dataset
+
+    config = config_from_dict(dataset.DatasetConfig, recipe["config"])
+    again = json.loads(json.dumps(dataclasses.asdict(config), default=str))
+    if again != recipe["config"]:
+        diff = sorted(
+            k for k in set(again) | set(recipe["config"]) if again.get(k) != recipe["config"].get(k)
+        )
+        raise ValueError(f"recipe config does not round-trip through DatasetConfig: fields {diff}")
+    return config
+
+
+def pair_file_name(pair_index: int, object_name: str, support_name: str) -> str:
+    return f"{pair_index:05d}_{object_name}__{support_name}.npz"
+
+
+def _atomic_savez(path: Path, arrays: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp_", suffix=".npz")
+    os.close(fd)
+    try:
+        np.savez_compressed(tmp, **arrays)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def _records(dataset_dir: Path) -> list[dict]:
+    from sim import dataset
+
+    shards = sorted((dataset_dir / "shards").glob("shard_*.npz"))
+    if not shards:
+        raise FileNotFoundError(
+            f"no shards in {dataset_dir / 'shards'}: generate (or resume) the dataset first "
+            f"(`python -m experiments.generate_dataset --out {dataset_dir}`)"
+        )
+    return dataset.load_records(dataset_dir)
+
+
+def derive_dataset(
+    dataset_dir: str | os.PathLike,
+    out_dir: str | os.PathLike | None = None,
+    splits: tuple[str, ...] = ("train", "test"),
+    limit: int | None = None,
+    progress: bool = True,
+) -> dict:
+    """Write one HangSample ``.npz`` per pair with stable poses (see module docstring).
+
+    dataset_dir: a generated dataset (recipe.json + shards/). out_dir: default
+    ``dataset_dir/derived``. splits: which splits to derive. limit: at most this many new
+    files (smoke runs). Returns the summary also written to ``out_dir/derived.json``.
+    """
+    from sim import dataset
+    from sim.library import build_library
+
+    dataset_dir = Path(dataset_dir)
+    recipe = read_recipe(dataset_dir)
+    config = dataset_config_from_recipe(recipe)
+    out = Path(out_dir) if out_dir is not None else dataset_dir / DERIVED_DIRNAME
+    records = _records(dataset_dir)
+    pairs = recipe["pairs"]
+    library = build_library(config.library, progress=False)
+
+    t0 = time.time()
+    written = skipped_existing = 0
+    no_stable: list[int] = []
+    counts = {s: 0 for s in splits}
+    bar = tqdm(records, desc="derive", unit="pair", disable=not progress)
+    for record in bar:
+        index = int(record["pair_index"])
+        obj_name, sup_name, split = pairs[index]
+        if recipe["objects"][int(record["object_id"])] != obj_name or (
+            recipe["supports"][int(record["support_id"])] != sup_name
+        ):
+            raise ValueError(f"shard record {index} does not match the recipe's pair list")
+        if split not in splits:
+            continue
+        if len(record["stable_poses"]) == 0:
+            no_stable.append(index)
+            continue
+        path = out / split / pair_file_name(index, obj_name, sup_name)
+        counts[split] += 1
+        if path.exists():
+            skipped_existing += 1
+            continue
+        if limit is not None and written >= limit:
+            continue
+        obj, sup = library.objects[obj_name], library.supports[sup_name]
+        derived = dataset.derive_pair(obj, sup, record, config)
+        sample = make_hang_sample(**derived, stable_poses=record["stable_poses"])
+        meta = dict(
+            pair_index=np.int64(index),
+            object_name=np.str_(obj_name),
+            support_name=np.str_(sup_name),
+            object_category=np.str_(obj.category),
+            support_family=np.str_(sup.category),
+            split=np.str_(split),
+        )
+        _atomic_savez(path, {**sample._asdict(), **meta})
+        written += 1
+        bar.set_postfix(written=written)
+    bar.close()
+    summary = {
+        "source": os.fspath(dataset_dir.resolve()),
+        "preset": recipe.get("preset"),
+        "pairs_in_shards": len(records),
+        "pairs_planned": len(pairs),
+        "files_per_split": counts,
+        "written_this_run": written,
+        "skipped_existing": skipped_existing,
+        "pairs_without_stable_poses": len(no_stable),
+        "points_per_cloud": config.camera.n_points,
+        "derive_s_this_run": round(time.time() - t0, 2),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=out, prefix=".tmp_")
+    with os.fdopen(fd, "w") as fh:
+        json.dump(summary, fh, indent=1)
+    os.replace(tmp, out / "derived.json")
+    return summary
+
+
+def load_pair_file(path: str | os.PathLike) -> tuple[HangSample, dict]:
+    """One derived pair: (unbatched HangSample, metadata dict with the ``META_KEYS``)."""
+    from omnihang_jax.data import _load_npz_sample
+
+    sample = _load_npz_sample(os.fspath(path))
+    with np.load(path) as f:
+        missing = [k for k in META_KEYS if k not in f.files]
+        if missing:
+            raise ValueError(f"{path}: no pair metadata {missing}; derive it with derive_dataset")
+        meta = {k: f[k].item() for k in META_KEYS}
+    meta["pair_index"] = int(meta["pair_index"])
+    return sample, meta
+
+
+def resolve_dataset_dir(data: str | os.PathLike) -> tuple[Path, Path]:
+    """(dataset_dir with recipe.json, derived_dir) from either of the two folders."""
+    data = Path(data)
+    if (data / "recipe.json").exists():
+        return data, data / DERIVED_DIRNAME
+    summary = data / "derived.json"
+    if summary.exists():
+        return Path(json.loads(summary.read_text())["source"]), data
+    raise FileNotFoundError(
+        f"{os.fspath(data)!r} is neither a generated dataset (recipe.json) nor a derived folder "
+        "(derived.json): run `python -m experiments.derive_dataset --data DIR` first"
+    )
+
+
+def derived_files(derived_dir: str | os.PathLike, split: str) -> list[Path]:
+    """Sorted pair files of one split; FileNotFoundError if there are none."""
+    files = sorted(Path(derived_dir, split).glob("*.npz"))
+    if not files:
+        raise FileNotFoundError(
+            f"no derived pairs in {Path(derived_dir, split)}: run "
+            "`python -m experiments.derive_dataset --data DIR` first"
+        )
+    return files

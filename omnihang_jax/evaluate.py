@@ -1,0 +1,396 @@
+"""Hanging-success evaluation of the "where to hang" networks (paper, Table "hanging success").
+
+Protocol (original code, facts file "Evaluation"), and how each piece maps onto our kernels:
+
+* A predicted pose is loaded with zero velocity and simulated 100 steps of 1/100 s (1 s):
+  ``StabilityConfig.duration = 1.0``; the object starts at rest (``sim.kernels.stability``
+  always starts from zero velocity) under gravity, with the scene's default physics (0.5 kg,
+  friction 0.5: the settings the dataset's stable poses were labelled with).
+* Failure if the initial penetration exceeds 3 mm (``max_penetration = 0.003``: status
+  PENETRATING), if the bounding boxes of object and support stop overlapping or the object
+  touches the ground (status FALLEN), or if the simulation diverges (DIVERGED). Success =
+  status STABLE. The kernel may stop a world early once it has rested for two consecutive
+  0.1 s checks; a resting object under gravity does not start moving again, so this only
+  saves time.
+* Per pair ONE candidate is evaluated. The paper evaluates the candidate with the best
+  Stage-3 score; without Stage 3 there is no score to rank by, so we take the first of the
+  K Stage-1 proposals (``EvalConfig.candidate = 0``). Stage-1 proposals are i.i.d. draws
+  (one noise vector each), so "the first" is an unbiased single draw. "Stages 1+2" is the
+  Stage-2 refinement of that same proposal. As a supplementary figure we also report
+  "any of K" (success if any of the K proposals succeeds): an upper bound on what a perfect
+  ranker (Stage 3) could pick among them.
+* Score = mean over object categories of the per-category success rate (%), over the pairs
+  of the held-out ("test") split that have at least one ground-truth stable pose.
+
+Frames: the object cloud lives in the OBJECT frame (origin at its bounding-box centre), the
+support cloud in the SUPPORT frame, which is the scene's world frame (the support's geoms sit
+in the world body at identity). Predicted poses are the object frame in the support frame
+(xyz + quaternion wxyz), i.e. exactly the ``poses [B, 7]`` that ``sim.kernels.stability``
+takes: no conversion is needed beyond normalising the quaternion.
+
+Pose errors (no simulation): for a predicted pose, the translation error is the distance to
+the nearest ground-truth stable position (metres); the rotation error is the geodesic angle
+(degrees) to that same ground-truth pose; ``min_rotation_error_deg`` is the smallest angle to
+any ground-truth pose. Stage 2 keeps Stage 1's rotation, so only its translation can differ.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from omnihang_jax import dataset_bridge
+from omnihang_jax.data import HangSample
+
+__all__ = [
+    "PAPER_SUCCESS",
+    "protocol_stability",
+    "EvalConfig",
+    "PairPrediction",
+    "predictor_fn",
+    "ground_truth_fn",
+    "pose_errors",
+    "evaluate_pairs",
+    "summarize_success",
+    "summarize_errors",
+    "evaluate_where",
+]
+
+# Paper, mean over the 11 categories (facts file, "Headline results").
+PAPER_SUCCESS = {"stage1": 36.0, "stage1_2": 34.2}
+
+
+def protocol_stability():
+    """The ``sim.kernels.StabilityConfig`` of the evaluation protocol (module docstring)."""
+    from sim import kernels
+
+    return kernels.StabilityConfig(
+        duration=1.0,  # s: 100 steps of 1/100 s (original evaluation)
+        max_penetration=0.003,  # m: a prediction penetrating > 3 mm fails at once (original)
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Evaluation settings. ``stability`` None means ``protocol_stability()``."""
+
+    stability: object | None = None
+    num_proposals: int | None = None  # K per pair; None: the Stage-1 config's num_eval_samples
+    candidate: int = 0  # the proposal that counts as "the" prediction (no Stage 3 to rank)
+    backend: str = "cpu"  # physics backend of sim.kernels.stability
+    seed: int = 0  # Stage-1 noise: key = fold_in(key(seed), pair_index)
+    split: str = "test"
+
+
+class PairPrediction(NamedTuple):
+    """stage1_poses, stage2_poses: [K, 7] float (xyz metres + quaternion wxyz, object frame in
+    support frame)."""
+
+    stage1_poses: np.ndarray
+    stage2_poses: np.ndarray
+
+
+PredictFn = Callable[[HangSample, dict], PairPrediction]
+
+
+def predictor_fn(predictor, num_proposals: int | None = None, seed: int = 0) -> PredictFn:
+    """Wrap an ``omnihang_jax.predict.Predictor`` as a per-pair ``PredictFn`` (deterministic:
+    the Stage-1 noise of a pair depends only on ``seed`` and its pair index)."""
+    import jax
+
+    base = jax.random.key(seed)
+
+    def predict(sample: HangSample, meta: dict) -> PairPrediction:
+        out = predictor(
+            np.asarray(sample.object_points)[None],
+            np.asarray(sample.support_points)[None],
+            key=jax.random.fold_in(base, int(meta["pair_index"])),
+            num_proposals=num_proposals,
+        )
+        return PairPrediction(np.asarray(out.stage1_poses[0]), np.asarray(out.stage2_poses[0]))
+
+    return predict
+
+
+def ground_truth_fn(index: int = 0) -> PredictFn:
+    """A "perfect predictor": the pair's own ``index``-th ground-truth stable pose for both
+    stages. Calibrates the protocol (how often the dataset's own poses pass it)."""
+
+    def predict(sample: HangSample, meta: dict) -> PairPrediction:
+        poses = np.asarray(sample.stable_poses)[np.asarray(sample.pose_mask, bool)]
+        pose = poses[min(index, len(poses) - 1)][None]
+        return PairPrediction(pose, pose)
+
+    return predict
+
+
+# ----------------------------------------------------------------------------------------------
+# Pose errors (host side, numpy).
+
+
+def _geodesic_deg(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Angle (degrees) between unit quaternions (wxyz), broadcast over leading axes."""
+    q1 = q1 / np.linalg.norm(q1, axis=-1, keepdims=True)
+    q2 = q2 / np.linalg.norm(q2, axis=-1, keepdims=True)
+    dot = np.clip(np.abs(np.sum(q1 * q2, -1)), 0.0, 1.0)
+    return np.degrees(2.0 * np.arccos(dot))
+
+
+def pose_errors(poses: np.ndarray, sample: HangSample) -> dict[str, np.ndarray]:
+    """poses [K, 7] -> per pose: ``translation_error_m`` [K] (to the nearest ground-truth
+    position), ``rotation_error_deg`` [K] (to that same ground-truth pose),
+    ``min_rotation_error_deg`` [K] (to the nearest ground-truth rotation)."""
+    poses = np.asarray(poses, float).reshape(-1, 7)
+    gt = np.asarray(sample.stable_poses, float)[np.asarray(sample.pose_mask, bool)]
+    dt = np.linalg.norm(poses[:, None, :3] - gt[None, :, :3], axis=-1)  # [K, D]
+    dr = _geodesic_deg(poses[:, None, 3:], gt[None, :, 3:])  # [K, D]
+    nearest = np.argmin(dt, axis=1)
+    rows = np.arange(len(poses))
+    return {
+        "translation_error_m": dt[rows, nearest],
+        "rotation_error_deg": dr[rows, nearest],
+        "min_rotation_error_deg": dr.min(1),
+    }
+
+
+# ----------------------------------------------------------------------------------------------
+# Simulation labels.
+
+
+def evaluate_pairs(
+    files: Sequence[str | os.PathLike],
+    predict: PredictFn,
+    library,
+    config: EvalConfig = EvalConfig(),
+    progress: bool = True,
+) -> list[dict]:
+    """Predict and simulate every pair file (``dataset_bridge`` layout); one record per pair.
+
+    A record holds the pair's names and category, per stage the status of every proposal
+    (``STATUS_NAMES``), success of the chosen candidate and of any proposal, and pose errors.
+    """
+    from sim import kernels
+    from sim.scene import build_scene
+
+    stability = config.stability or protocol_stability()
+    records = []
+    bar = tqdm(files, desc="evaluate", unit="pair", disable=not progress)
+    n_ok = {"stage1": 0, "stage1_2": 0}
+    for path in bar:
+        sample, meta = dataset_bridge.load_pair_file(path)
+        pred = predict(sample, meta)
+        poses1 = np.asarray(pred.stage1_poses, float).reshape(-1, 7)
+        poses2 = np.asarray(pred.stage2_poses, float).reshape(-1, 7)
+        k = len(poses1)
+        c = min(config.candidate, k - 1)
+        scene = build_scene(
+            library.objects[meta["object_name"]], library.supports[meta["support_name"]]
+        )
+        # Non-finite predictions cannot be simulated: they count as failures (DIVERGED).
+        both = np.concatenate([poses1, poses2])
+        finite = np.isfinite(both).all(1) & (np.linalg.norm(both[:, 3:], axis=1) > 1e-6)
+        status = np.full(len(both), kernels.DIVERGED, np.int8)
+        penetration = np.full(len(both), np.nan)
+        if finite.any():
+            res = kernels.stability(scene, both[finite], stability, backend=config.backend)
+            status[finite] = res.status
+            penetration[finite] = res.initial_penetration
+        ok = status == kernels.STABLE
+        record = {
+            "pair_index": meta["pair_index"],
+            "object": meta["object_name"],
+            "support": meta["support_name"],
+            "category": meta["object_category"],
+            "family": meta["support_family"],
+            "file": os.path.basename(os.fspath(path)),
+            "num_proposals": k,
+            "candidate": c,
+            "ground_truth_poses": int(np.asarray(sample.pose_mask).sum()),
+        }
+        for name, sl, poses in (
+            ("stage1", slice(0, k), poses1),
+            ("stage1_2", slice(k, 2 * k), poses2),
+        ):
+            err = pose_errors(np.where(np.isfinite(poses), poses, 1e3), sample)
+            record[name] = {
+                "success": bool(ok[sl][c]),
+                "status": kernels.STATUS_NAMES[status[sl][c]],
+                "any_of_k": bool(ok[sl].any()),
+                "statuses": [kernels.STATUS_NAMES[s] for s in status[sl]],
+                "initial_penetration_m": float(penetration[sl][c]),
+                "pose": poses[c].tolist(),
+                **{key: float(v[c]) for key, v in err.items()},
+                **{f"{key}_all": v.tolist() for key, v in err.items()},
+            }
+            n_ok[name] += record[name]["success"]
+        records.append(record)
+        bar.set_postfix(s1=n_ok["stage1"], s12=n_ok["stage1_2"], n=len(records))
+    bar.close()
+    return records
+
+
+def summarize_success(records: Sequence[dict], stage: str, field: str = "success") -> dict:
+    """{"mean": mean over categories of per-category success (%), "per_category": {cat: %},
+    "pairs_per_category", "pairs", "successes"} for ``stage`` ("stage1" or "stage1_2")."""
+    by_cat: dict[str, list[bool]] = {}
+    for r in records:
+        by_cat.setdefault(r["category"], []).append(bool(r[stage][field]))
+    per_cat = {c: 100.0 * float(np.mean(v)) for c, v in sorted(by_cat.items())}
+    return {
+        "mean": float(np.mean(list(per_cat.values()))) if per_cat else float("nan"),
+        "per_category": per_cat,
+        "pairs_per_category": {c: len(v) for c, v in sorted(by_cat.items())},
+        "pairs": len(records),
+        "successes": int(sum(bool(r[stage][field]) for r in records)),
+        "pair_mean": 100.0 * float(np.mean([r[stage][field] for r in records]))
+        if records
+        else float("nan"),
+    }
+
+
+def _stats(values) -> dict:
+    v = np.asarray(values, float)
+    return {
+        "mean": float(v.mean()),
+        "median": float(np.median(v)),
+        "min": float(v.min()),
+        "max": float(v.max()),
+    }
+
+
+def summarize_errors(records: Sequence[dict]) -> dict:
+    """Pose errors of the chosen candidate (and over all K proposals) per stage."""
+    keys = ("translation_error_m", "rotation_error_deg", "min_rotation_error_deg")
+    out = {}
+    for stage, label in (("stage1", "stage1"), ("stage1_2", "stage2")):
+        out[label] = {key: _stats([r[stage][key] for r in records]) for key in keys}
+        out[label]["all_proposals"] = {
+            key: _stats([x for r in records for x in r[stage][f"{key}_all"]]) for key in keys
+        }
+        by_cat: dict[str, list[float]] = {}
+        for r in records:
+            by_cat.setdefault(r["category"], []).append(r[stage]["translation_error_m"])
+        out[label]["translation_error_m_per_category"] = {
+            c: float(np.mean(v)) for c, v in sorted(by_cat.items())
+        }
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# The whole evaluation: model folder + dataset -> results files.
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp_")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+
+
+def evaluate_where(
+    model_dir: str | os.PathLike | None,
+    data: str | os.PathLike,
+    results_path: str | os.PathLike,
+    errors_path: str | os.PathLike | None = None,
+    pairs_path: str | os.PathLike | None = None,
+    config: EvalConfig = EvalConfig(),
+    label: str = "",
+    reference: bool = True,
+    limit: int | None = None,
+    progress: bool = True,
+) -> dict:
+    """Evaluate a trained model folder (``stage1/`` + ``stage2b/``) on the derived pairs of
+    ``config.split`` and write the results JSON (``results_path``), the pose errors JSON
+    (``errors_path``, default beside it) and one JSON line per pair (``pairs_path``).
+
+    model_dir None evaluates the ground-truth stub only. reference: also run the
+    ground-truth stub (the dataset's own first stable pose) through the same protocol, as a
+    calibration of the simulator protocol. Returns the results dict.
+    """
+    from sim.library import build_library
+
+    t0 = time.time()
+    dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(data)
+    recipe = dataset_bridge.read_recipe(dataset_dir)
+    dataset_config = dataset_bridge.dataset_config_from_recipe(recipe)
+    library = build_library(dataset_config.library, progress=False)
+    files = dataset_bridge.derived_files(derived_dir, config.split)[:limit]
+    stability = config.stability or protocol_stability()
+    config = dataclasses.replace(config, stability=stability)
+
+    if model_dir is not None:
+        from omnihang_jax.predict import load_predictor
+
+        predictor = load_predictor(model_dir, seed=config.seed)
+        k = config.num_proposals or predictor.stage1_config.num_eval_samples
+        predict = predictor_fn(predictor, k, config.seed)
+    else:
+        predict = ground_truth_fn()
+    records = evaluate_pairs(files, predict, library, config, progress)
+    eval_s = time.time() - t0
+
+    results = {
+        "label": label,
+        "stage1": summarize_success(records, "stage1"),
+        "stage1_2": summarize_success(records, "stage1_2"),
+        "any_of_k": {
+            "stage1": summarize_success(records, "stage1", "any_of_k"),
+            "stage1_2": summarize_success(records, "stage1_2", "any_of_k"),
+        },
+        "pairs": len(records),
+        "model": os.fspath(model_dir) if model_dir is not None else "ground_truth_stub",
+        "dataset": os.fspath(dataset_dir),
+        "dataset_preset": recipe.get("preset"),
+        "split": config.split,
+        "protocol": {
+            "stability": dataclasses.asdict(stability),
+            "backend": config.backend,
+            "num_proposals": records[0]["num_proposals"] if records else None,
+            "candidate": f"proposal {config.candidate} of K (no Stage 3 to rank them)",
+            "stage1_2": "Stage-2 refinement of the same proposal",
+            "success": "status stable after 1 s from rest; fails if initial penetration > 3 mm, "
+            "boxes stop overlapping, ground touched or simulation diverged",
+            "score": "mean over object categories of per-category success (%)",
+            "frames": "object cloud in object frame, support cloud in support (= world) frame, "
+            "poses = object frame in support frame (xyz + quaternion wxyz)",
+            "seed": config.seed,
+        },
+        "paper": PAPER_SUCCESS,
+        "evaluate_s": round(eval_s, 1),
+    }
+    if reference and model_dir is not None:
+        ref = evaluate_pairs(files, ground_truth_fn(), library, config, progress)
+        results["ground_truth_reference"] = {
+            "what": "the dataset's own first stable pose of each pair, same protocol",
+            **summarize_success(ref, "stage1"),
+        }
+    errors = {
+        "label": label,
+        "pairs": len(records),
+        "model": results["model"],
+        "dataset": results["dataset"],
+        "split": config.split,
+        "candidate": results["protocol"]["candidate"],
+        "definition": "translation_error_m: distance to the nearest ground-truth stable position; "
+        "rotation_error_deg: geodesic angle to that same ground-truth pose; "
+        "min_rotation_error_deg: angle to the nearest ground-truth rotation. Stage 2 keeps "
+        "Stage 1's rotation.",
+        **summarize_errors(records),
+    }
+    results_path = Path(results_path)
+    errors_path = Path(errors_path) if errors_path else results_path.with_name("pose_errors.json")
+    pairs_path = Path(pairs_path) if pairs_path else results_path.with_suffix(".pairs.jsonl")
+    _atomic_write_text(results_path, json.dumps(results, indent=1) + "\n")
+    _atomic_write_text(errors_path, json.dumps(errors, indent=1) + "\n")
+    _atomic_write_text(pairs_path, "".join(json.dumps(r) + "\n" for r in records))
+    return results

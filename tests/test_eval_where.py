@@ -1,0 +1,167 @@
+"""Dataset -> HangSample bridge and the hanging-success evaluation protocol."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from omnihang_jax import data, dataset_bridge, evaluate
+from omnihang_jax.predict import Predictor
+from omnihang_jax.stage1 import STAGE1_TINY, make_stage1
+from omnihang_jax.stage2 import STAGE2_TINY, make_stage2
+from sim import camera, dataset, kernels
+from sim.library import TINY, build_library
+
+# Same tiny dataset as tests/test_dataset.py (copied, not imported): 2 objects x 2 supports.
+CFG = dataclasses.replace(
+    dataset.PRESETS["demo"],
+    library=dataclasses.replace(
+        TINY, object_categories=("mug", "wrench"), support_families=("single_rod_hook", "towel_bar")
+    ),
+    max_candidates=128,
+    batch=128,
+    max_stable=4,
+    max_negatives=4,
+    n_collision=40,
+    n_views=2,
+    camera=camera.CameraConfig(width=120, height=90, n_points=256),
+    shard_size=2,
+)
+
+
+@pytest.fixture(scope="module")
+def derived(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ds")
+    dataset.generate(CFG, out, preset="test", progress=False)
+    summary = dataset_bridge.derive_dataset(out, progress=False)
+    return out, summary
+
+
+@pytest.fixture(scope="module")
+def library():
+    return build_library(CFG.library, progress=False)
+
+
+def test_derived_files_load_as_hang_samples(derived):
+    out, summary = derived
+    recipe = json.loads((out / "recipe.json").read_text())
+    with_stable = summary["files_per_split"]["train"] + summary["files_per_split"]["test"]
+    assert with_stable + summary["pairs_without_stable_poses"] == len(recipe["pairs"])
+    assert summary["files_per_split"]["train"] >= 1 and summary["files_per_split"]["test"] >= 1
+    for split in ("train", "test"):
+        # Both the dataset folder (what train_where --data gets) and derived/ itself work.
+        for root in (out, out / "derived"):
+            ds = data.load_hang_dataset(root, split=split)
+            assert len(ds) == summary["files_per_split"][split]
+            batch = ds.sample_batch(np.random.default_rng(0), 3)
+            assert batch.object_points.shape == (3, CFG.camera.n_points, 3)
+            assert batch.stable_poses.shape == (3, data.MAX_STABLE_POSES, 7)
+        for path in dataset_bridge.derived_files(out / "derived", split):
+            sample, meta = dataset_bridge.load_pair_file(path)
+            assert meta["split"] == split == recipe["pairs"][meta["pair_index"]][2]
+            assert [meta["object_name"], meta["support_name"]] == recipe["pairs"][
+                meta["pair_index"]
+            ][:2]
+            assert np.asarray(sample.pose_mask).sum() >= 1
+
+
+def test_derive_is_resumable_and_checks_its_input(derived, tmp_path):
+    out, summary = derived
+    again = dataset_bridge.derive_dataset(out, progress=False)
+    assert again["written_this_run"] == 0
+    assert again["skipped_existing"] == sum(summary["files_per_split"].values())
+    with pytest.raises(FileNotFoundError, match="recipe.json"):
+        dataset_bridge.derive_dataset(tmp_path, progress=False)
+
+
+def _shifted_fn(shift) -> evaluate.PredictFn:
+    truth = evaluate.ground_truth_fn()
+
+    def predict(sample, meta):
+        pose = truth(sample, meta).stage1_poses.copy()
+        pose[:, :3] += shift
+        return evaluate.PairPrediction(pose, pose)
+
+    return predict
+
+
+def test_protocol_labels_ground_truth_stable_and_far_pose_failed(derived, library):
+    out, _ = derived
+    files = dataset_bridge.derived_files(out / "derived", "test")
+    good = evaluate.evaluate_pairs(files, evaluate.ground_truth_fn(), library, progress=False)
+    # 20 cm out from the wall (supports reach towards +y): nothing to hang on.
+    bad = evaluate.evaluate_pairs(files, _shifted_fn([0.0, 0.2, 0.0]), library, progress=False)
+    for g, b in zip(good, bad):
+        for stage in ("stage1", "stage1_2"):
+            assert g[stage]["success"] and g[stage]["status"] == "stable", g
+            assert g[stage]["translation_error_m"] == pytest.approx(0.0, abs=1e-6)
+            assert g[stage]["rotation_error_deg"] == pytest.approx(0.0, abs=1e-2)
+            assert not b[stage]["success"] and b[stage]["status"] != "stable", b
+            assert b[stage]["translation_error_m"] > 0.1
+    summary = evaluate.summarize_success(good, "stage1")
+    assert summary["mean"] == 100.0 and summary["pairs"] == len(files)
+    assert evaluate.summarize_success(bad, "stage1_2")["mean"] == 0.0
+
+
+def test_protocol_settings():
+    cfg = evaluate.protocol_stability()
+    assert isinstance(cfg, kernels.StabilityConfig)
+    assert cfg.duration == 1.0  # 100 steps of 1/100 s
+    assert cfg.max_penetration == 0.003  # 3 mm
+
+
+def test_pose_errors_against_hand_computed_values():
+    sample = data.make_hang_sample(
+        object_points=np.zeros((4, 3)),
+        object_normals=np.tile([0.0, 0.0, 1.0], (4, 1)),
+        support_points=np.zeros((4, 3)),
+        support_normals=np.tile([0.0, 0.0, 1.0], (4, 1)),
+        stable_poses=[[0, 0, 0, 1, 0, 0, 0], [1, 0, 0, 1, 0, 0, 0]],
+        object_contact_maps=np.zeros((2, 4)),
+        support_contact_maps=np.zeros((2, 4)),
+        contact_pairs=[np.zeros((1, 2), int), np.zeros((1, 2), int)],
+    )
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)  # 90 degrees about z
+    err = evaluate.pose_errors(np.array([[0.9, 0.0, 0.1, c, 0, 0, s]]), sample)
+    assert err["translation_error_m"][0] == pytest.approx(np.hypot(0.1, 0.1))
+    assert err["rotation_error_deg"][0] == pytest.approx(90.0)
+    assert err["min_rotation_error_deg"][0] == pytest.approx(90.0)
+
+
+def test_evaluate_where_writes_results(derived, library, tmp_path):
+    out, _ = derived
+    results = evaluate.evaluate_where(
+        None, out, tmp_path / "success.json", tmp_path / "errors.json", progress=False
+    )
+    saved = json.loads((tmp_path / "success.json").read_text())
+    assert saved == json.loads(json.dumps(results))
+    for stage in ("stage1", "stage1_2"):
+        assert set(saved[stage]) >= {"mean", "per_category"}
+        assert saved[stage]["mean"] == 100.0
+    for key in ("pairs", "model", "dataset", "protocol"):
+        assert key in saved
+    errors = json.loads((tmp_path / "errors.json").read_text())
+    assert {"stage1", "stage2"} <= set(errors)
+    lines = (tmp_path / "success.pairs.jsonl").read_text().splitlines()
+    assert len(lines) == saved["pairs"] >= 1
+
+    # The network path: an untrained TINY predictor gives finite poses that get labelled.
+    key1, key2 = jax.random.split(jax.random.key(0))
+    predictor = Predictor(
+        STAGE1_TINY,
+        make_stage1(STAGE1_TINY).init(key1),
+        STAGE2_TINY,
+        make_stage2(STAGE2_TINY).init(key2),
+    )
+    files = dataset_bridge.derived_files(out / "derived", "test")[:1]
+    records = evaluate.evaluate_pairs(
+        files, evaluate.predictor_fn(predictor, 2), library, progress=False
+    )
+    assert records[0]["num_proposals"] == 2
+    for stage in ("stage1", "stage1_2"):
+        assert records[0][stage]["status"] in kernels.STATUS_NAMES
+        assert np.isfinite(records[0][stage]["pose"]).all()
