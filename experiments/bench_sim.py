@@ -86,7 +86,10 @@ def mjx_many(kind, scenes, pair, poses, config, settings, templates):
     from sim import mjx_kernels
 
     fn = {"stability": mjx_kernels.stability_many, "takeoff": mjx_kernels.takeoff_many}[kind]
-    parts = merged_groups(scenes, templates) if templates else groups(scenes)
+    if settings.impl == "warp":  # one union model for every pair
+        parts = {0: list(range(len(scenes)))}
+    else:
+        parts = merged_groups(scenes, templates) if templates else groups(scenes)
     out = {}
     for members in parts.values():
         sub = [scenes[i] for i in members]
@@ -114,6 +117,12 @@ def main(argv=None):
     ap.add_argument("--categories", default=None, help="comma list of object categories")
     ap.add_argument("--no-takeoff", action="store_true")
     ap.add_argument("--wait-for", default=None, help="file to wait for before CPU timings")
+    ap.add_argument("--wait-max", type=int, default=900, help="seconds to wait for --wait-for")
+    ap.add_argument("--impl", default="jax", choices=("jax", "warp"), help="MJX implementation")
+    ap.add_argument("--contacts-per-world", type=int, default=48, help="warp contact pool")
+    ap.add_argument(
+        "--cpu-poses", type=int, default=0, help="MuJoCo C throughput slice (0: whole set)"
+    )
     args = ap.parse_args(argv)
 
     import jax
@@ -132,8 +141,26 @@ def main(argv=None):
         iterations=args.iterations,
         ls_iterations=args.ls_iterations,
         chunk=min(args.lanes, 4096),
+        impl=args.impl,
+        contacts_per_world=args.contacts_per_world,
     )
     timings, log = {}, print
+    partial = {"impl": args.impl, "lanes": args.lanes, "pairs": len(scenes), "timings_s": timings}
+
+    def dump(**kw):  # partial results after each stage: a run cut short still reports
+        partial.update(kw)
+        partial["compilations"] = dict(mjx_kernels.COMPILES)
+        (out / "bench_sim.partial.json").write_text(json.dumps(partial, indent=2, default=str))
+        log(json.dumps({k: v for k, v in kw.items() if k != "disagreements"}, default=str))
+
+    # --- compilation, measured apart: one pose per pair, twice (compile + run, then run)
+    first = np.unique(pair, return_index=True)[1]
+    for label in ("mjx_warmup_first_s", "mjx_warmup_second_s"):
+        t = time.perf_counter()
+        mjx_many("stability", scenes, pair[first], poses[first], cfg, settings, args.templates)
+        timings[label] = time.perf_counter() - t
+    timings["mjx_compile_s"] = timings["mjx_warmup_first_s"] - timings["mjx_warmup_second_s"]
+    dump(stage="compiled")
 
     # --- agreement set: reference labels, then MJX (first call pays the compilations)
     t = time.perf_counter()
@@ -143,7 +170,7 @@ def main(argv=None):
     mj = mjx_many("stability", scenes, pair, poses, cfg, settings, args.templates)
     timings["mjx_first_call_s"] = time.perf_counter() - t
     log(
-        f"agreement set: cpu {timings['cpu_agreement_s']:.1f}s mjx(first) {timings['mjx_first_call_s']:.1f}s"
+        f"agreement set: cpu {timings['cpu_agreement_s']:.1f}s mjx {timings['mjx_first_call_s']:.1f}s"
     )
     stable_ref, stable_mjx = ref["stable"], mj["stable"]
     stab_agree = stable_ref == stable_mjx
@@ -161,6 +188,12 @@ def main(argv=None):
             "takeoff", scenes, pair[both], settled, tcfg, settings, args.templates
         )["removable"]
         timings["mjx_takeoff_s"] = time.perf_counter() - t
+    dump(
+        stage="agreement",
+        agreement_stable=float(stab_agree.mean()),
+        status_counts_cpu=np.bincount(ref["status"], minlength=4).tolist(),
+        status_counts_mjx=np.bincount(mj["status"], minlength=4).tolist(),
+    )
     label_ref = np.stack([stable_ref, rem_ref], 1)
     label_mjx = np.stack([stable_mjx, rem_mjx], 1)
     agree = (label_ref == label_mjx).all(1)
@@ -192,25 +225,33 @@ def main(argv=None):
     t = time.perf_counter()
     mj_tp = mjx_many("stability", scenes, tp_pair, tp_poses, cfg, settings, args.templates)
     mjx_s = time.perf_counter() - t
+    dump(stage="mjx_throughput", mjx_poses_per_s=len(tp_poses) / mjx_s, mjx_s=mjx_s)
     if args.wait_for:  # e.g. a PyBullet build running beside the GPU part
-        for _ in range(900):
+        for _ in range(args.wait_max):
             if os.path.exists(args.wait_for):
                 break
             time.sleep(1)
+    cpu_take = np.arange(len(tp_poses))
+    if args.cpu_poses and args.cpu_poses < len(tp_poses):
+        cpu_take = np.linspace(0, len(tp_poses) - 1, args.cpu_poses).astype(int)
     t = time.perf_counter()
-    by_pair(kernels.stability, scenes, tp_pair, tp_poses, cfg)
+    by_pair(kernels.stability, scenes, tp_pair[cpu_take], tp_poses[cpu_take], cfg)
     cpu_s = time.perf_counter() - t
+    dump(stage="cpu_throughput", cpu_poses_per_s=len(cpu_take) / cpu_s, cpu_s=cpu_s)
     # PyBullet, one core: a slice of the throughput set over all pairs
     take = np.linspace(0, len(tp_poses) - 1, args.pybullet_poses).astype(int)
     pb, pb_s = {"status": np.zeros(0, int)}, float("nan")
-    if len(take):
+    try:
         from sim import pybullet_ref
-
+    except ImportError as err:  # e.g. the PyBullet build beside the GPU part failed
+        log(f"no PyBullet: {err}")
+        take = take[:0]
+    if len(take):
         t = time.perf_counter()
         pb = by_pair(pybullet_ref.stability, scenes, tp_pair[take], tp_poses[take], cfg)
         pb_s = time.perf_counter() - t
     n = len(tp_poses)
-    rates = {"mjx": n / mjx_s, "mujoco_cpu": n / cpu_s, "pybullet": len(take) / pb_s}
+    rates = {"mjx": n / mjx_s, "mujoco_cpu": len(cpu_take) / cpu_s, "pybullet": len(take) / pb_s}
     mix = {
         k: np.bincount(v, minlength=4).tolist()
         for k, v in (("mjx", mj_tp["status"]), ("pybullet", pb["status"]))
@@ -238,9 +279,12 @@ def main(argv=None):
         "disagreements": disagreements,
         "compilations": dict(mjx_kernels.COMPILES),
         "compilations_total": int(sum(mjx_kernels.COMPILES.values())),
-        "templates": args.templates or len(groups(scenes)),
+        "templates": 1 if args.impl == "warp" else (args.templates or len(groups(scenes))),
         "slot_buckets": len(groups(scenes)),
         "throughput_poses": n,
+        "cpu_throughput_poses": len(cpu_take),
+        "impl": args.impl,
+        "contacts_per_world": args.contacts_per_world if args.impl == "warp" else None,
         "pybullet_poses": len(take),
         "lanes": args.lanes,
         "mjx_iterations": args.iterations,
@@ -254,6 +298,7 @@ def main(argv=None):
             "mujoco": mujoco.__version__,
             "mujoco_mjx": _version("mujoco-mjx"),
             "pybullet": _version("pybullet"),
+            "warp_lang": _version("warp-lang"),
             "python": platform.python_version(),
         },
     }

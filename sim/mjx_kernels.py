@@ -76,6 +76,8 @@ class MJXSettings:
     iterations: int | None = None  # Newton cap; None keeps the scene's PhysicsConfig
     ls_iterations: int | None = None
     chunk: int = 256  # poses per call of the penetration probe / take-off
+    impl: str = "jax"  # "jax": padded templates (below); "warp": MuJoCo Warp union model
+    contacts_per_world: int = 48  # warp: contact pool = lanes x this (naconmax)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -517,6 +519,8 @@ def stability_many(
     """
     poses = kernels.check_poses(poses)
     pair = np.asarray(pair, dtype=np.int32)
+    if settings.impl == "warp":
+        return _stability_warp(scenes, pair, poses, config, settings, batch)
     batch = batch or _batch_for(scenes, settings)
     dt = scenes[0].physics.timestep
     seg = max(1, round(config.check_every / dt))
@@ -591,6 +595,8 @@ def takeoff_many(
     """Take-off of ``poses`` [B, 7], pose i on ``scenes[pair[i]]`` (one template)."""
     poses = kernels.check_poses(poses)
     pair = np.asarray(pair, dtype=np.int32)
+    if settings.impl == "warp":
+        return _takeoff_warp(scenes, pair, poses, config, settings)
     batch = _batch_for(scenes, settings)
     models = with_material(batch, config.mass, config.friction)
     dt = scenes[0].physics.timestep
@@ -663,3 +669,401 @@ def contact_query(
         if len(rows):
             pen[i] = max(0.0, -dist[i, rows[0]])
     return ContactResult(pen, out_d, opts, spts, nrm, mask)
+
+
+# ----------------------------------------------------------------------------- warp impl
+#
+# MJX's Warp implementation (MuJoCo Warp, CUDA kernels; also runs on Warp's CPU device).
+# One *union* model serves every pair of a batch, so one compiled program serves them all:
+#
+# - geoms: the wall slot, support capsule/box slots (as many as the largest support has),
+#   every pair's support meshes, then on the one free body the object capsule/box slots
+#   and every pair's object meshes. A world activates its pair's geoms through per-world
+#   model fields (MuJoCo Warp's batched model fields: geom_pos/quat/size/aabb/rbound,
+#   body inertia); all other geoms are parked 1 km away (support below, object above the
+#   body frame), where the broad phase drops them.
+# - collisions by contype/conaffinity (object x support/wall only), MuJoCo Warp's own
+#   broad phase and narrow phase (GJK/EPA for meshes), no explicit pairs.
+# - per-world mesh ids are not supported by MJX, hence the union of meshes rather than
+#   mesh slots; primitive slots take their size per world.
+# - the support's geoms hang on a mocap body that never moves, not on the world body:
+#   MuJoCo Warp computes the poses of geoms welded to the world once (make_data), so
+#   per-world geom_pos of those would be ignored.
+# - contacts live in one pool of ``lanes x contacts_per_world`` entries tagged with their
+#   world, so the protocol's contact checks are segment reductions over the pool.
+
+W_SUPPORT_BODY, W_OBJECT_BODY = 1, 2  # body ids of the union model
+
+_PER_WORLD = (
+    "geom_pos",
+    "geom_quat",
+    "geom_size",
+    "geom_aabb",
+    "geom_rbound",
+    "geom_friction",
+    "body_mass",
+    "body_inertia",
+    "body_ipos",
+    "body_iquat",
+    "body_invweight0",
+    "body_subtreemass",
+    "dof_invweight0",
+)
+
+
+@dataclasses.dataclass
+class WarpBatch:
+    """Union model of a list of pairs and their per-pair model fields (warp impl)."""
+
+    mj: mujoco.MjModel
+    model: mjx.Model  # impl="warp", unbatched
+    fields: dict  # name -> [P, ...] per-pair values of _PER_WORLD
+    aux: dict  # hull [P, K, 3], floor_z [P], bounds [P, 2, 3], ground [P, ngeom]
+    scenes: list
+    naconmax_per_world: int
+    njmax: int
+
+
+def union_xml(scenes: Sequence[Scene], settings: MJXSettings):
+    """MJCF of the union model and, per pair, {union geom name: scene geom name}."""
+    physics = scenes[0].physics
+    s_caps = max(_counts(s.support.parts)[0] for s in scenes)
+    s_box = max(_counts(s.support.parts)[1] for s in scenes)
+    o_caps = max(_counts(s.obj.parts)[0] for s in scenes)
+    o_box = max(_counts(s.obj.parts)[1] for s in scenes)
+    sup, obj, assets = [], [], []
+    maps = [{} for _ in scenes]
+    sup_attr = 'contype="0" conaffinity="1"'
+    obj_attr = 'contype="1" conaffinity="0"'
+    for k in range(s_caps):
+        sup.append(_geom_xml(_dummy("capsule", 0.0), f"s_cap{k}", 2, sup_attr, {}))
+    for k in range(s_box):
+        sup.append(_geom_xml(_dummy("box", 0.0), f"s_box{k}", 2, sup_attr, {}))
+    for k in range(o_caps):
+        obj.append(_geom_xml(_dummy("capsule", 0.0), f"o_cap{k}", 1, obj_attr, {}))
+    for k in range(o_box):
+        obj.append(_geom_xml(_dummy("box", 0.0), f"o_box{k}", 1, obj_attr, {}))
+    for p, scene in enumerate(scenes):
+        for prefix, parts, out, attr, uprefix in (
+            ("support_", scene.support.parts, sup, sup_attr, "s"),
+            ("object_", scene.obj.parts, obj, obj_attr, "o"),
+        ):
+            nc = nb = 0
+            for i, part in enumerate(parts):
+                if isinstance(part, Capsule):
+                    maps[p][f"{uprefix}_cap{nc}"] = f"{prefix}{i}"
+                    nc += 1
+                elif isinstance(part, Box):
+                    maps[p][f"{uprefix}_box{nb}"] = f"{prefix}{i}"
+                    nb += 1
+                else:
+                    name = f"{uprefix}_mesh{p}_{i}"
+                    assets.append(
+                        f'<mesh name="{name}_m" vertex="{_fmt(np.asarray(part.vertices))}"/>'
+                    )
+                    out.append(_geom_xml(part, name, 2, attr, {name: f"{name}_m"}))
+                    maps[p][name] = f"{prefix}{i}"
+        if scene.support.wall_y is not None:
+            maps[p]["wall"] = "wall"
+    h = physics.wall_half_size
+    it = settings.iterations or physics.iterations
+    ls = settings.ls_iterations or physics.ls_iterations
+    xml = f"""<mujoco model="union">
+  <compiler angle="radian" autolimits="true"/>
+  <option timestep="{physics.timestep}" integrator="implicitfast" solver="Newton" cone="elliptic"
+          iterations="{it}" ls_iterations="{ls}" gravity="0 0 {physics.gravity}"/>
+  <default>
+    <geom condim="4" solref="{physics.contact_timeconst} 1" friction="{physics.friction} 0.005 0.0001"/>
+  </default>
+  <asset>
+{chr(10).join(assets)}
+  </asset>
+  <worldbody>
+    <body name="support" mocap="true">
+      <geom name="wall" type="box" size="{h} 0.01 {h}" {sup_attr}/>
+      {chr(10).join(sup)}
+    </body>
+    <body name="object" pos="0 0 {FAR}">
+      <freejoint/>
+      {chr(10).join(obj)}
+    </body>
+  </worldbody>
+</mujoco>
+"""
+    return xml, maps
+
+
+def build_warp_batch(scenes: Sequence[Scene], settings: MJXSettings = MJXSettings()) -> WarpBatch:
+    """The union model of ``scenes`` and each pair's per-world model fields."""
+    xml, maps = union_xml(scenes, settings)
+    mj = mujoco.MjModel.from_xml_string(xml)
+    model = mjx.put_model(mj, impl="warp")
+    base = {k: np.asarray(getattr(model, k)) for k in _PER_WORLD}
+    on_object = mj.geom_bodyid == W_OBJECT_BODY
+    fields = collections.defaultdict(list)
+    aux = collections.defaultdict(list)
+    kmax = max(len(s.object_hull_points) for s in scenes)
+    for scene, gmap in zip(scenes, maps):
+        sm = scene.model
+        f = {k: v.copy() for k, v in base.items()}
+        f["geom_pos"][:, 2] += np.where(on_object, FAR, -FAR)  # park everything
+        ground = np.zeros(mj.ngeom, bool)
+        ground_names = {f"support_{k}" for k in scene.support.ground_parts}
+        for g in range(mj.ngeom):
+            uname = mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_GEOM, g)
+            if uname not in gmap:
+                continue
+            s = mujoco.mj_name2id(sm, mujoco.mjtObj.mjOBJ_GEOM, gmap[uname])
+            f["geom_pos"][g] = sm.geom_pos[s]
+            f["geom_quat"][g] = sm.geom_quat[s]
+            f["geom_size"][g] = sm.geom_size[s]
+            f["geom_aabb"][g] = sm.geom_aabb[s].reshape(2, 3)
+            f["geom_rbound"][g] = sm.geom_rbound[s]
+            f["geom_friction"][g] = sm.geom_friction[s]
+            ground[g] = gmap[uname] in ground_names
+        for k in ("body_mass", "body_inertia", "body_ipos", "body_iquat", "body_invweight0"):
+            f[k][W_OBJECT_BODY] = getattr(sm, k)[scene.object_body]
+        f["body_subtreemass"][W_OBJECT_BODY] = sm.body_subtreemass[scene.object_body]
+        f["dof_invweight0"][:] = sm.dof_invweight0[:6]
+        for k, v in f.items():
+            fields[k].append(v)
+        aux["hull"].append(_pad_rows(np.asarray(scene.object_hull_points, float), kmax))
+        aux["floor_z"].append(float(scene.support.floor_z))
+        aux["bounds"].append(np.asarray(scene.support_bounds, float))
+        aux["ground"].append(ground)
+    fields = {k: jnp.asarray(np.stack(v), dtype=base[k].dtype) for k, v in fields.items()}
+    aux = {
+        k: jnp.asarray(np.stack(v), dtype=bool if k == "ground" else jnp.float32)
+        for k, v in aux.items()
+    }
+    nc = settings.contacts_per_world
+    return WarpBatch(mj, model, fields, aux, list(scenes), nc, 4 * nc)
+
+
+_WARP_DATA: dict = {}
+
+
+def _warp_data0(batch: WarpBatch, lanes: int) -> mjx.Data:
+    key = (id(batch), lanes)
+    if key not in _WARP_DATA:
+        _WARP_DATA[key] = mjx.make_data(
+            batch.mj, impl="warp", naconmax=lanes * batch.naconmax_per_world, njmax=batch.njmax
+        )
+    return _WARP_DATA[key]
+
+
+def _w_models(model, fields):
+    return model.replace(**fields)
+
+
+def _w_segment_any(flag, worldid, lanes):
+    return jnp.zeros(lanes, bool).at[worldid].max(flag)
+
+
+def _w_contacts(d, lanes):
+    """Pool view: (valid [C], worldid [C], dist [C], geom [C, 2])."""
+    impl = d._impl
+    n = impl.contact__dist.shape[0]
+    valid = jnp.arange(n) < jnp.reshape(impl.nacon, (-1,))[0]
+    wid = jnp.clip(impl.contact__worldid, 0, lanes - 1)
+    return valid, wid, impl.contact__dist, impl.contact__geom
+
+
+def _w_posed(data0, qpos):
+    """[L] worlds at rest at ``qpos`` [L, 7] (Data batched along the lanes)."""
+    return jax.vmap(lambda q: _set_pose(data0, q))(qpos)
+
+
+@functools.partial(jax.jit, static_argnames=())
+def _w_probe(model, fields, aux, data0, pair, qpos):
+    """Deepest initial penetration [L] of each world: object-support contacts and floor."""
+    COMPILES["warp_probe"] += 1
+    lanes = qpos.shape[0]
+    f = jax.tree.map(lambda x: x[pair], fields)
+    d = _w_posed(data0, qpos)
+    d = jax.vmap(lambda f, d: mjx.forward(_w_models(model, f), d))(f, d)
+    valid, wid, dist, _ = _w_contacts(d, lanes)
+    dmin = jnp.full(lanes, jnp.inf).at[wid].min(jnp.where(valid, dist, jnp.inf))
+    ax = jax.tree.map(lambda x: x[pair], aux)
+    floor = jax.vmap(lambda a, q: _world_hull(a, q).min(0)[2] - a["floor_z"])(ax, qpos)
+    return jnp.maximum(jnp.maximum(-dmin, -floor), 0.0)
+
+
+@functools.partial(jax.jit, static_argnames=("seg", "cfg"))
+def _w_advance(model, fields, aux, data0, lanes, refill, new_qpos, new_pair, seg, cfg):
+    """Warp version of :func:`_advance`: refill finished lanes, simulate one segment."""
+    COMPILES["warp_advance"] += 1
+    nl = refill.shape[0]
+    fresh = _w_posed(data0, new_qpos)
+    d = jax.vmap(lambda d, r, f: d.where(r, f))(lanes["d"], refill, fresh)
+    pair = jnp.where(refill, new_pair, lanes["pair"])
+    rest = jnp.where(refill, 0, lanes["rest"])
+    nseg = jnp.where(refill, 0, lanes["nseg"])
+    f = jax.tree.map(lambda x: x[pair], fields)
+    ax = jax.tree.map(lambda x: x[pair], aux)
+
+    def step(carry, _):
+        d, ground, finite = carry
+        d = jax.vmap(lambda f, d: mjx.step(_w_models(model, f), d))(f, d)
+        ok = jnp.all(jnp.isfinite(d.qpos), 1) & jnp.all(jnp.isfinite(d.qvel), 1)
+        valid, wid, dist, geom = _w_contacts(d, nl)
+        g = ax["ground"]
+        on_base = g[wid, geom[:, 0]] | g[wid, geom[:, 1]]
+        base = _w_segment_any(valid & on_base & (dist < 0), wid, nl)
+        floor = jax.vmap(lambda a, q: _world_hull(a, q).min(0)[2] < a["floor_z"])(ax, d.qpos)
+        return (d, ground | ((base | floor) & ok), finite & ok), None
+
+    init = (d, jnp.zeros(nl, bool), jnp.ones(nl, bool))
+    (d, ground, finite), _ = jax.lax.scan(step, init, None, length=seg)
+    qpos, qvel = d.qpos[:, :7], d.qvel[:, :6]
+    safe = jnp.where(finite[:, None], qpos, jnp.array([0, 0, 0, 1.0, 0, 0, 0]))
+    pos_ok = finite & (jnp.linalg.norm(safe[:, :3], axis=1) < cfg.escape_radius)
+    speed = jnp.where(finite, jnp.linalg.norm(qvel[:, :3], axis=1), jnp.inf)
+    spin = jnp.where(finite, jnp.linalg.norm(qvel[:, 3:], axis=1), jnp.inf)
+    diverged = ~pos_ok | (speed > cfg.max_speed)
+    overlap = jax.vmap(lambda a, q: _overlap(a, q, cfg.box_margin))(ax, safe)
+    valid, wid, dist, _ = _w_contacts(d, nl)
+    touching = _w_segment_any(valid & (dist < 0), wid, nl)
+    resting = (speed < cfg.settle_speed) & (spin < cfg.settle_spin) & touching
+    rest = jnp.where(resting, rest + 1, 0)
+    nseg = nseg + 1
+    status = jnp.full(nl, -1, jnp.int8)
+    status = jnp.where(rest >= cfg.settle_checks, jnp.int8(STABLE), status)
+    status = jnp.where(ground | ~overlap, jnp.int8(FALLEN), status)
+    status = jnp.where(diverged, jnp.int8(DIVERGED), status)
+    nmax = max(1, round(cfg.duration / cfg.check_every))
+    status = jnp.where((status < 0) & (nseg >= nmax), jnp.int8(STABLE), status)
+    # a diverged world restarts at rest at a safe pose: its NaNs never reach a later step
+    reset = _w_posed(data0, safe)
+    d = jax.vmap(lambda d, r, f: d.where(r, f))(d, diverged, reset)
+    return {"d": d, "pair": pair, "rest": rest, "nseg": nseg}, status, safe, nseg
+
+
+_WARP_BATCHES: dict = {}
+
+
+def _warp_batch_for(scenes: Sequence[Scene], settings: MJXSettings) -> WarpBatch:
+    key = (tuple(id(s) for s in scenes), settings)
+    if key not in _WARP_BATCHES:
+        _WARP_BATCHES[key] = (build_warp_batch(scenes, settings), list(scenes))
+    return _WARP_BATCHES[key][0]
+
+
+def _stability_warp(scenes, pair, poses, config, settings, batch=None) -> StabilityResult:
+    batch = batch or _warp_batch_for(scenes, settings)
+    nl = settings.lanes
+    data0 = _warp_data0(batch, nl)
+    dt = scenes[0].physics.timestep
+    seg = max(1, round(config.check_every / dt))
+    n = len(poses)
+    status = np.full(n, -1, np.int8)
+    final = poses.copy()
+    sim_time = np.zeros(n)
+    depth = np.zeros(n)
+    for idx in _chunks(n, nl):
+        p, q = _padded(idx, nl, pair, poses)
+        out = _w_probe(batch.model, batch.fields, batch.aux, data0, jnp.asarray(p), jnp.asarray(q))
+        depth[idx] = np.asarray(out)[: len(idx)]
+    depth[~np.isfinite(depth)] = 0.0
+    status[depth > config.max_penetration] = PENETRATING
+    queue = list(np.flatnonzero(status < 0)[::-1])
+    park = np.array([0, 0, FAR, 1.0, 0, 0, 0])
+    lanes = {
+        "d": _w_posed(data0, jnp.asarray(np.tile(park, (nl, 1)), jnp.float32)),
+        "pair": jnp.zeros(nl, jnp.int32),
+        "rest": jnp.zeros(nl, jnp.int32),
+        "nseg": jnp.zeros(nl, jnp.int32),
+    }
+    owner = np.full(nl, -1)
+    while queue or (owner >= 0).any():
+        refill = np.zeros(nl, bool)
+        new_q = np.tile(park, (nl, 1))
+        new_p = np.zeros(nl, np.int32)
+        for lane in np.flatnonzero(owner < 0):
+            if not queue:
+                break
+            i = queue.pop()
+            owner[lane], refill[lane] = i, True
+            new_q[lane], new_p[lane] = poses[i], pair[i]
+        lanes, st, qpos, nseg = _w_advance(
+            batch.model,
+            batch.fields,
+            batch.aux,
+            data0,
+            lanes,
+            jnp.asarray(refill),
+            jnp.asarray(new_q, jnp.float32),
+            jnp.asarray(new_p),
+            seg,
+            config,
+        )
+        st, qpos, nseg = np.asarray(st), np.asarray(qpos), np.asarray(nseg)
+        busy = owner >= 0
+        done = busy & (st >= 0)
+        rows = owner[done]
+        status[rows] = st[done]
+        final[rows] = np.where((st[done] == DIVERGED)[:, None], poses[rows], qpos[done])
+        sim_time[rows] = nseg[done] * seg * dt
+        owner[done] = -1
+    final[:, 3:] /= np.linalg.norm(final[:, 3:], axis=1, keepdims=True)
+    return StabilityResult(status == STABLE, status, final, depth, sim_time)
+
+
+@functools.partial(jax.jit, static_argnames=("push", "free", "every"))
+def _w_takeoff(model, fields, aux, data0, pair, qpos, force, push, free, every):
+    """[L] pulls (warp): removed if the object's box separates from the support's."""
+    COMPILES["warp_takeoff"] += 1
+    f = jax.tree.map(lambda x: x[pair], fields)
+    ax = jax.tree.map(lambda x: x[pair], aux)
+    d = _w_posed(data0, qpos)
+
+    def step(carry, t):
+        d, removed = carry
+        push_f = jnp.where(t < push, force, 0.0)
+        xfrc = d.xfrc_applied.at[:, W_OBJECT_BODY, :3].set(push_f)
+        d = jax.vmap(lambda f, d: mjx.step(_w_models(model, f), d))(f, d.replace(xfrc_applied=xfrc))
+        check = ((t + 1) % every == 0) | (t == push + free - 1)
+        q = d.qpos[:, :7]
+        ok = jnp.all(jnp.isfinite(q), 1) & (jnp.linalg.norm(jnp.nan_to_num(q[:, :3]), axis=1) < 1e3)
+        far = jnp.array([0, 0, 1e3, 1.0, 0, 0, 0])
+        sep = ~ok | ~jax.vmap(lambda a, q: _overlap(a, q, 0.0))(ax, jnp.where(ok[:, None], q, far))
+        return (d, removed | (check & sep)), None
+
+    init = (d, jnp.zeros(qpos.shape[0], bool))
+    (_, removed), _ = jax.lax.scan(step, init, jnp.arange(push + free))
+    return removed
+
+
+def _takeoff_warp(scenes, pair, poses, config, settings) -> TakeoffResult:
+    batch = _warp_batch_for(scenes, settings)
+    fields = dict(batch.fields)
+    if config.friction is not None:
+        fields["geom_friction"] = fields["geom_friction"].at[:, :, 0].set(config.friction)
+    if config.mass is not None:
+        factor = config.mass / fields["body_mass"][:, W_OBJECT_BODY]
+        fields["body_mass"] = fields["body_mass"].at[:, W_OBJECT_BODY].set(config.mass)
+        fields["body_subtreemass"] = (
+            fields["body_subtreemass"].at[:, W_OBJECT_BODY].set(config.mass)
+        )
+        fields["body_inertia"] = (
+            fields["body_inertia"].at[:, W_OBJECT_BODY].multiply(factor[:, None])
+        )
+    nl = settings.lanes
+    data0 = _warp_data0(batch, nl)
+    dt = scenes[0].physics.timestep
+    push, free = round(config.push_time / dt), round(config.free_time / dt)
+    every = max(1, round(config.check_every / dt))
+    forces = kernels.takeoff_forces(poses, config).reshape(-1, 3)
+    rep_pose = np.repeat(poses, 11, axis=0)
+    rep_pair = np.repeat(pair, 11)
+    removed = np.zeros(len(rep_pose), bool)
+    for idx in _chunks(len(rep_pose), nl):
+        p, q, fo = _padded(idx, nl, rep_pair, rep_pose, forces)
+        out = _w_takeoff(
+            batch.model, fields, batch.aux, data0, jnp.asarray(p),
+            jnp.asarray(q, jnp.float32), jnp.asarray(fo, jnp.float32), push, free, every,
+        )  # fmt: skip
+        removed[idx] = np.asarray(out)[: len(idx)]
+    removed = removed.reshape(len(poses), 11)
+    first = np.where(removed.any(1), removed.argmax(1), -1)
+    return TakeoffResult(removed.any(1), first, removed)
