@@ -345,6 +345,7 @@ def _atomic_savez(path: Path, arrays: dict) -> None:
     os.close(fd)
     try:
         np.savez_compressed(tmp, **arrays)
+        os.chmod(tmp, 0o644)  # mkstemp files are private; these are shared results
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -355,6 +356,7 @@ def _atomic_write(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp_")
     with os.fdopen(fd, "w") as fh:
         fh.write(text)
+    os.chmod(tmp, 0o644)  # mkstemp files are private; these are shared results
     os.replace(tmp, path)
 
 

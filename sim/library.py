@@ -400,6 +400,7 @@ def _cached_union_mesh(asset: Asset, directory: Path) -> trimesh.Trimesh:
     try:
         with os.fdopen(fd, "wb") as f:
             np.savez(f, vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces))
+        os.chmod(tmp, 0o644)  # mkstemp files are private; these are shared results
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -412,4 +413,5 @@ def _atomic_write_text(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     with os.fdopen(fd, "w") as f:
         f.write(text)
+    os.chmod(tmp, 0o644)  # mkstemp files are private; these are shared results
     os.replace(tmp, path)
