@@ -67,9 +67,10 @@ class DatasetConfig:
 
 
 PRESETS = {
-    # a few minutes on 2 CPU cores: one object per category x one support per family
+    # a few minutes on 2 CPU cores: two objects per category (one held out, one for
+    # training) x one support per family
     "demo": DatasetConfig(
-        max_objects_per_category=1,
+        max_objects_per_category=2,
         max_supports_per_family=1,
         max_candidates=256,
         batch=256,

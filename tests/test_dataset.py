@@ -18,6 +18,7 @@ CFG = dataclasses.replace(
     library=dataclasses.replace(
         TINY, object_categories=("mug", "wrench"), support_families=("single_rod_hook", "towel_bar")
     ),
+    max_objects_per_category=1,
     max_candidates=128,
     batch=128,
     max_stable=4,
