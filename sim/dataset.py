@@ -9,12 +9,17 @@ Format (version :data:`FORMAT`)
     name lists), ``pair_seed [P] uint64``, ``mass [P]``, ``friction [P]``,
     ``object_eye [P, 3]``, ``support_eye [P, 3]`` (chosen camera positions, float32),
     ``n_candidates``, ``n_penetrating``, ``n_fallen``, ``n_stable_raw``, ``n_takeoff_rejected``
-    ``[P]`` (counts), ``stable_offsets [P + 1]`` + ``stable_poses [S, 7]``,
-    ``negative_offsets [P + 1]`` + ``negative_poses [N, 7]``, ``collision_offsets [P + 1]`` +
-    ``collision_kept [C] bool`` + ``collision_label [C] bool`` (colliding) for the
-    collision poses, which are *not* stored but regenerated from ``pair_seed``.
-    Poses are position (m) + quaternion (w, x, y, z), float32, object frame in the support
-    frame. Every shard is written to a temporary file and renamed, so a shard that exists is
+    ``[P]`` (counts), ``stable_offsets [P + 1]`` + ``stable_poses`` (quantised, below),
+    ``negative_offsets [P + 1]`` + ``negative_kept`` (which of the pair's
+    :func:`negative_candidates` are near misses), ``collision_offsets [P + 1]`` +
+    ``collision_kept`` + ``collision_label`` (colliding) for the pair's
+    :func:`collision_poses`; all three as packed bits (``np.packbits``). Negative and
+    collision candidates are *not* stored but regenerated from ``pair_seed`` (and, for the
+    negatives, the stored stable poses).
+    Poses are position (m) + quaternion (w, x, y, z) of the object frame in the support
+    frame, stored quantised (``stable_position [S, 3] int16`` in 0.1 mm steps,
+    ``stable_quaternion [S, 4] int16`` of q x 32767) so the paper-scale labels fit well under
+    50 MB; :func:`unpack` returns float32 ``stable_poses`` [S, 7]. Every shard is written to a temporary file and renamed, so a shard that exists is
     complete; a killed job loses at most the shard in progress.
 ``DIR/dataset_card.json`` / ``.md``  counts, yields, timings, device (written at the end).
 Heavy arrays (partial clouds, contact maps, contact pairs) are derived from the labels by
@@ -40,7 +45,29 @@ from sim.assets.base import Asset
 from sim.library import Library, LibraryConfig, build_library, check_split
 from sim.scene import build_scene
 
-FORMAT = 1
+FORMAT = 2
+POSITION_STEP = 1e-4  # m: stored positions are int16 multiples of 0.1 mm (range +-3.27 m)
+QUAT_SCALE = 32767  # stored quaternions are int16 of q * 32767 (error < 3e-5)
+
+
+def quantise_poses(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[S, 7] float poses -> (positions [S, 3] int16, quaternions [S, 4] int16)."""
+    poses = np.asarray(poses, np.float64).reshape(-1, 7)
+    steps = np.round(poses[:, :3] / POSITION_STEP)
+    if np.abs(steps).max(initial=0) > np.iinfo(np.int16).max:
+        raise ValueError(
+            f"pose position beyond +-3.27 m cannot be stored: {np.abs(poses[:, :3]).max():.3f} m"
+        )
+    pos = steps.astype(np.int16)
+    quat = poses[:, 3:] / np.maximum(np.linalg.norm(poses[:, 3:], axis=1, keepdims=True), 1e-12)
+    return pos, np.round(quat * QUAT_SCALE).astype(np.int16)
+
+
+def dequantise_poses(pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`quantise_poses`: [S, 7] float32 with unit quaternions."""
+    q = quat.astype(np.float64) / QUAT_SCALE
+    q /= np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
+    return np.concatenate([pos.astype(np.float64) * POSITION_STEP, q], axis=1).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,6 +79,12 @@ class DatasetConfig:
     batch: int = 512  # candidates per kernel call
     max_stable: int = 50  # original: at most 50 stable poses per pair
     max_negatives: int = 50  # original: at most 50 near misses per pair
+    negative_candidates: int = 200  # perturbed stable poses tried as near misses
+    negative_shift: tuple[float, float] = (0.01, 0.04)  # m, perturbation of a stable pose
+    negative_turn: float = 0.3  # rad, largest perturbation angle
+    negative_gap: float = 0.01  # m; original: mesh distance in (0, 1 cm] at the start
+    negative_time: float = 0.5  # s; original 50 steps of 1/100 s
+    negative_moved: float = 0.3  # m; original: a near miss falls or moves more than 0.3 m
     hang_fraction: float = 0.75  # share of candidates from hang-feature threading (rest uniform)
     n_collision: int = 1000  # original: 1000 random poses per pair for collision labels
     collision_free_within: float = 0.02  # m; farther poses are dropped (original 2 cm)
@@ -76,13 +109,15 @@ PRESETS = {
         batch=256,
         max_stable=10,
         max_negatives=10,
+        negative_candidates=40,
         n_collision=100,
         n_views=3,
         camera=camera.CameraConfig(width=320, height=240, n_points=2048),
         shard_size=8,
     ),
-    # the paper's scale: 340 objects x 72 supports
-    "paper": DatasetConfig(),
+    # the paper's scale: 340 objects x 72 supports; 32-pair shards keep the per-file
+    # overhead of npz small (labels ~1.2 kB per pair) while losing little when killed
+    "paper": DatasetConfig(shard_size=32),
 }
 
 
@@ -146,7 +181,7 @@ def generate_pair(
     """Labels of one pair (see the module docstring for the fields)."""
     rng = np.random.default_rng([seed, 1])
     scene = build_scene(obj, support)
-    stable, negatives = [], []
+    stable = []
     counts = dict(n_candidates=0, n_penetrating=0, n_fallen=0, n_stable_raw=0)
     has_features = bool(obj.features) and bool(support.features)
     while counts["n_candidates"] < config.max_candidates and len(stable) < 2 * config.max_stable:
@@ -164,13 +199,6 @@ def generate_pair(
         counts["n_fallen"] += int((res.status == kernels.FALLEN).sum())
         counts["n_stable_raw"] += int(res.stable.sum())
         stable.extend(res.settled_pose[res.stable])
-        # near misses: hang-threaded candidates that started clear of the support and fell
-        near = (
-            (res.status == kernels.FALLEN)
-            & (np.arange(n) < n_hang)
-            & (res.initial_penetration == 0)
-        )
-        negatives.extend(cand[near])
     stable_arr = np.asarray(stable, dtype=float).reshape(-1, 7)[: 2 * config.max_stable]
     mass = float(rng.uniform(*config.mass_range))
     friction = float(rng.uniform(*config.friction_range))
@@ -179,7 +207,9 @@ def generate_pair(
         take_cfg = dataclasses.replace(config.takeoff, mass=mass, friction=friction)
         removable = kernels.takeoff(scene, stable_arr, take_cfg, backend=backend).removable
     kept = stable_arr[removable][: config.max_stable]
-    negatives_arr = np.asarray(negatives, dtype=float).reshape(-1, 7)[: config.max_negatives]
+    # the stored (quantised) poses are what everything downstream sees, negatives included
+    kept = dequantise_poses(*quantise_poses(kept)).astype(float)
+    negative_kept = near_misses(scene, kept, seed, config, backend)
 
     col_poses = collision_poses(obj, support, seed, config)
     con = kernels.contact_query(
@@ -195,12 +225,61 @@ def generate_pair(
         mass=mass,
         friction=friction,
         stable_poses=kept.astype(np.float32),
-        negative_poses=negatives_arr.astype(np.float32),
+        negative_kept=negative_kept,
         collision_kept=colliding | free,
         collision_label=colliding,
         object_eye=obj_eye.astype(np.float32),
         support_eye=sup_eye.astype(np.float32),
     )
+
+
+def negative_candidates(stable_poses: np.ndarray, seed: int, config: DatasetConfig) -> np.ndarray:
+    """[negative_candidates, 7] perturbed copies of the (stored) stable poses, regenerated from
+    the pair seed: a random stable pose, shifted 1-4 cm in a random direction and turned by
+    up to 0.3 rad about a random axis. Empty if there are no stable poses."""
+    from scipy.spatial.transform import Rotation
+
+    if len(stable_poses) == 0:
+        return np.zeros((0, 7))
+    rng = np.random.default_rng([seed, 6])
+    n = config.negative_candidates
+    base = np.asarray(stable_poses, float)[rng.integers(len(stable_poses), size=n)]
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    shift = direction * rng.uniform(*config.negative_shift, size=(n, 1))
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    turn = Rotation.from_rotvec(axis * rng.uniform(0, config.negative_turn, size=(n, 1)))
+    quat = (turn * Rotation.from_quat(np.roll(base[:, 3:], -1, axis=1))).as_quat()
+    return np.concatenate([base[:, :3] + shift, np.roll(quat, 1, axis=1)], axis=1)
+
+
+def near_misses(
+    scene, stable_poses: np.ndarray, seed: int, config: DatasetConfig, backend: str = "cpu"
+) -> np.ndarray:
+    """[negative_candidates] bool: which :func:`negative_candidates` are near misses (original:
+    start within 1 cm of the support without touching it, then fall or move > 0.3 m within
+    0.5 s); at most ``max_negatives`` are marked."""
+    cand = negative_candidates(stable_poses, seed, config)
+    kept = np.zeros(len(cand), dtype=bool)
+    if len(cand) == 0:
+        return kept
+    con = kernels.contact_query(
+        scene, cand, kernels.ContactConfig(distance_cutoff=config.negative_gap + 1e-3)
+    )
+    close = (con.penetration == 0) & (con.distance > 0) & (con.distance <= config.negative_gap)
+    if close.any():
+        idx = np.flatnonzero(close)
+        cfg = dataclasses.replace(config.stability, duration=config.negative_time)
+        res = kernels.stability(scene, cand[idx], cfg, backend=backend)
+        moved = np.linalg.norm(res.settled_pose[:, :3] - cand[idx, :3], axis=1)
+        miss = (
+            (res.status == kernels.FALLEN)
+            | (res.status == kernels.DIVERGED)
+            | (moved > config.negative_moved)
+        )
+        kept[idx[miss][: config.max_negatives]] = True
+    return kept
 
 
 def choose_views(scene, stable_poses: np.ndarray, seed: int, config: DatasetConfig):
@@ -292,50 +371,59 @@ def _pack(records: list[dict], indices: list[int], ids: list[tuple[int, int, int
         out[key] = np.asarray([r[key] for r in records], np.float32)
     for key in ("object_eye", "support_eye"):
         out[key] = np.stack([r[key] for r in records]).astype(np.float32)
+    poses = [np.asarray(r["stable_poses"]).reshape(-1, 7) for r in records]
+    out["stable_offsets"] = np.concatenate([[0], np.cumsum([len(p) for p in poses])]).astype(
+        np.int64
+    )
+    stacked = np.concatenate(poses) if poses else np.zeros((0, 7))
+    out["stable_position"], out["stable_quaternion"] = quantise_poses(stacked)
     for name, fields in (
-        ("stable", ["stable_poses"]),
-        ("negative", ["negative_poses"]),
-        ("collision", ["collision_kept", "collision_label"]),
+        ("negative", ("negative_kept",)),
+        ("collision", ("collision_kept", "collision_label")),
     ):
         lengths = [len(r[fields[0]]) for r in records]
         out[f"{name}_offsets"] = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
-        for f in fields:
-            arrays = [np.asarray(r[f]) for r in records]
-            out[f] = np.concatenate(arrays) if arrays else np.zeros(0)
+        for f in fields:  # one bit per label
+            out[f] = np.packbits(np.concatenate([np.asarray(r[f], bool) for r in records]))
     return out
 
 
 def unpack(shard: dict) -> list[dict]:
     """Per-pair records from a loaded shard (``np.load`` result or dict)."""
+    scalars = (
+        "pair_index",
+        "object_id",
+        "support_id",
+        "pair_seed",
+        "mass",
+        "friction",
+        "object_eye",
+        "support_eye",
+        "n_candidates",
+        "n_penetrating",
+        "n_fallen",
+        "n_stable_raw",
+        "n_takeoff_rejected",
+    )
+    groups = {
+        "negative_kept": "negative",
+        "collision_kept": "collision",
+        "collision_label": "collision",
+    }
+    bits = {
+        f: np.unpackbits(shard[f], count=int(shard[f"{g}_offsets"][-1])).astype(bool)
+        for f, g in groups.items()
+    }
     recs = []
-    n = len(shard["pair_index"])
-    for i in range(n):
-        r = {
-            k: shard[k][i]
-            for k in (
-                "pair_index",
-                "object_id",
-                "support_id",
-                "pair_seed",
-                "mass",
-                "friction",
-                "object_eye",
-                "support_eye",
-                "n_candidates",
-                "n_penetrating",
-                "n_fallen",
-                "n_stable_raw",
-                "n_takeoff_rejected",
-            )
-        }
-        for name, fields in (
-            ("stable", ["stable_poses"]),
-            ("negative", ["negative_poses"]),
-            ("collision", ["collision_kept", "collision_label"]),
-        ):
-            a, b = shard[f"{name}_offsets"][i], shard[f"{name}_offsets"][i + 1]
-            for f in fields:
-                r[f] = shard[f][a:b]
+    for i in range(len(shard["pair_index"])):
+        r = {k: shard[k][i] for k in scalars}
+        a, b = shard["stable_offsets"][i], shard["stable_offsets"][i + 1]
+        r["stable_poses"] = dequantise_poses(
+            shard["stable_position"][a:b], shard["stable_quaternion"][a:b]
+        )
+        for f, g in groups.items():
+            a, b = shard[f"{g}_offsets"][i], shard[f"{g}_offsets"][i + 1]
+            r[f] = bits[f][a:b]
         recs.append(r)
     return recs
 
@@ -489,7 +577,7 @@ def dataset_card(
         "objects": len({p[0] for p in pairs}),
         "supports": len({p[1] for p in pairs}),
         "stable_poses": int(sum(n_stable.values())),
-        "negative_poses": int(sum(len(r["negative_poses"]) for r in records)),
+        "negative_poses": int(sum(int(r["negative_kept"].sum()) for r in records)),
         "collision_labels": int(sum(int(r["collision_kept"].sum()) for r in records)),
         "colliding_fraction": float(
             sum(int(r["collision_label"].sum()) for r in records)

@@ -58,6 +58,8 @@ def test_card_and_labels(generated):
         assert poses.dtype == np.float32 and poses.shape[1] == 7 and np.isfinite(poses).all()
         assert len(poses) <= CFG.max_stable
         assert len(r["collision_kept"]) == CFG.n_collision
+        assert r["negative_kept"].sum() <= CFG.max_negatives
+        assert len(r["negative_kept"]) == (CFG.negative_candidates if len(poses) else 0)
         assert not (r["collision_label"] & ~r["collision_kept"]).any()
 
 
@@ -118,3 +120,38 @@ def test_derived_arrays_are_deterministic_and_export_roundtrips(generated, tmp_p
     np.testing.assert_allclose(m[:3, :3], rot, atol=1e-6)
     moved = mesh.vertices @ m[:3, :3].T + m[:3, 3]
     assert np.isfinite(moved).all()
+
+
+def test_pose_quantisation_is_below_a_tenth_of_a_millimetre():
+    rng = np.random.default_rng(0)
+    poses = np.concatenate([rng.uniform(-1.5, 1.5, (200, 3)), rng.normal(size=(200, 4))], axis=1)
+    poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+    back = dataset.dequantise_poses(*dataset.quantise_poses(poses))
+    assert np.abs(back[:, :3] - poses[:, :3]).max() <= dataset.POSITION_STEP / 2 + 1e-6
+    angle = 2 * np.arccos(np.clip(np.abs(np.sum(back[:, 3:] * poses[:, 3:], axis=1)), 0, 1))
+    assert angle.max() < 1e-3  # radians
+    with pytest.raises(ValueError, match="3.27"):
+        dataset.quantise_poses(np.array([[4.0, 0, 0, 1, 0, 0, 0]]))
+
+
+def test_near_misses_start_close_and_fall(generated):
+    """Regenerated negatives start clear of the support (within 1 cm) and do not stay put."""
+    out, _ = generated
+    recipe = json.loads((out / "recipe.json").read_text())
+    lib = build_library(CFG.library, progress=False)
+    from sim import kernels
+    from sim.scene import build_scene
+
+    found = 0
+    for r in dataset.load_records(out):
+        if not r["negative_kept"].any():
+            continue
+        obj, sup, _ = recipe["pairs"][int(r["pair_index"])]
+        scene = build_scene(lib.objects[obj], lib.supports[sup])
+        cand = dataset.negative_candidates(r["stable_poses"], int(r["pair_seed"]), CFG)[
+            r["negative_kept"]
+        ]
+        con = kernels.contact_query(scene, cand)
+        assert (con.penetration == 0).all() and (con.distance <= CFG.negative_gap + 1e-6).all()
+        found += len(cand)
+    assert found > 0
