@@ -33,14 +33,13 @@ import hashlib
 import json
 import os
 import platform
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
-from sim import annotate, camera, kernels, proposals
+from sim import annotate, atomic, camera, kernels, proposals
 from sim.assets.base import Asset
 from sim.library import Library, LibraryConfig, build_library, check_split
 from sim.scene import build_scene
@@ -428,27 +427,6 @@ def unpack(shard: dict) -> list[dict]:
     return recs
 
 
-def _atomic_savez(path: Path, arrays: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp_", suffix=".npz")
-    os.close(fd)
-    try:
-        np.savez_compressed(tmp, **arrays)
-        os.chmod(tmp, 0o644)  # mkstemp files are private; these are shared results
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp_")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.chmod(tmp, 0o644)  # mkstemp files are private; these are shared results
-    os.replace(tmp, path)
-
-
 def recipe(config: DatasetConfig, library: Library, pairs, preset: str) -> dict:
     import mujoco
 
@@ -489,7 +467,7 @@ def generate(
                 f"{recipe_path} was written for another config; use a new --out or delete it"
             )
     else:
-        _atomic_write(recipe_path, json.dumps(rec, indent=1))
+        atomic.write_text(recipe_path, json.dumps(rec, indent=1))
     obj_index = {n: i for i, n in enumerate(rec["objects"])}
     sup_index = {n: i for i, n in enumerate(rec["supports"])}
     n_shards = (len(pairs) + config.shard_size - 1) // config.shard_size
@@ -515,7 +493,7 @@ def generate(
             done_pairs += 1
             elapsed = time.time() - t0
             bar.set_postfix(pairs_per_min=f"{60 * done_pairs / max(elapsed, 1e-9):.1f}")
-        _atomic_savez(path, _pack(records, chunk, ids))
+        atomic.savez(path, **_pack(records, chunk, ids))
     bar.close()
     timings["generate_s"] = time.time() - t0
     card = dataset_card(out, library, pairs, rec, timings, backend, done_pairs)
@@ -601,8 +579,8 @@ def dataset_card(
         "device": f"{device} x{os.cpu_count()} ({platform.platform()})",
         "versions": rec["versions"],
     }
-    _atomic_write(out / "dataset_card.json", json.dumps(card, indent=1))
-    _atomic_write(out / "dataset_card.md", card_markdown(card))
+    atomic.write_text(out / "dataset_card.json", json.dumps(card, indent=1))
+    atomic.write_text(out / "dataset_card.md", card_markdown(card))
     return card
 
 

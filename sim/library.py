@@ -32,7 +32,6 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -42,7 +41,7 @@ from tqdm.auto import tqdm
 
 import sim.assets.objects  # noqa: F401  (registers the object categories)
 import sim.assets.supports  # noqa: F401  (registers the support families)
-from sim import decompose
+from sim import atomic, decompose
 from sim.assets.base import (
     OBJECT_CATEGORIES,
     SUPPORT_FAMILIES,
@@ -233,7 +232,7 @@ class Library:
         )
 
     def save_manifest(self, path: str | os.PathLike) -> None:
-        _atomic_write_text(Path(path), json.dumps(self.manifest(), indent=1))
+        atomic.write_text(Path(path), json.dumps(self.manifest(), indent=1))
 
 
 def build_library(
@@ -396,22 +395,7 @@ def _cached_union_mesh(asset: Asset, directory: Path) -> trimesh.Trimesh:
             log.warning("corrupt union-mesh cache file %s (%s); rebuilding", path, exc)
     mesh = asset.mesh
     directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces))
-        os.chmod(tmp, 0o644)  # mkstemp files are private; these are shared results
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic.savez(
+        path, compressed=False, vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces)
+    )
     return mesh
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.chmod(tmp, 0o644)  # mkstemp files are private; these are shared results
-    os.replace(tmp, path)
