@@ -585,6 +585,22 @@ def stability(
     return stability_many([scene], np.zeros(len(poses), np.int32), poses, config, settings)
 
 
+def _sequential(removed: np.ndarray) -> TakeoffResult:
+    """The reference's sequential semantics from all 11 directions simulated at once.
+
+    The device pushes every pose along all 11 directions in parallel (one pass); the CPU
+    reference tries them in the original order and does not push a pose freed by one
+    direction along the later ones, so only the first removing direction stays True.
+    ``removable`` and ``direction`` are unchanged by this; ``removed`` then matches.
+    """
+    removed = np.asarray(removed, bool)
+    first = np.where(removed.any(1), removed.argmax(1), -1)
+    seq = np.zeros_like(removed)
+    rows = np.flatnonzero(first >= 0)
+    seq[rows, first[rows]] = True
+    return TakeoffResult(seq.any(1), first, seq)
+
+
 def takeoff_many(
     scenes: Sequence[Scene],
     pair: np.ndarray,
@@ -613,9 +629,7 @@ def takeoff_many(
             push, free, every,
         )  # fmt: skip
         removed[idx] = np.asarray(out)[: len(idx)]
-    removed = removed.reshape(len(poses), 11)
-    first = np.where(removed.any(1), removed.argmax(1), -1)
-    return TakeoffResult(removed.any(1), first, removed)
+    return _sequential(removed.reshape(len(poses), 11))
 
 
 def takeoff(
@@ -1035,6 +1049,11 @@ def _w_takeoff(model, fields, aux, data0, pair, qpos, force, push, free, every):
 
 
 def _takeoff_warp(scenes, pair, poses, config, settings) -> TakeoffResult:
+    return _sequential(_takeoff_warp_removed(scenes, pair, poses, config, settings))
+
+
+def _takeoff_warp_removed(scenes, pair, poses, config, settings) -> np.ndarray:
+    """[B, 11] outcome of every direction on its own (all pushed in parallel)."""
     batch = _warp_batch_for(scenes, settings)
     fields = dict(batch.fields)
     if config.friction is not None:
@@ -1064,6 +1083,4 @@ def _takeoff_warp(scenes, pair, poses, config, settings) -> TakeoffResult:
             jnp.asarray(q, jnp.float32), jnp.asarray(fo, jnp.float32), push, free, every,
         )  # fmt: skip
         removed[idx] = np.asarray(out)[: len(idx)]
-    removed = removed.reshape(len(poses), 11)
-    first = np.where(removed.any(1), removed.argmax(1), -1)
-    return TakeoffResult(removed.any(1), first, removed)
+    return removed.reshape(len(poses), 11)
