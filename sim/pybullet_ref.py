@@ -3,7 +3,8 @@
 Settings from the original code: time step 1/100 s with 40 sub-steps, 40 solver
 iterations, gravity -9.81, lateral friction 0.5 (PyBullet's default). The pair is built
 from the same convex parts as the MuJoCo scene: capsules -> GEOM_CAPSULE, boxes ->
-GEOM_BOX, convex meshes -> GEOM_MESH (PyBullet takes the convex hull of a mesh file). The
+GEOM_BOX, convex meshes -> GEOM_MESH (a triangulated hull OBJ file per part, see
+:func:`_write_hull_obj`). The
 protocol is :mod:`sim.kernels`' (1 mm penetration reject, 2 s in 0.1 s checks, ground
 contact / box separation = fallen, divergence, early rest), so labels per second compare
 engines under one protocol. One core, one world at a time: how the original ran.
@@ -16,6 +17,7 @@ import tempfile
 
 import numpy as np
 import pybullet as pb
+from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation
 
 from sim import geometry, kernels
@@ -31,6 +33,32 @@ SOLVER_ITERATIONS = 40  # original
 
 def _xyzw(rot: np.ndarray) -> list[float]:
     return Rotation.from_matrix(rot).as_quat().tolist()
+
+
+def _write_hull_obj(fname: str, vertices) -> None:
+    """Write the convex hull of ``vertices`` as a triangulated OBJ file.
+
+    PyBullet reads OBJ meshes through their faces: a file of bare ``v`` lines loads as an
+    empty mesh ("issue extracting mesh from COLLADA/STL file"), which either drops the part
+    silently from the compound or fails the whole ``createCollisionShapeArray``. The hull's
+    vertices (duplicates and interior points removed) and triangles are written instead.
+    """
+    pts = np.unique(np.round(np.asarray(vertices, float), 9), axis=0)
+    try:
+        hull = ConvexHull(pts)
+    except QhullError:  # flat or degenerate: joggle (exact enough for collision)
+        hull = ConvexHull(pts, qhull_options="QJ")
+    used = np.unique(hull.simplices)
+    remap = np.full(len(pts), -1)
+    remap[used] = np.arange(len(used))
+    centre = pts[used].mean(0)
+    with open(fname, "w") as f:
+        f.writelines(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in pts[used])
+        for tri in hull.simplices:
+            a, b, c = pts[tri]
+            if np.dot(np.cross(b - a, c - a), a - centre) < 0:  # outward winding
+                tri = tri[[0, 2, 1]]
+            f.write("f {} {} {}\n".format(*(remap[tri] + 1)))
 
 
 def _shape_args(parts, offset: np.ndarray, tmp: str, tag: str) -> dict:
@@ -54,8 +82,7 @@ def _shape_args(parts, offset: np.ndarray, tmp: str, tag: str) -> dict:
             )
         elif isinstance(part, ConvexMesh):
             fname = os.path.join(tmp, f"{tag}{i}.obj")
-            with open(fname, "w") as f:
-                f.writelines(f"v {x:.7g} {y:.7g} {z:.7g}\n" for x, y, z in part.vertices)
+            _write_hull_obj(fname, part.vertices)
             kind, pos, rot = pb.GEOM_MESH, np.zeros(3), np.eye(3)
         else:
             raise TypeError(type(part))
