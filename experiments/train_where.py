@@ -41,10 +41,13 @@ def main(argv=None) -> dict:
         "--preset",
         choices=sorted(train.PRESETS),
         default="original",
-        help="network sizes: 'original' (paper, 4096-point clouds) or 'tiny' (tests, CPU)",
+        help="network sizes: 'original' (paper, 4096-point clouds), 'small' (real objects on "
+        "2048-point clouds, CPU in minutes) or 'tiny' (tests)",
     )
     parser.add_argument("--batch", type=int, default=None, help="pairs per step (default 32)")
     parser.add_argument("--seed", type=int, default=None, help="seed for init, data and noise")
+    parser.add_argument("--lr-stage1", type=float, default=None, help="Adam lr, Stage 1")
+    parser.add_argument("--lr-stage2", type=float, default=None, help="Adam lr, Stages 2a/2b")
     parser.add_argument(
         "--synthetic-pairs",
         type=int,
@@ -60,6 +63,10 @@ def main(argv=None) -> dict:
         overrides["batch_size"] = args.batch
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.lr_stage1 is not None:
+        overrides["lr_stage1"] = args.lr_stage1
+    if args.lr_stage2 is not None:
+        overrides["lr_stage2"] = args.lr_stage2
     if args.synthetic_pairs is not None:
         overrides["synthetic_pairs"] = args.synthetic_pairs
     config = dataclasses.replace(config, train=dataclasses.replace(config.train, **overrides))

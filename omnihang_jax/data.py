@@ -432,7 +432,9 @@ class NpzDirectoryDataset:
     def __init__(self, files: Sequence[str], max_poses: int = MAX_STABLE_POSES, max_contacts=None):
         self.files = list(files)
         self.max_poses = max_poses
-        self.max_contacts = max_contacts or _max_contacts(self.files[:1])
+        # C over ALL files: a batch with more contacts than this changes the padded shape and
+        # recompiles the jitted step (seconds each; it made the demo's Stage-2 runs crawl).
+        self.max_contacts = max_contacts or _max_contacts(self.files)
 
     def __len__(self) -> int:
         return len(self.files)

@@ -31,6 +31,7 @@ __all__ = [
     "Stage1Config",
     "STAGE1_ORIGINAL",
     "STAGE1_TINY",
+    "STAGE1_SMALL",
     "Stage1Net",
     "Stage1Network",
     "make_stage1",
@@ -60,6 +61,16 @@ STAGE1_TINY = Stage1Config(
     head=(32, 16, 3),
     num_train_samples=4,
     num_eval_samples=3,
+)
+
+STAGE1_SMALL = Stage1Config(
+    encoder=pointnet2.SMALL,
+    noise_dim=16,
+    noise_mlp=(32,),
+    trunk=(256, 256),
+    head=(64, 32, 3),
+    num_train_samples=8,
+    num_eval_samples=5,
 )
 
 

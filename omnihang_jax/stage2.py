@@ -42,6 +42,7 @@ __all__ = [
     "Stage2Config",
     "STAGE2_ORIGINAL",
     "STAGE2_TINY",
+    "STAGE2_SMALL",
     "Stage2Net",
     "Stage2Network",
     "Stage2Output",
@@ -78,6 +79,12 @@ class Stage2Config:
     # 2b also fine-tunes the segmentation features; its loss then keeps the 2a Huber term so the
     # contact scores stay calibrated. False freezes the features (stop_gradient).
     train_features_in_2b: bool = True
+    # Pair geometry in 2b (ours, off = paper): > 0 adds the offset s_v - o_u between the posed
+    # candidates (support frame, divided by this scale in metres) and its length to the first
+    # 1x1 conv of every pair. Our PointNet++ features are built from radius-normalised local
+    # offsets, so without this 2b cannot tell which object point sits next to which support
+    # point; with it the near pairs of the (roughly posed) clouds are the natural candidates.
+    pair_offset_scale: float = 0.0
 
     @property
     def feature_dim(self) -> int:
@@ -91,6 +98,15 @@ STAGE2_TINY = Stage2Config(
     k_support=16,
     k_pairs=3,
     correspondence_mlp=(32, 16),
+)
+STAGE2_SMALL = Stage2Config(
+    pointnet=dataclasses.replace(pointnet2.SMALL, num_points=4096),
+    k_object=32,
+    k_support=32,
+    k_pairs=3,
+    correspondence_mlp=(64, 32),
+    pose_noise_translation=0.02,
+    pair_offset_scale=0.05,
 )
 
 
@@ -108,6 +124,8 @@ class Stage2Net(nn.Module):
         self.pair_object = nn.Dense(cfg.correspondence_mlp[0])
         self.pair_support = nn.Dense(cfg.correspondence_mlp[0], use_bias=False)
         self.pair_mlp = SharedMLP(tuple(cfg.correspondence_mlp[1:]) + (2,), activate_last=False)
+        if cfg.pair_offset_scale > 0:
+            self.pair_offset = nn.Dense(cfg.correspondence_mlp[0], use_bias=False)
 
     def contact(self, points: jax.Array, flags: jax.Array) -> tuple[jax.Array, jax.Array]:
         """points [B, P, 3] metres, flags [B, P, 1] (1 object, 0 support).
@@ -118,12 +136,26 @@ class Stage2Net(nn.Module):
         scores = jax.nn.sigmoid(self.score_head(features)[..., 0])
         return features, scores
 
-    def correspond(self, object_features: jax.Array, support_features: jax.Array) -> jax.Array:
-        """object_features [B, K1, W], support_features [B, K2, W] -> logits [B, K1, K2, 2]."""
+    def correspond(
+        self,
+        object_features: jax.Array,
+        support_features: jax.Array,
+        object_xyz: jax.Array | None = None,
+        support_xyz: jax.Array | None = None,
+    ) -> jax.Array:
+        """object_features [B, K1, W], support_features [B, K2, W] -> logits [B, K1, K2, 2].
+
+        object_xyz [B, K1, 3] (posed, support frame), support_xyz [B, K2, 3]: the candidates'
+        positions, used only when ``config.pair_offset_scale > 0``.
+        """
         h = (
             self.pair_object(object_features)[:, :, None]
             + self.pair_support(support_features)[:, None]
         )
+        if self.config.pair_offset_scale > 0:
+            h = h + self.pair_offset(
+                pair_offset_features(object_xyz, support_xyz, self.config.pair_offset_scale)
+            )
         return self.pair_mlp(nn.relu(h))
 
     def __call__(self, points, flags, num_object: int):
@@ -134,7 +166,9 @@ class Stage2Net(nn.Module):
         )
         object_features = gather_points(features[:, :num_object], object_idx)
         support_features = gather_points(features[:, num_object:], support_idx)
-        return scores, self.correspond(object_features, support_features)
+        object_xyz = gather_points(points[:, :num_object], object_idx)
+        support_xyz = gather_points(points[:, num_object:], support_idx)
+        return scores, self.correspond(object_features, support_features, object_xyz, support_xyz)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -155,6 +189,14 @@ def combine_clouds(
         [jnp.ones((batch, n, 1), jnp.float32), jnp.zeros((batch, m, 1), jnp.float32)], axis=1
     )
     return points, flags
+
+
+def pair_offset_features(object_xyz: jax.Array, support_xyz: jax.Array, scale: float) -> jax.Array:
+    """object_xyz [B, K1, 3] (posed), support_xyz [B, K2, 3] -> [B, K1, K2, 4]: the offset
+    (s_v - o_u) / scale and its length (see ``Stage2Config.pair_offset_scale``)."""
+    offset = (support_xyz[:, None] - object_xyz[:, :, None]) / scale
+    length = jnp.sqrt(jnp.sum(offset * offset, axis=-1, keepdims=True) + 1e-12)
+    return jnp.concatenate([offset, length], axis=-1)
 
 
 def top_contact_points(
@@ -276,7 +318,9 @@ class Stage2Network(NamedTuple):
 
     init(key) -> params.
     contact(params, points [B,P,3], flags [B,P,1]) -> (features [B,P,W], scores [B,P]).
-    correspond(params, object_features [B,K1,W], support_features [B,K2,W]) -> logits.
+    correspond(params, object_features [B,K1,W], support_features [B,K2,W], object_xyz=None,
+      support_xyz=None) -> logits [B,K1,K2,2] (xyz: posed candidate positions, needed when
+      ``pair_offset_scale > 0``).
     refine(params, object_points [B,N,3], support_points [B,M,3], pose6 [B,6]) -> Stage2Output.
     """
 
@@ -301,9 +345,14 @@ def make_stage2(config: Stage2Config) -> Stage2Network:
     def contact(params, points, flags):
         return module.apply({"params": params}, points, flags, method=Stage2Net.contact)
 
-    def correspond(params, object_features, support_features):
+    def correspond(params, object_features, support_features, object_xyz=None, support_xyz=None):
         return module.apply(
-            {"params": params}, object_features, support_features, method=Stage2Net.correspond
+            {"params": params},
+            object_features,
+            support_features,
+            object_xyz,
+            support_xyz,
+            method=Stage2Net.correspond,
         )
 
     def refine(params, object_points, support_points, pose6):
@@ -315,6 +364,8 @@ def make_stage2(config: Stage2Config) -> Stage2Network:
             params,
             gather_points(features[:, :n], object_idx),
             gather_points(features[:, n:], support_idx),
+            gather_points(points[:, :n], object_idx),
+            gather_points(support_points, support_idx),
         )
         chosen = select_correspondences(
             jax.nn.sigmoid(positive_scores(logits)), config.k_pairs, config.threshold

@@ -37,9 +37,16 @@ from omnihang_jax.config import config_from_dict, config_to_dict
 from omnihang_jax.data import HangSample
 from omnihang_jax.pointnet2 import gather_points
 from omnihang_jax.poses import pose7_to_pose6, rotation_matrix, transform_points
-from omnihang_jax.stage1 import STAGE1_ORIGINAL, STAGE1_TINY, Stage1Config, make_stage1
+from omnihang_jax.stage1 import (
+    STAGE1_ORIGINAL,
+    STAGE1_SMALL,
+    STAGE1_TINY,
+    Stage1Config,
+    make_stage1,
+)
 from omnihang_jax.stage2 import (
     STAGE2_ORIGINAL,
+    STAGE2_SMALL,
     STAGE2_TINY,
     Stage2Config,
     combine_clouds,
@@ -57,6 +64,7 @@ __all__ = [
     "WhereConfig",
     "WHERE_ORIGINAL",
     "WHERE_TINY",
+    "WHERE_SMALL",
     "PRESETS",
     "TrainState",
     "make_loss_fn",
@@ -108,7 +116,13 @@ WHERE_TINY = WhereConfig(
     train=TrainConfig(batch_size=8, log_every=10, checkpoint_every=100, synthetic_pairs=32),
     preset="tiny",
 )
-PRESETS = {"original": WHERE_ORIGINAL, "tiny": WHERE_TINY}
+WHERE_SMALL = WhereConfig(
+    stage1=STAGE1_SMALL,
+    stage2=STAGE2_SMALL,
+    train=TrainConfig(batch_size=8, log_every=25, checkpoint_every=250, synthetic_pairs=32),
+    preset="small",
+)
+PRESETS = {"original": WHERE_ORIGINAL, "tiny": WHERE_TINY, "small": WHERE_SMALL}
 
 
 @flax.struct.dataclass
@@ -228,6 +242,8 @@ def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
             params,
             gather_points(features[:, :n], object_idx),
             gather_points(features[:, n:], support_idx),
+            gather_points(points[:, :n], object_idx),
+            gather_points(points[:, n:], support_idx),
         )
         labels = correspondence_labels(
             batch.object_points,

@@ -166,3 +166,15 @@ def test_evaluate_where_writes_results(derived, library, tmp_path):
     for stage in ("stage1", "stage1_2"):
         assert records[0][stage]["status"] in kernels.STATUS_NAMES
         assert np.isfinite(records[0][stage]["pose"]).all()
+
+
+def test_stage2_from_ground_truth_diagnostic(derived):
+    out, _ = derived
+    files = dataset_bridge.derived_files(out / "derived", "test")[:2]
+    params = make_stage2(STAGE2_TINY).init(jax.random.key(0))
+    diag = evaluate.stage2_from_ground_truth(STAGE2_TINY, params, files, 0.01, 0.05)
+    assert diag["pairs"] == len(files) >= 1
+    for key in ("input", "stage2", "oracle_contacts"):
+        assert np.isfinite(diag[key]["mean"]) and diag[key]["min"] >= 0.0
+    # Perfect correspondences land close to the ground-truth pose (the data is consistent).
+    assert diag["oracle_contacts"]["max"] < 0.02
