@@ -311,6 +311,7 @@ def stage2_from_ground_truth(
     import jax
     import jax.numpy as jnp
 
+    from omnihang_jax.data import stack_samples
     from omnihang_jax.pointnet2 import gather_points
     from omnihang_jax.poses import pose7_to_pose6, rotation_matrix
     from omnihang_jax.stage2 import make_stage2, solve_translation
@@ -320,12 +321,12 @@ def stage2_from_ground_truth(
     key = jax.random.key(seed)
     errs: dict[str, list[float]] = {"input": [], "stage2": [], "oracle_contacts": []}
     for start in range(0, len(files), batch_size):
-        chunk = [dataset_bridge.load_pair_file(f)[0] for f in files[start : start + batch_size]]
-        obj = np.stack([np.asarray(c.object_points, np.float32) for c in chunk])
-        sup = np.stack([np.asarray(c.support_points, np.float32) for c in chunk])
-        gt6 = np.asarray(
-            pose7_to_pose6(jnp.asarray(np.stack([np.asarray(c.stable_poses)[0] for c in chunk])))
+        chunk = stack_samples(
+            [dataset_bridge.load_pair_file(f)[0] for f in files[start : start + batch_size]]
         )
+        obj = np.asarray(chunk.object_points, np.float32)
+        sup = np.asarray(chunk.support_points, np.float32)
+        gt6 = np.asarray(pose7_to_pose6(jnp.asarray(np.asarray(chunk.stable_poses)[:, 0])))
         k_t, k_r = jax.random.split(jax.random.fold_in(key, start), 2)
         noise = np.concatenate(
             [
@@ -336,8 +337,8 @@ def stage2_from_ground_truth(
         )
         out = refine(stage2_params, obj, sup, jnp.asarray(gt6 + noise, jnp.float32))
         t2 = np.asarray(out.pose6[:, :3])
-        pairs = jnp.asarray(np.stack([np.asarray(c.contact_pairs)[0] for c in chunk]))
-        mask = np.stack([np.asarray(c.contact_mask)[0] for c in chunk]).astype(np.float32)
+        pairs = jnp.asarray(np.asarray(chunk.contact_pairs)[:, 0])
+        mask = np.asarray(chunk.contact_mask)[:, 0].astype(np.float32)
         t_oracle = np.asarray(
             solve_translation(
                 rotation_matrix(jnp.asarray(gt6[:, 3:])),

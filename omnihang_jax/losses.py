@@ -66,13 +66,22 @@ def pose_set_loss(
     return pred_term + gt_term
 
 
-def contact_score_loss(scores: jax.Array, target: jax.Array, delta: float = 1.0) -> jax.Array:
+def contact_score_loss(
+    scores: jax.Array, target: jax.Array, delta: float = 1.0, positive_weight: float = 0.0
+) -> jax.Array:
     """Stage-2a per-point regression of soft contact maps with a Huber loss (facts).
 
     scores: [B, P] predicted contact scores in [0, 1]; target: [B, P] soft maps in [0, 1].
-    Returns [B] mean Huber loss over points.
+    positive_weight (ours, 0 = facts): point weights 1 + positive_weight * target, normalised
+    to mean 1, so the few contact points are not drowned by the many zeros (on the real demo
+    the plain loss collapsed to "no contact anywhere" and picked wrong top-K points).
+    Returns [B] (weighted) mean Huber loss over points.
     """
-    return jnp.mean(optax.losses.huber_loss(scores, target, delta=delta), axis=-1)
+    loss = optax.losses.huber_loss(scores, target, delta=delta)
+    if positive_weight <= 0:
+        return jnp.mean(loss, axis=-1)
+    w = 1.0 + positive_weight * target
+    return jnp.sum(w * loss, axis=-1) / jnp.sum(w, axis=-1)
 
 
 def correspondence_cross_entropy(logits: jax.Array, labels: jax.Array) -> jax.Array:

@@ -69,6 +69,7 @@ class Stage2Config:
     threshold: float = 0.5  # delta: minimum pair probability (paper; value ours)
     correspondence_mlp: tuple[int, ...] = (128, 64)  # hidden 1x1 convs before the 2 logits
     huber_delta: float = 1.0  # Huber transition; 1 = TF default, i.e. plain 0.5 L2 on [0, 1] maps
+    contact_positive_weight: float = 0.0  # 2a point weights 1 + w * map (ours; 0 = facts)
     correspondence_radius: float = 0.01  # 1 cm: GT label radius, ~ the contact-map spread
     # Training inputs: the GT stable pose perturbed to mimic Stage-1 errors (ours).
     pose_noise_translation: float = 0.01  # metres, std per axis
@@ -107,6 +108,7 @@ STAGE2_SMALL = Stage2Config(
     correspondence_mlp=(64, 32),
     pose_noise_translation=0.02,
     pair_offset_scale=0.05,
+    contact_positive_weight=20.0,
 )
 
 

@@ -218,7 +218,11 @@ def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
         def stage2a_loss(params, batch: HangSample, key):
             _, points, flags, target, _, _ = _stage2_inputs(cfg2, batch, key)
             _, scores = net2.contact(params, points, flags)
-            loss = jnp.mean(losses.contact_score_loss(scores, target, cfg2.huber_delta))
+            loss = jnp.mean(
+                losses.contact_score_loss(
+                    scores, target, cfg2.huber_delta, cfg2.contact_positive_weight
+                )
+            )
             n = batch.object_points.shape[1]
             object_idx, support_idx = top_contact_points(scores, n, cfg2.k_object, cfg2.k_support)
             # Mean ground-truth map value at the predicted top-K points (1 = perfect choice).
@@ -233,7 +237,11 @@ def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
         gt_pose6, points, flags, target, pairs, pair_mask = _stage2_inputs(cfg2, batch, key)
         n = batch.object_points.shape[1]
         features, scores = net2.contact(params, points, flags)
-        huber = jnp.mean(losses.contact_score_loss(scores, target, cfg2.huber_delta))
+        huber = jnp.mean(
+            losses.contact_score_loss(
+                scores, target, cfg2.huber_delta, cfg2.contact_positive_weight
+            )
+        )
         if not cfg2.train_features_in_2b:
             features = jax.lax.stop_gradient(features)
         selection = target if cfg2.train_selection == "ground_truth" else scores
