@@ -302,6 +302,7 @@ def main(argv=None):
         "timings_s": {**timings, "cpu": cpu_s, "mjx": mjx_s, "pybullet": pb_s},
         "device": str(jax.devices()[0].device_kind) if jax.devices() else "none",
         "jax_backend": jax.default_backend(),
+        "warp_device": _warp_device() if args.impl == "warp" else None,
         "cpu_cores": len(os.sched_getaffinity(0)),
         "versions": {
             "jax": jax.__version__,
@@ -315,6 +316,16 @@ def main(argv=None):
     (out / "bench_sim.json").write_text(json.dumps(result, indent=2))
     log(json.dumps({k: v for k, v in result.items() if k != "disagreements"}, indent=2))
     return result
+
+
+def _warp_device() -> str:
+    """Where MuJoCo Warp runs: Warp's preferred device (``cuda:0`` on a GPU, else ``cpu``)."""
+    try:
+        import warp
+
+        return str(warp.get_preferred_device())
+    except Exception as err:  # noqa: BLE001
+        return f"unknown ({err})"
 
 
 def _version(dist: str) -> str:
