@@ -114,6 +114,26 @@ PRESETS = {
         camera=camera.CameraConfig(width=320, height=240, n_points=2048),
         shard_size=8,
     ),
+    # seconds on a CPU, for tests and smoke runs: 2 categories x 2 families, 4 pairs
+    "tiny": DatasetConfig(
+        library=LibraryConfig(
+            n_objects=22,
+            n_supports=10,
+            object_categories=("mug", "wrench"),
+            support_families=("single_rod_hook", "towel_bar"),
+        ),
+        max_objects_per_category=1,
+        max_supports_per_family=1,
+        max_candidates=128,
+        batch=128,
+        max_stable=4,
+        max_negatives=4,
+        negative_candidates=40,
+        n_collision=40,
+        n_views=2,
+        camera=camera.CameraConfig(width=120, height=90, n_points=256),
+        shard_size=2,
+    ),
     # the paper's scale: 340 objects x 72 supports; 32-pair shards keep the per-file
     # overhead of npz small (labels ~1.2 kB per pair) while losing little when killed
     "paper": DatasetConfig(shard_size=32),

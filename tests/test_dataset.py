@@ -10,24 +10,10 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from sim import camera, dataset
-from sim.library import TINY, build_library
+from sim import dataset
+from sim.library import build_library
 
-CFG = dataclasses.replace(
-    dataset.PRESETS["demo"],
-    library=dataclasses.replace(
-        TINY, object_categories=("mug", "wrench"), support_families=("single_rod_hook", "towel_bar")
-    ),
-    max_objects_per_category=1,
-    max_candidates=128,
-    batch=128,
-    max_stable=4,
-    max_negatives=4,
-    n_collision=40,
-    n_views=2,
-    camera=camera.CameraConfig(width=120, height=90, n_points=256),
-    shard_size=2,
-)
+CFG = dataset.PRESETS["tiny"]  # 4 pairs: mug, wrench x single_rod_hook, towel_bar
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import jax
@@ -13,25 +12,10 @@ from omnihang_jax import data, dataset_bridge, evaluate
 from omnihang_jax.predict import Predictor
 from omnihang_jax.stage1 import STAGE1_TINY, make_stage1
 from omnihang_jax.stage2 import STAGE2_TINY, make_stage2
-from sim import camera, dataset, kernels
-from sim.library import TINY, build_library
+from sim import dataset, kernels
+from sim.library import build_library
 
-# Same tiny dataset as tests/test_dataset.py (copied, not imported): 2 objects x 2 supports.
-CFG = dataclasses.replace(
-    dataset.PRESETS["demo"],
-    library=dataclasses.replace(
-        TINY, object_categories=("mug", "wrench"), support_families=("single_rod_hook", "towel_bar")
-    ),
-    max_objects_per_category=1,
-    max_candidates=128,
-    batch=128,
-    max_stable=4,
-    max_negatives=4,
-    n_collision=40,
-    n_views=2,
-    camera=camera.CameraConfig(width=120, height=90, n_points=256),
-    shard_size=2,
-)
+CFG = dataset.PRESETS["tiny"]  # 4 pairs: mug, wrench x single_rod_hook, towel_bar
 
 
 @pytest.fixture(scope="module")
