@@ -505,6 +505,40 @@ def probe_many(batch: Batch, pair: np.ndarray, poses: np.ndarray, chunk: int):
     return [np.concatenate(x) for x in zip(*outs)]
 
 
+def _drain(poses, pair, depth, config, dt, nl, lanes, advance, park) -> StabilityResult:
+    """Host side of continuous batching, shared by both impls: ``nl`` lanes advance one
+    check segment per ``advance(lanes, refill, new_qpos, new_pair)`` call; a lane whose label
+    is final is refilled with the next queued pose (``park`` pose when the queue is empty)."""
+    seg = max(1, round(config.check_every / dt))
+    n = len(poses)
+    status = np.full(n, -1, np.int8)
+    final = poses.copy()
+    sim_time = np.zeros(n)
+    status[depth > config.max_penetration] = PENETRATING
+    queue = list(np.flatnonzero(status < 0)[::-1])
+    owner = np.full(nl, -1)  # pose index simulated in each lane
+    while queue or (owner >= 0).any():
+        refill = np.zeros(nl, bool)
+        new_q = np.tile(park, (nl, 1))
+        new_p = np.zeros(nl, np.int32)
+        for lane in np.flatnonzero(owner < 0):
+            if not queue:
+                break
+            i = queue.pop()
+            owner[lane], refill[lane] = i, True
+            new_q[lane], new_p[lane] = poses[i], pair[i]
+        lanes, st, qpos, nseg = advance(lanes, refill, new_q, new_p, seg)
+        st, qpos, nseg = np.asarray(st), np.asarray(qpos), np.asarray(nseg)
+        done = (owner >= 0) & (st >= 0)
+        rows = owner[done]
+        status[rows] = st[done]
+        final[rows] = np.where((st[done] == DIVERGED)[:, None], poses[rows], qpos[done])
+        sim_time[rows] = nseg[done] * seg * dt
+        owner[done] = -1
+    final[:, 3:] /= np.linalg.norm(final[:, 3:], axis=1, keepdims=True)
+    return StabilityResult(status == STABLE, status, final, depth, sim_time)
+
+
 def stability_many(
     scenes: Sequence[Scene],
     pair: np.ndarray,
@@ -522,17 +556,9 @@ def stability_many(
     if settings.impl == "warp":
         return _stability_warp(scenes, pair, poses, config, settings, batch)
     batch = batch or _batch_for(scenes, settings)
-    dt = scenes[0].physics.timestep
-    seg = max(1, round(config.check_every / dt))
-    n = len(poses)
-    status = np.full(n, -1, np.int8)
-    final = poses.copy()
-    sim_time = np.zeros(n)
     dist, *_, floor = probe_many(batch, pair, poses, settings.chunk)
     depth = np.maximum(np.maximum(-dist.min(1), -floor), 0.0)
     depth[~np.isfinite(depth)] = 0.0
-    status[depth > config.max_penetration] = PENETRATING
-    queue = list(np.flatnonzero(status < 0)[::-1])
     nl = settings.lanes
     lanes = {
         "d": jax.tree.map(lambda x: jnp.stack([x] * nl), batch.data0),
@@ -540,18 +566,9 @@ def stability_many(
         "rest": jnp.zeros(nl, jnp.int32),
         "nseg": jnp.zeros(nl, jnp.int32),
     }
-    owner = np.full(nl, -1)  # pose index simulated in each lane
-    while queue or (owner >= 0).any():
-        refill = np.zeros(nl, bool)
-        new_q = np.tile([0, 0, FAR, 1.0, 0, 0, 0], (nl, 1))
-        new_p = np.zeros(nl, np.int32)
-        for lane in np.flatnonzero(owner < 0):
-            if not queue:
-                break
-            i = queue.pop()
-            owner[lane], refill[lane] = i, True
-            new_q[lane], new_p[lane] = poses[i], pair[i]
-        lanes, st, qpos, nseg = _advance(
+
+    def advance(lanes, refill, new_q, new_p, seg):
+        return _advance(
             batch.models,
             batch.aux,
             batch.data0,
@@ -562,16 +579,9 @@ def stability_many(
             seg,
             config,
         )
-        st, qpos, nseg = np.asarray(st), np.asarray(qpos), np.asarray(nseg)
-        busy = owner >= 0
-        done = busy & (st >= 0)
-        rows = owner[done]
-        status[rows] = st[done]
-        final[rows] = np.where((st[done] == DIVERGED)[:, None], poses[rows], qpos[done])
-        sim_time[rows] = nseg[done] * seg * dt
-        owner[done] = -1
-    final[:, 3:] /= np.linalg.norm(final[:, 3:], axis=1, keepdims=True)
-    return StabilityResult(status == STABLE, status, final, depth, sim_time)
+
+    park = np.array([0, 0, FAR, 1.0, 0, 0, 0])
+    return _drain(poses, pair, depth, config, scenes[0].physics.timestep, nl, lanes, advance, park)
 
 
 def stability(
@@ -967,20 +977,13 @@ def _stability_warp(scenes, pair, poses, config, settings, batch=None) -> Stabil
     batch = batch or _warp_batch_for(scenes, settings)
     nl = settings.lanes
     data0 = _warp_data0(batch, nl)
-    dt = scenes[0].physics.timestep
-    seg = max(1, round(config.check_every / dt))
     n = len(poses)
-    status = np.full(n, -1, np.int8)
-    final = poses.copy()
-    sim_time = np.zeros(n)
     depth = np.zeros(n)
     for idx in _chunks(n, nl):
         p, q = _padded(idx, nl, pair, poses)
         out = _w_probe(batch.model, batch.fields, batch.aux, data0, jnp.asarray(p), jnp.asarray(q))
         depth[idx] = np.asarray(out)[: len(idx)]
     depth[~np.isfinite(depth)] = 0.0
-    status[depth > config.max_penetration] = PENETRATING
-    queue = list(np.flatnonzero(status < 0)[::-1])
     park = np.array([0, 0, FAR, 1.0, 0, 0, 0])
     lanes = {
         "d": _w_posed(data0, jnp.asarray(np.tile(park, (nl, 1)), jnp.float32)),
@@ -988,18 +991,9 @@ def _stability_warp(scenes, pair, poses, config, settings, batch=None) -> Stabil
         "rest": jnp.zeros(nl, jnp.int32),
         "nseg": jnp.zeros(nl, jnp.int32),
     }
-    owner = np.full(nl, -1)
-    while queue or (owner >= 0).any():
-        refill = np.zeros(nl, bool)
-        new_q = np.tile(park, (nl, 1))
-        new_p = np.zeros(nl, np.int32)
-        for lane in np.flatnonzero(owner < 0):
-            if not queue:
-                break
-            i = queue.pop()
-            owner[lane], refill[lane] = i, True
-            new_q[lane], new_p[lane] = poses[i], pair[i]
-        lanes, st, qpos, nseg = _w_advance(
+
+    def advance(lanes, refill, new_q, new_p, seg):
+        return _w_advance(
             batch.model,
             batch.fields,
             batch.aux,
@@ -1011,16 +1005,8 @@ def _stability_warp(scenes, pair, poses, config, settings, batch=None) -> Stabil
             seg,
             config,
         )
-        st, qpos, nseg = np.asarray(st), np.asarray(qpos), np.asarray(nseg)
-        busy = owner >= 0
-        done = busy & (st >= 0)
-        rows = owner[done]
-        status[rows] = st[done]
-        final[rows] = np.where((st[done] == DIVERGED)[:, None], poses[rows], qpos[done])
-        sim_time[rows] = nseg[done] * seg * dt
-        owner[done] = -1
-    final[:, 3:] /= np.linalg.norm(final[:, 3:], axis=1, keepdims=True)
-    return StabilityResult(status == STABLE, status, final, depth, sim_time)
+
+    return _drain(poses, pair, depth, config, scenes[0].physics.timestep, nl, lanes, advance, park)
 
 
 @functools.partial(jax.jit, static_argnames=("push", "free", "every"))
