@@ -184,10 +184,8 @@ def pair_seed(base: int, obj: str, sup: str) -> int:
 def collision_poses(obj: Asset, support: Asset, seed: int, config: DatasetConfig) -> np.ndarray:
     """The pair's collision-label candidates [n_collision, 7], regenerated from its seed."""
     rng = np.random.default_rng([seed, 2])
-    lo, hi = support.bounds()
-    grow = obj.extents.max() / config.collision_expand
+    grow = obj.extents.max() / config.collision_expand  # original: box grown by extent / 1.5
     cfg = proposals.ProposalConfig(uniform_margin=grow, uniform_up=0.0)
-    del lo, hi
     return proposals.uniform_poses(obj, support, config.n_collision, rng, cfg)
 
 
