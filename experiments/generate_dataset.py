@@ -28,12 +28,20 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--max-pairs-per-category", type=int, default=None, help="override: objects per category"
     )
+    parser.add_argument(
+        "--max-pairs",
+        type=int,
+        default=None,
+        help="a seeded random subset of N pairs (to measure rates)",
+    )
     parser.add_argument("--seed", type=int, default=None, help="override the dataset seed")
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     config = dataset.PRESETS[args.preset]
     if args.max_pairs_per_category is not None:
         config = dataclasses.replace(config, max_objects_per_category=args.max_pairs_per_category)
+    if args.max_pairs is not None:
+        config = dataclasses.replace(config, max_pairs=args.max_pairs)
     if args.seed is not None:
         config = dataclasses.replace(config, seed=args.seed)
     card = dataset.generate(

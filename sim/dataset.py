@@ -74,6 +74,7 @@ class DatasetConfig:
     library: LibraryConfig = LibraryConfig()
     max_objects_per_category: int | None = None  # None: all of the library's objects
     max_supports_per_family: int | None = None
+    max_pairs: int | None = None  # a seeded random subset of the pairs (for measurements)
     max_candidates: int = 10_000  # original: up to 10,000 candidates per pair
     batch: int = 512  # candidates per kernel call
     max_stable: int = 50  # original: at most 50 stable poses per pair
@@ -174,6 +175,11 @@ def pair_list(library: Library, config: DatasetConfig) -> list[tuple[str, str, s
         for s in sups:
             split = "train" if library.split_of(o) == library.split_of(s) == "train" else "test"
             pairs.append((o, s, split))
+    if config.max_pairs is not None and config.max_pairs < len(pairs):
+        keep = np.random.default_rng([config.seed, 7]).choice(
+            len(pairs), config.max_pairs, replace=False
+        )
+        pairs = [pairs[i] for i in sorted(keep)]
     return pairs
 
 
