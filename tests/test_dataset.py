@@ -141,3 +141,11 @@ def test_near_misses_start_close_and_fall(generated):
         assert (con.penetration == 0).all() and (con.distance <= CFG.negative_gap + 1e-6).all()
         found += len(cand)
     assert found > 0
+
+
+def test_max_pairs_is_a_seeded_subset():
+    lib = build_library(CFG.library, progress=False)
+    full = dataset.pair_list(lib, dataclasses.replace(CFG, max_objects_per_category=None))
+    sub = dataset.pair_list(lib, dataclasses.replace(CFG, max_objects_per_category=None, max_pairs=5))
+    again = dataset.pair_list(lib, dataclasses.replace(CFG, max_objects_per_category=None, max_pairs=5))
+    assert len(sub) == 5 and sub == again and set(sub) <= set(full)
