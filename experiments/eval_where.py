@@ -42,7 +42,23 @@ def main(argv=None) -> dict:
     parser.add_argument("--limit", type=int, default=None, help="first N pairs only (smoke runs)")
     parser.add_argument("--no-reference", action="store_true", help="skip the ground-truth check")
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
+    parser.add_argument(
+        "--stage2-only",
+        metavar="STAGE_DIR",
+        default=None,
+        help="only the Stage-2-from-ground-truth diagnostic of this trained stage folder "
+        "(MODEL/stage2b or MODEL/stage2a), written to --out; no simulation",
+    )
     args = parser.parse_args(argv)
+    if args.stage2_only is not None:
+        diag = evaluate.stage2_diagnostics(
+            args.stage2_only, args.data, args.split, args.limit, args.seed
+        )
+        diag["label"] = args.label
+        with open(args.out, "w") as f:
+            json.dump(diag, f, indent=1)
+        print(json.dumps({k: diag[k] for k in ("exact", "noisy")}, indent=1))
+        return diag
     config = evaluate.EvalConfig(
         num_proposals=args.proposals,
         candidate=args.candidate,

@@ -21,6 +21,26 @@ from omnihang_jax import train
 STAGE_CHOICES = {"1": ("1",), "2a": ("2a",), "2b": ("2b",), "all": train.STAGES}
 
 
+def stage2_overrides(stage2, items):
+    """Apply ``FIELD=VALUE`` strings to a Stage2Config (values cast to the field's type)."""
+    fields = {f.name: f for f in dataclasses.fields(stage2)}
+    changes = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in fields or not _:
+            raise SystemExit(
+                f"--stage2 {item!r}: expected FIELD=VALUE, FIELD one of {list(fields)}"
+            )
+        current = getattr(stage2, name)
+        if isinstance(current, bool):
+            changes[name] = value.lower() in ("1", "true", "yes")
+        elif isinstance(current, (int, float, str)):
+            changes[name] = type(current)(value)
+        else:
+            raise SystemExit(f"--stage2 {name}: not settable from the command line")
+    return dataclasses.replace(stage2, **changes)
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -54,6 +74,14 @@ def main(argv=None) -> dict:
         default=None,
         help="size of the generated pool with --data synthetic (default: preset's)",
     )
+    parser.add_argument(
+        "--stage2",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a Stage2Config field, e.g. --stage2 contact_loss=bce "
+        "--stage2 train_selection=predicted (repeatable)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
 
@@ -70,6 +98,8 @@ def main(argv=None) -> dict:
     if args.synthetic_pairs is not None:
         overrides["synthetic_pairs"] = args.synthetic_pairs
     config = dataclasses.replace(config, train=dataclasses.replace(config.train, **overrides))
+    if args.stage2:
+        config = dataclasses.replace(config, stage2=stage2_overrides(config.stage2, args.stage2))
     states = train.train_where(
         args.data,
         args.out,

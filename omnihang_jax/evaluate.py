@@ -306,7 +306,9 @@ def stage2_from_ground_truth(
     Also reports the input's own error and the "oracle": the translation solved in closed form
     (same ``solve_translation``, ground-truth rotation) from the pose's ground-truth contact
     pairs, i.e. what perfect correspondences would give. Returns {"input", "stage2",
-    "oracle_contacts"} -> error stats (m), plus "pairs" and the noise settings.
+    "oracle_contacts"} -> error stats (m), "top_k_map_value" (mean ground-truth map value of
+    the pose at the K1 / K2 points that 2a's scores select; 1 = every candidate on a contact),
+    plus "pairs" and the noise settings.
     """
     import jax
     import jax.numpy as jnp
@@ -320,6 +322,7 @@ def stage2_from_ground_truth(
     refine = jax.jit(net.refine)
     key = jax.random.key(seed)
     errs: dict[str, list[float]] = {"input": [], "stage2": [], "oracle_contacts": []}
+    top_k_values: list[float] = []
     for start in range(0, len(files), batch_size):
         chunk = stack_samples(
             [dataset_bridge.load_pair_file(f)[0] for f in files[start : start + batch_size]]
@@ -337,6 +340,14 @@ def stage2_from_ground_truth(
         )
         out = refine(stage2_params, obj, sup, jnp.asarray(gt6 + noise, jnp.float32))
         t2 = np.asarray(out.pose6[:, :3])
+        n = obj.shape[1]
+        scores = np.asarray(out.contact_scores)
+        for b in range(len(obj)):
+            o_map = np.asarray(chunk.object_contact_maps)[b, 0]
+            s_map = np.asarray(chunk.support_contact_maps)[b, 0]
+            o_top = np.argsort(-scores[b, :n])[: stage2_config.k_object]
+            s_top = np.argsort(-scores[b, n:])[: stage2_config.k_support]
+            top_k_values.append(0.5 * (o_map[o_top].mean() + s_map[s_top].mean()))
         pairs = jnp.asarray(np.asarray(chunk.contact_pairs)[:, 0])
         mask = np.asarray(chunk.contact_mask)[:, 0].astype(np.float32)
         t_oracle = np.asarray(
@@ -358,7 +369,33 @@ def stage2_from_ground_truth(
         "noise_translation_m": noise_translation,
         "noise_rotation_rad": noise_rotation,
         **{k: _stats(v) for k, v in errs.items()},
+        "top_k_map_value": float(np.mean(top_k_values)) if top_k_values else None,
     }
+
+
+def stage2_diagnostics(
+    stage_dir: str | os.PathLike,
+    data: str | os.PathLike,
+    split: str = "test",
+    limit: int | None = None,
+    seed: int = 0,
+) -> dict:
+    """``stage2_from_ground_truth`` for a trained Stage-2 folder (``MODEL/stage2b`` or
+    ``MODEL/stage2a``) alone, without and with the model's training noise; no simulation.
+
+    Returns {"stage_dir", "step", "exact": ..., "noisy": ...}.
+    """
+    from omnihang_jax.train import restore_stage
+
+    config, params, step = restore_stage(stage_dir)
+    _, derived_dir = dataset_bridge.resolve_dataset_dir(data)
+    files = dataset_bridge.derived_files(derived_dir, split)[:limit]
+    s2 = config.stage2
+    exact = stage2_from_ground_truth(s2, params, files, 0.0, 0.0, seed=seed)
+    noisy = stage2_from_ground_truth(
+        s2, params, files, s2.pose_noise_translation, s2.pose_noise_rotation, seed=seed
+    )
+    return {"stage_dir": os.fspath(stage_dir), "step": step, "exact": exact, "noisy": noisy}
 
 
 # ----------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ __all__ = [
     "TRANSLATION_WEIGHT",
     "pairwise_pose_distance",
     "pose_set_loss",
+    "CONTACT_LOSSES",
     "contact_score_loss",
     "correspondence_cross_entropy",
     "listnet_loss",
@@ -66,18 +67,58 @@ def pose_set_loss(
     return pred_term + gt_term
 
 
-def contact_score_loss(
-    scores: jax.Array, target: jax.Array, delta: float = 1.0, positive_weight: float = 0.0
-) -> jax.Array:
-    """Stage-2a per-point regression of soft contact maps with a Huber loss (facts).
+CONTACT_LOSSES = ("huber", "bce", "focal", "listnet")
 
-    scores: [B, P] predicted contact scores in [0, 1]; target: [B, P] soft maps in [0, 1].
-    positive_weight (ours, 0 = facts): point weights 1 + positive_weight * target, normalised
-    to mean 1, so the few contact points are not drowned by the many zeros (on the real demo
-    the plain loss collapsed to "no contact anywhere" and picked wrong top-K points).
-    Returns [B] (weighted) mean Huber loss over points.
+
+def contact_score_loss(
+    scores: jax.Array,
+    target: jax.Array,
+    delta: float = 1.0,
+    positive_weight: float = 0.0,
+    kind: str = "huber",
+    logits: jax.Array | None = None,
+    num_object: int | None = None,
+    focal_gamma: float = 2.0,
+) -> jax.Array:
+    """Stage-2a per-point fit of the soft contact maps.
+
+    scores: [B, P] predicted contact scores in [0, 1] (= sigmoid(logits)); target: [B, P] soft
+    maps in [0, 1]. ``kind``:
+
+    * "huber" (facts): Huber(scores, target), delta 1 = 0.5 L2 on [0, 1] maps. Its gradient
+      wrt the logit is (s - y) s (1 - s): it vanishes as the scores saturate near 0, which is
+      how 2a "collapses" on the mostly-zero real maps.
+    * "bce" (ours): soft-target binary cross-entropy on the logits, gradient (s - y).
+    * "focal" (ours): BCE x |y - s|^focal_gamma (the soft-target "quality focal" form):
+      down-weights the many easy zeros.
+    * "listnet" (ours): top-one ranking over points, -sum y_n log softmax(logits), separately
+      for the object (first ``num_object`` points) and the support part; the targets y are
+      the maps normalised to sum 1. Top-K selection only needs the ranking.
+
+    ``logits`` [B, P] are needed for every kind but "huber". positive_weight (ours, 0 = facts):
+    point weights 1 + positive_weight * target, normalised to mean 1, so the few contact points
+    are not drowned by the many zeros (not used by "listnet"). Returns [B].
     """
-    loss = optax.losses.huber_loss(scores, target, delta=delta)
+    if kind == "huber":
+        loss = optax.losses.huber_loss(scores, target, delta=delta)
+    elif kind in ("bce", "focal"):
+        loss = optax.losses.sigmoid_binary_cross_entropy(logits, target)
+        if kind == "focal":
+            loss = loss * jnp.abs(target - scores) ** focal_gamma
+    elif kind == "listnet":
+        n = num_object if num_object is not None else target.shape[-1]
+        parts = [(logits[:, :n], target[:, :n]), (logits[:, n:], target[:, n:])]
+        total = 0.0
+        for z, y in parts:
+            if z.shape[-1] == 0:
+                continue
+            y_sum = jnp.sum(y, axis=-1, keepdims=True)
+            y_n = y / jnp.maximum(y_sum, 1e-12)
+            per = -jnp.sum(y_n * jax.nn.log_softmax(z, axis=-1), axis=-1)
+            total = total + jnp.where(y_sum[:, 0] > 0, per, 0.0)
+        return total
+    else:
+        raise ValueError(f"unknown contact loss {kind!r}; expected one of {CONTACT_LOSSES}")
     if positive_weight <= 0:
         return jnp.mean(loss, axis=-1)
     w = 1.0 + positive_weight * target

@@ -51,6 +51,8 @@ __all__ = [
     "combine_clouds",
     "top_contact_points",
     "correspondence_labels",
+    "TRAIN_SELECTIONS",
+    "training_selection_scores",
     "positive_scores",
     "select_correspondences",
     "solve_translation",
@@ -70,12 +72,15 @@ class Stage2Config:
     correspondence_mlp: tuple[int, ...] = (128, 64)  # hidden 1x1 convs before the 2 logits
     huber_delta: float = 1.0  # Huber transition; 1 = TF default, i.e. plain 0.5 L2 on [0, 1] maps
     contact_positive_weight: float = 0.0  # 2a point weights 1 + w * map (ours; 0 = facts)
+    # 2a loss (``losses.contact_score_loss``): "huber" (facts) | "bce" | "focal" | "listnet".
+    contact_loss: str = "huber"
     correspondence_radius: float = 0.01  # 1 cm: GT label radius, ~ the contact-map spread
     # Training inputs: the GT stable pose perturbed to mimic Stage-1 errors (ours).
     pose_noise_translation: float = 0.01  # metres, std per axis
     pose_noise_rotation: float = 0.05  # radians, std per axis-angle component
     # Which scores pick the K1/K2 candidates while training 2b: "ground_truth" soft maps
-    # (guarantees positives, decouples 2b from 2a's quality) or "predicted" (as at inference).
+    # (guarantees positives, decouples 2b from 2a's quality), "predicted" (the net's scores, as
+    # at inference) or "mixed" (per pair, either one with probability 1/2).
     train_selection: str = "ground_truth"
     # 2b also fine-tunes the segmentation features; its loss then keeps the 2a Huber term so the
     # contact scores stay calibrated. False freezes the features (stop_gradient).
@@ -109,6 +114,7 @@ STAGE2_SMALL = Stage2Config(
     pose_noise_translation=0.02,
     pair_offset_scale=0.05,
     contact_positive_weight=20.0,
+    contact_loss="listnet",  # measured best on the demo (docs/networks.md, "2a loss options")
 )
 
 
@@ -129,14 +135,21 @@ class Stage2Net(nn.Module):
         if cfg.pair_offset_scale > 0:
             self.pair_offset = nn.Dense(cfg.correspondence_mlp[0], use_bias=False)
 
+    def contact_logits(self, points: jax.Array, flags: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """points [B, P, 3] metres, flags [B, P, 1] (1 object, 0 support).
+
+        Returns (point_features F^OS [B, P, W], contact logits [B, P]; scores = sigmoid).
+        """
+        features, _ = self.segmentation(points, flags)
+        return features, self.score_head(features)[..., 0]
+
     def contact(self, points: jax.Array, flags: jax.Array) -> tuple[jax.Array, jax.Array]:
         """points [B, P, 3] metres, flags [B, P, 1] (1 object, 0 support).
 
         Returns (point_features F^OS [B, P, W], contact_scores [B, P] in [0, 1]).
         """
-        features, _ = self.segmentation(points, flags)
-        scores = jax.nn.sigmoid(self.score_head(features)[..., 0])
-        return features, scores
+        features, logits = self.contact_logits(points, flags)
+        return features, jax.nn.sigmoid(logits)
 
     def correspond(
         self,
@@ -213,6 +226,28 @@ def top_contact_points(
     _, object_idx = jax.lax.top_k(scores[:, :num_object], k_object)
     _, support_idx = jax.lax.top_k(scores[:, num_object:], k_support)
     return object_idx.astype(jnp.int32), support_idx.astype(jnp.int32)
+
+
+TRAIN_SELECTIONS = ("ground_truth", "predicted", "mixed")
+
+
+def training_selection_scores(
+    mode: str, target: jax.Array, scores: jax.Array, key: jax.Array
+) -> jax.Array:
+    """Scores that pick the K1/K2 candidates while training 2b (``Stage2Config.train_selection``).
+
+    target [B, P] ground-truth soft maps, scores [B, P] predicted. "ground_truth" -> target,
+    "predicted" -> scores (as at inference), "mixed" -> per pair one of the two, each with
+    probability 1/2 (``key``). Gradient-free (the top-K indices are constants).
+    """
+    if mode == "ground_truth":
+        return target
+    if mode == "predicted":
+        return jax.lax.stop_gradient(scores)
+    if mode == "mixed":
+        use_gt = jax.random.bernoulli(key, 0.5, (target.shape[0], 1))
+        return jnp.where(use_gt, target, jax.lax.stop_gradient(scores))
+    raise ValueError(f"unknown train_selection {mode!r}; expected one of {TRAIN_SELECTIONS}")
 
 
 def correspondence_labels(
@@ -320,6 +355,7 @@ class Stage2Network(NamedTuple):
 
     init(key) -> params.
     contact(params, points [B,P,3], flags [B,P,1]) -> (features [B,P,W], scores [B,P]).
+    contact_logits(params, points, flags) -> (features [B,P,W], logits [B,P]).
     correspond(params, object_features [B,K1,W], support_features [B,K2,W], object_xyz=None,
       support_xyz=None) -> logits [B,K1,K2,2] (xyz: posed candidate positions, needed when
       ``pair_offset_scale > 0``).
@@ -331,6 +367,7 @@ class Stage2Network(NamedTuple):
     contact: Callable
     correspond: Callable
     refine: Callable
+    contact_logits: Callable
 
 
 def make_stage2(config: Stage2Config) -> Stage2Network:
@@ -346,6 +383,9 @@ def make_stage2(config: Stage2Config) -> Stage2Network:
 
     def contact(params, points, flags):
         return module.apply({"params": params}, points, flags, method=Stage2Net.contact)
+
+    def contact_logits(params, points, flags):
+        return module.apply({"params": params}, points, flags, method=Stage2Net.contact_logits)
 
     def correspond(params, object_features, support_features, object_xyz=None, support_xyz=None):
         return module.apply(
@@ -390,5 +430,10 @@ def make_stage2(config: Stage2Config) -> Stage2Network:
         )
 
     return Stage2Network(
-        config=config, init=init, contact=contact, correspond=correspond, refine=refine
+        config=config,
+        init=init,
+        contact=contact,
+        correspond=correspond,
+        refine=refine,
+        contact_logits=contact_logits,
     )

@@ -56,6 +56,7 @@ from omnihang_jax.stage2 import (
     select_correspondences,
     solve_translation,
     top_contact_points,
+    training_selection_scores,
 )
 
 __all__ = [
@@ -171,6 +172,19 @@ def _stage2_inputs(config: Stage2Config, batch: HangSample, key: jax.Array):
     return gt_pose6, points, flags, target, pairs, pair_mask
 
 
+def _contact_loss(cfg2: Stage2Config, scores, logits, target, num_object: int) -> jax.Array:
+    """Per-pair 2a loss ([B]) of ``cfg2.contact_loss`` (see ``losses.contact_score_loss``)."""
+    return losses.contact_score_loss(
+        scores,
+        target,
+        cfg2.huber_delta,
+        cfg2.contact_positive_weight,
+        kind=cfg2.contact_loss,
+        logits=logits,
+        num_object=num_object,
+    )
+
+
 def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
     """Loss of one stage: ``loss_fn(params, batch: HangSample, key) -> (loss, metrics)``.
 
@@ -217,34 +231,30 @@ def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
 
         def stage2a_loss(params, batch: HangSample, key):
             _, points, flags, target, _, _ = _stage2_inputs(cfg2, batch, key)
-            _, scores = net2.contact(params, points, flags)
-            loss = jnp.mean(
-                losses.contact_score_loss(
-                    scores, target, cfg2.huber_delta, cfg2.contact_positive_weight
-                )
-            )
             n = batch.object_points.shape[1]
+            _, logits = net2.contact_logits(params, points, flags)
+            scores = jax.nn.sigmoid(logits)
+            loss = jnp.mean(_contact_loss(cfg2, scores, logits, target, n))
             object_idx, support_idx = top_contact_points(scores, n, cfg2.k_object, cfg2.k_support)
             # Mean ground-truth map value at the predicted top-K points (1 = perfect choice).
             hit = jnp.mean(jnp.take_along_axis(target[:, :n], object_idx, 1)) + jnp.mean(
                 jnp.take_along_axis(target[:, n:], support_idx, 1)
             )
-            return loss, {"loss": loss, "huber": loss, "top_k_map_value": hit / 2}
+            return loss, {"loss": loss, "contact_loss": loss, "top_k_map_value": hit / 2}
 
         return stage2a_loss
 
     def stage2b_loss(params, batch: HangSample, key):
         gt_pose6, points, flags, target, pairs, pair_mask = _stage2_inputs(cfg2, batch, key)
         n = batch.object_points.shape[1]
-        features, scores = net2.contact(params, points, flags)
-        huber = jnp.mean(
-            losses.contact_score_loss(
-                scores, target, cfg2.huber_delta, cfg2.contact_positive_weight
-            )
-        )
+        features, contact_logits = net2.contact_logits(params, points, flags)
+        scores = jax.nn.sigmoid(contact_logits)
+        huber = jnp.mean(_contact_loss(cfg2, scores, contact_logits, target, n))
         if not cfg2.train_features_in_2b:
             features = jax.lax.stop_gradient(features)
-        selection = target if cfg2.train_selection == "ground_truth" else scores
+        selection = training_selection_scores(
+            cfg2.train_selection, target, scores, jax.random.fold_in(key, 7)
+        )
         object_idx, support_idx = top_contact_points(selection, n, cfg2.k_object, cfg2.k_support)
         logits = net2.correspond(
             params,
@@ -269,6 +279,10 @@ def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
         num_pos = jnp.sum(labels, axis=(1, 2))
         excess = jnp.where(num_pos > 0, ranking_per_pair - jnp.log(jnp.maximum(num_pos, 1)), 0.0)
         loss = ce + ranking + (huber if cfg2.train_features_in_2b else 0.0)
+        pred_o, pred_s = top_contact_points(scores, n, cfg2.k_object, cfg2.k_support)
+        hit = jnp.mean(jnp.take_along_axis(target[:, :n], pred_o, 1)) + jnp.mean(
+            jnp.take_along_axis(target[:, n:], pred_s, 1)
+        )
         # Quality of the chosen pairs: label of the best pair, and the translation solved with
         # the ground-truth rotation (error in metres).
         probs = jax.nn.sigmoid(positive_scores(logits))
@@ -288,7 +302,8 @@ def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
             "cross_entropy": ce,
             "listnet": ranking,
             "listnet_excess": jnp.mean(excess),
-            "huber": huber,
+            "contact_loss": huber,
+            "top_k_map_value": hit / 2,
             "positive_fraction": jnp.mean(labels),
             "top1_precision": jnp.mean(best_label),
             "translation_error_m": jnp.mean(jnp.linalg.norm(t - gt_pose6[:, :3], axis=-1)),
@@ -408,7 +423,7 @@ def _to_float(metrics: dict) -> dict:
     return {k: float(v) for k, v in metrics.items()}
 
 
-_LOSS_KEYS = ("loss", "huber", "cross_entropy", "listnet", "listnet_excess")
+_LOSS_KEYS = ("loss", "huber", "contact_loss", "cross_entropy", "listnet", "listnet_excess")
 
 
 def plot_metrics(metrics_path: str, png_path: str) -> None:
