@@ -21,7 +21,6 @@ for the contract); neither side imports it.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import tempfile
@@ -78,12 +77,10 @@ def dataset_config_from_recipe(recipe: dict):
     """
     from sim import dataset
 
-    config = config_from_dict(dataset.DatasetConfig, recipe["config"])
-    again = json.loads(json.dumps(dataclasses.asdict(config), default=str))
-    if again != recipe["config"]:
-        diff = sorted(
-            k for k in set(again) | set(recipe["config"]) if again.get(k) != recipe["config"].get(k)
-        )
+    saved = dataset.upgrade_config_json(recipe["config"])  # fields added since: defaults
+    config = config_from_dict(dataset.DatasetConfig, saved)
+    diff = dataset.config_differences(dataset.config_json(config), saved)
+    if diff:
         raise ValueError(f"recipe config does not round-trip through DatasetConfig: fields {diff}")
     return config
 

@@ -451,13 +451,44 @@ def unpack(shard: dict) -> list[dict]:
     return recs
 
 
+def config_json(config: DatasetConfig) -> dict:
+    """The config as the JSON-able dict stored in ``recipe.json``."""
+    return json.loads(json.dumps(dataclasses.asdict(config), default=str))
+
+
+def upgrade_config_json(saved: dict, defaults: dict | None = None) -> dict:
+    """A recipe's config with fields added to :class:`DatasetConfig` since it was written
+    filled in with their defaults (recursively), so older datasets stay resumable and
+    derivable. Fields that no longer exist are kept, so a comparison still fails on them."""
+    defaults = config_json(DatasetConfig()) if defaults is None else defaults
+    out = dict(saved)
+    for key, value in defaults.items():
+        if key not in out:
+            out[key] = value
+        elif isinstance(value, dict) and isinstance(out[key], dict):
+            out[key] = upgrade_config_json(out[key], value)
+    return out
+
+
+def config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+    """Dotted names of the fields where two config dicts differ."""
+    diff = []
+    for key in sorted(set(a) | set(b)):
+        va, vb = a.get(key, "<missing>"), b.get(key, "<missing>")
+        if isinstance(va, dict) and isinstance(vb, dict):
+            diff += config_differences(va, vb, f"{prefix}{key}.")
+        elif va != vb:
+            diff.append(f"{prefix}{key}")
+    return diff
+
+
 def recipe(config: DatasetConfig, library: Library, pairs, preset: str) -> dict:
     import mujoco
 
     return {
         "format": FORMAT,
         "preset": preset,
-        "config": json.loads(json.dumps(dataclasses.asdict(config), default=str)),
+        "config": config_json(config),
         "objects": sorted(library.objects),
         "supports": sorted(library.supports),
         "pairs": [list(p) for p in pairs],
@@ -486,9 +517,12 @@ def generate(
     recipe_path = out / "recipe.json"
     if recipe_path.exists():
         old = json.loads(recipe_path.read_text())
-        if old["config"] != rec["config"] or old["pairs"] != rec["pairs"]:
+        diff = config_differences(upgrade_config_json(old["config"]), rec["config"])
+        if diff or old["pairs"] != rec["pairs"]:
+            what = f"config fields {diff}" if diff else "pair list"
             raise ValueError(
-                f"{recipe_path} was written for another config; use a new --out or delete it"
+                f"{recipe_path} was written for another config ({what} differ); "
+                "use a new --out or delete it"
             )
     else:
         atomic.write_text(recipe_path, json.dumps(rec, indent=1))

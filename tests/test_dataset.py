@@ -149,3 +149,20 @@ def test_max_pairs_is_a_seeded_subset():
     sub = dataset.pair_list(lib, dataclasses.replace(CFG, max_objects_per_category=None, max_pairs=5))
     again = dataset.pair_list(lib, dataclasses.replace(CFG, max_objects_per_category=None, max_pairs=5))
     assert len(sub) == 5 and sub == again and set(sub) <= set(full)
+
+
+def test_datasets_from_before_a_new_config_field_stay_resumable(generated):
+    out, _ = generated
+    path = out / "recipe.json"
+    original = path.read_text()
+    recipe = json.loads(original)
+    del recipe["config"]["max_pairs"]  # as written by a version without that field
+    del recipe["config"]["camera"]["depth_noise"]
+    path.write_text(json.dumps(recipe))
+    card = dataset.generate(CFG, out, preset="test", progress=False)
+    assert card["timings"]["pairs_this_run"] == 0
+    recipe["config"]["n_views"] += 1  # a real difference is still refused, by name
+    path.write_text(json.dumps(recipe))
+    with pytest.raises(ValueError, match="n_views"):
+        dataset.generate(CFG, out, preset="test", progress=False)
+    path.write_text(original)  # the module's fixture is shared
