@@ -146,8 +146,12 @@ def test_near_misses_start_close_and_fall(generated):
 def test_max_pairs_is_a_seeded_subset():
     lib = build_library(CFG.library, progress=False)
     full = dataset.pair_list(lib, dataclasses.replace(CFG, max_objects_per_category=None))
-    sub = dataset.pair_list(lib, dataclasses.replace(CFG, max_objects_per_category=None, max_pairs=5))
-    again = dataset.pair_list(lib, dataclasses.replace(CFG, max_objects_per_category=None, max_pairs=5))
+    sub = dataset.pair_list(
+        lib, dataclasses.replace(CFG, max_objects_per_category=None, max_pairs=5)
+    )
+    again = dataset.pair_list(
+        lib, dataclasses.replace(CFG, max_objects_per_category=None, max_pairs=5)
+    )
     assert len(sub) == 5 and sub == again and set(sub) <= set(full)
 
 
