@@ -505,6 +505,13 @@ def probe_many(batch: Batch, pair: np.ndarray, poses: np.ndarray, chunk: int):
     return [np.concatenate(x) for x in zip(*outs)]
 
 
+def _lane_state(data, nl: int) -> dict:
+    """Per-lane state of continuous batching: the worlds' data, their pair index, resting
+    checks in a row and segments simulated."""
+    # separate buffers: the advance step donates its lane state
+    return {k: jnp.zeros(nl, jnp.int32) for k in ("pair", "rest", "nseg")} | {"d": data}
+
+
 def _drain(poses, pair, depth, config, dt, nl, lanes, advance, park) -> StabilityResult:
     """Host side of continuous batching, shared by both impls: ``nl`` lanes advance one
     check segment per ``advance(lanes, refill, new_qpos, new_pair)`` call; a lane whose label
@@ -560,12 +567,7 @@ def stability_many(
     depth = np.maximum(np.maximum(-dist.min(1), -floor), 0.0)
     depth[~np.isfinite(depth)] = 0.0
     nl = settings.lanes
-    lanes = {
-        "d": jax.tree.map(lambda x: jnp.stack([x] * nl), batch.data0),
-        "pair": jnp.zeros(nl, jnp.int32),
-        "rest": jnp.zeros(nl, jnp.int32),
-        "nseg": jnp.zeros(nl, jnp.int32),
-    }
+    lanes = _lane_state(jax.tree.map(lambda x: jnp.stack([x] * nl), batch.data0), nl)
 
     def advance(lanes, refill, new_q, new_p, seg):
         return _advance(
@@ -985,12 +987,7 @@ def _stability_warp(scenes, pair, poses, config, settings, batch=None) -> Stabil
         depth[idx] = np.asarray(out)[: len(idx)]
     depth[~np.isfinite(depth)] = 0.0
     park = np.array([0, 0, FAR, 1.0, 0, 0, 0])
-    lanes = {
-        "d": _w_posed(data0, jnp.asarray(np.tile(park, (nl, 1)), jnp.float32)),
-        "pair": jnp.zeros(nl, jnp.int32),
-        "rest": jnp.zeros(nl, jnp.int32),
-        "nseg": jnp.zeros(nl, jnp.int32),
-    }
+    lanes = _lane_state(_w_posed(data0, jnp.asarray(np.tile(park, (nl, 1)), jnp.float32)), nl)
 
     def advance(lanes, refill, new_q, new_p, seg):
         return _w_advance(
