@@ -1,7 +1,8 @@
 """Generate (or resume) the hanging dataset.
 
     python -m experiments.generate_dataset --preset demo --out out/dataset_demo
-    python -m experiments.generate_dataset --preset paper --out data/paper --backend mjx
+    python -m experiments.generate_dataset --preset paper --out data/paper --workers 0
+    python -m experiments.generate_dataset --preset paper --out data/paper --part 1/2
 
 Shards already on disk are never redone; kill the job at any time and run the same command
 again. The dataset card is written at the end (DIR/dataset_card.json and .md).
@@ -12,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 
 from sim import dataset
 
@@ -35,6 +37,18 @@ def main(argv=None) -> dict:
         help="a seeded random subset of N pairs (to measure rates)",
     )
     parser.add_argument("--seed", type=int, default=None, help="override the dataset seed")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes, one shard each at a time (CPU backend; 0 = one per core)",
+    )
+    parser.add_argument(
+        "--part",
+        default="0/1",
+        help="I/N: do only shards k with k %% N == I (split one dataset over machines; "
+        "merge by copying shards/ into one DIR and rerunning)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     config = dataset.PRESETS[args.preset]
@@ -44,8 +58,19 @@ def main(argv=None) -> dict:
         config = dataclasses.replace(config, max_pairs=args.max_pairs)
     if args.seed is not None:
         config = dataclasses.replace(config, seed=args.seed)
+    try:
+        i_part, n_part = (int(x) for x in args.part.split("/"))
+    except ValueError:
+        parser.error(f"--part must look like I/N (e.g. 0/2), got {args.part!r}")
+    workers = args.workers or len(os.sched_getaffinity(0))
     card = dataset.generate(
-        config, args.out, preset=args.preset, backend=args.backend, progress=not args.no_progress
+        config,
+        args.out,
+        preset=args.preset,
+        backend=args.backend,
+        progress=not args.no_progress,
+        workers=workers,
+        part=(i_part, n_part),
     )
     summary = {
         k: card[k]

@@ -151,16 +151,18 @@ def frame_from_z(z_axis: Sequence[float], x_hint: Sequence[float] = (1.0, 0.0, 0
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
+_SPHERE_DIRS = np.concatenate(
+    [
+        np.eye(3),
+        -np.eye(3),
+        np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T / np.sqrt(3),
+    ]
+)
+
+
 def _sphere_points(radius: float, centers: Sequence[np.ndarray]) -> np.ndarray:
     """Points of a small octahedron-plus-cube around each centre, bounding a sphere loosely."""
-    dirs = np.concatenate(
-        [
-            np.eye(3),
-            -np.eye(3),
-            np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T / np.sqrt(3),
-        ]
-    )
-    return np.concatenate([c + radius * dirs for c in centers])
+    return np.concatenate([c + radius * _SPHERE_DIRS for c in centers])
 
 
 # ----------------------------------------------------------------------------- part builders

@@ -172,9 +172,18 @@ def _install_warning_counter() -> None:
         mujoco.set_mju_user_warning(_count_warning)
 
 
+# Threads per CPU rollout when the caller names none; None means one per available core.
+# Process-parallel callers (dataset workers) set it to 1.
+DEFAULT_NTHREAD: int | None = None
+
+
 def _nthread(nthread: int | None) -> int:
-    return nthread or max(
-        1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return (
+        nthread
+        or DEFAULT_NTHREAD
+        or max(
+            1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        )
     )
 
 
@@ -405,6 +414,9 @@ def contact_query(
             opts[i, j], spts[i, j], nrm[i, j], mask[i, j] = po, ps, nn, True
         if rows:
             pen[i] = max(0.0, -rows[0][0])
+        if rows and rows[0][0] < 0:  # penetrating: the signed distance is the deepest contact
+            dist[i] = rows[0][0]
+            continue
         best = config.distance_cutoff
         for go in scene.object_geoms:
             for gs in others:

@@ -115,19 +115,36 @@ def hang_poses(
         raise ValueError(f"object {obj.name} has no hang loops; use uniform_poses")
     if not pegs:
         raise ValueError(f"support {support.name} has no pegs; use uniform_poses")
-    poses = np.zeros((n, 7))
     com = _center_of_mass(obj)
+    # The threading of a (loop, peg, direction) triple is the same for every candidate up to
+    # the arc length s: computed once per triple. Random draws stay in the per-candidate
+    # order of the plain loop (loop, peg, sign, s, then the jitter), so seeds reproduce.
+    cache: dict[tuple[int, int, float], tuple] = {}
+    positions, quats, rotvecs, shifts = np.zeros((n, 3)), np.zeros((n, 4)), [], []
+    jitter = config.jitter_angle > 0 or config.jitter_position > 0
     for i in range(n):
-        loop = loops[rng.integers(len(loops))]
-        peg = pegs[rng.integers(len(pegs))]
-        sign = rng.choice([-1.0, 1.0])
-        lo, hi, _ = _peg_range(obj, loop, peg, sign, config)
+        li, pi = int(rng.integers(len(loops))), int(rng.integers(len(pegs)))
+        sign = float(rng.choice([-1.0, 1.0]))
+        key = (li, pi, sign)
+        if key not in cache:
+            lo, hi, _ = _peg_range(obj, loops[li], pegs[pi], sign, config)
+            at_base = thread_pose(obj, loops[li], pegs[pi], 0.0, sign, config, com)
+            d = _unit(np.asarray(pegs[pi].tip) - np.asarray(pegs[pi].base))
+            cache[key] = (lo, hi, at_base, d)
+        lo, hi, at_base, d = cache[key]
         s = rng.uniform(lo, hi) if hi > lo else hi
-        pose = thread_pose(obj, loop, peg, s, sign, config, com)
-        if config.jitter_angle > 0 or config.jitter_position > 0:
-            pose = jitter_pose(pose, rng, config.jitter_angle, config.jitter_position)
-        poses[i] = pose
-    return poses
+        positions[i] = at_base[:3] + s * d
+        quats[i] = at_base[3:]
+        if jitter:
+            rotvecs.append(rng.normal(size=3) * config.jitter_angle)
+            shifts.append(rng.normal(size=3) * config.jitter_position)
+    if jitter and n:
+        rot = Rotation.from_rotvec(np.asarray(rotvecs)) * Rotation.from_quat(
+            np.roll(quats, -1, axis=1)
+        )
+        positions = positions + np.asarray(shifts)
+        quats = np.roll(rot.as_quat(), 1, axis=1)
+    return np.concatenate([positions, quats], axis=1)
 
 
 def jitter_pose(

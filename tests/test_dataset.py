@@ -80,6 +80,29 @@ def test_resume_redoes_nothing_and_regenerates_lost_shard_identically(generated)
             np.testing.assert_array_equal(new[key], old[key])
 
 
+def test_parts_and_workers_give_the_same_shards(generated, tmp_path):
+    """Two machines each doing half the shards (one with 2 worker processes), merged by
+    copying, equal the single-process dataset bit for bit; the runs are logged."""
+    out, _ = generated
+    a, b = tmp_path / "a", tmp_path / "b"
+    card_a = dataset.generate(CFG, a, preset="test", progress=False, part=(0, 2))
+    assert card_a["pairs_done"] == CFG.shard_size
+    dataset.generate(CFG, b, preset="test", progress=False, part=(1, 2), workers=2)
+    for p in (b / "shards").glob("shard_*.npz"):
+        p.rename(a / "shards" / p.name)
+    card = dataset.generate(CFG, a, preset="test", progress=False)
+    assert card["pairs_done"] == 4 and card["timings"]["pairs_this_run"] == 0
+    assert [r["part"] for r in card["runs"]] == [[0, 2]]
+    assert dataset.load_runs(b)[0]["workers"] == 2
+    for p in sorted((out / "shards").glob("shard_*.npz")):
+        with np.load(p) as x, np.load(a / "shards" / p.name) as y:
+            assert sorted(x.files) == sorted(y.files)
+            for key in x.files:
+                np.testing.assert_array_equal(x[key], y[key])
+    with pytest.raises(ValueError, match="part"):
+        dataset.generate(CFG, a, preset="test", progress=False, part=(2, 2))
+
+
 def test_other_config_refuses_to_mix(generated):
     out, _ = generated
     with pytest.raises(ValueError, match="another config"):
