@@ -32,7 +32,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
-import coacd
 import numpy as np
 import trimesh
 
@@ -190,6 +189,8 @@ def convex_decompose(
 
 
 def _run_coacd(vertices: np.ndarray, faces: np.ndarray, s: CoacdSettings) -> list[np.ndarray]:
+    import coacd  # here, not at the top: procedural assets (and machines without coacd) never need it
+
     coacd.set_log_level("error")
     parts = coacd.run_coacd(
         coacd.Mesh(vertices, faces.astype(np.int32)),
