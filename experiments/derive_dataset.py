@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 
 from omnihang_jax import dataset_bridge
 
@@ -27,11 +28,19 @@ def main(argv=None) -> dict:
         "--split", choices=["train", "test", "all"], default="all", help="split(s) to derive"
     )
     parser.add_argument("--limit", type=int, default=None, help="at most this many new files")
+    parser.add_argument(
+        "--workers", type=int, default=1, help="processes (0 = one per core); same files either way"
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     splits = ("train", "test") if args.split == "all" else (args.split,)
     summary = dataset_bridge.derive_dataset(
-        args.data, args.out, splits=splits, limit=args.limit, progress=not args.no_progress
+        args.data,
+        args.out,
+        splits=splits,
+        limit=args.limit,
+        progress=not args.no_progress,
+        workers=args.workers or len(os.sched_getaffinity(0)),
     )
     print(json.dumps(summary, indent=1))
     return summary

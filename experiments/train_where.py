@@ -82,8 +82,26 @@ def main(argv=None) -> dict:
         help="override a Stage2Config field, e.g. --stage2 contact_loss=bce "
         "--stage2 train_selection=predicted (repeatable)",
     )
+    parser.add_argument(
+        "--time-budget",
+        default=None,
+        metavar="STAGE=SECONDS,...",
+        help="stop a stage after this many seconds (checkpointed; rerun to continue), "
+        "e.g. 1=300,2a=90,2b=60",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
+    budget = None
+    if args.time_budget:
+        try:
+            budget = {
+                k.strip(): float(v) for k, v in (x.split("=") for x in args.time_budget.split(","))
+            }
+        except ValueError:
+            parser.error(f"--time-budget must look like 1=300,2a=90, got {args.time_budget!r}")
+        unknown = set(budget) - set(train.STAGES)
+        if unknown:
+            parser.error(f"--time-budget: unknown stages {sorted(unknown)}; use {train.STAGES}")
 
     config = train.PRESETS[args.preset]
     overrides = {}
@@ -107,6 +125,7 @@ def main(argv=None) -> dict:
         config=config,
         steps=args.steps,
         progress=not args.no_progress,
+        time_budget_s=budget,
     )
     summary = {stage: int(state.step) for stage, state in states.items()}
     print(f"trained steps per stage: {summary}; outputs in {args.out}")

@@ -429,9 +429,18 @@ def _load_npz_sample(path: str) -> HangSample:
 class NpzDirectoryDataset:
     """Pairs stored one per ``.npz`` file, read lazily per batch and padded to ``max_poses``."""
 
-    def __init__(self, files: Sequence[str], max_poses: int = MAX_STABLE_POSES, max_contacts=None):
+    def __init__(
+        self,
+        files: Sequence[str],
+        max_poses: int = MAX_STABLE_POSES,
+        max_contacts=None,
+        cache: bool = False,
+    ):
         self.files = list(files)
         self.max_poses = max_poses
+        # cache=True keeps every pair read so far in memory (decompressing .npz files was
+        # the GPU's bottleneck: ~2 MB per paper-scale pair, 32 per step)
+        self._cache: dict[int, HangSample] | None = {} if cache else None
         # C over ALL files: a batch with more contacts than this changes the padded shape and
         # recompiles the jitted step (seconds each; it made the demo's Stage-2 runs crawl).
         self.max_contacts = max_contacts or _max_contacts(self.files)
@@ -441,9 +450,16 @@ class NpzDirectoryDataset:
 
     def sample_batch(self, rng: np.random.Generator, batch_size: int) -> HangSample:
         idx = rng.integers(0, len(self), batch_size)
-        samples = [_load_npz_sample(self.files[i]) for i in idx]
+        samples = [self._sample(int(i)) for i in idx]
         c = max(self.max_contacts, *(s.contact_pairs.shape[1] for s in samples))
         return stack_samples(samples, self.max_poses, c)
+
+    def _sample(self, i: int) -> HangSample:
+        if self._cache is None:
+            return _load_npz_sample(self.files[i])
+        if i not in self._cache:
+            self._cache[i] = _load_npz_sample(self.files[i])
+        return self._cache[i]
 
 
 def _max_contacts(files: Sequence[str]) -> int:
@@ -455,7 +471,10 @@ def _max_contacts(files: Sequence[str]) -> int:
 
 
 def load_hang_dataset(
-    directory: str | os.PathLike, split: str = "train", max_poses: int = MAX_STABLE_POSES
+    directory: str | os.PathLike,
+    split: str = "train",
+    max_poses: int = MAX_STABLE_POSES,
+    cache: bool = False,
 ) -> NpzDirectoryDataset:
     """Loader hook for the dataset engine's output.
 
@@ -489,4 +508,4 @@ def load_hang_dataset(
             f"{', '.join(HangSample._fields)} (see omnihang_jax.data.HangSample). "
             "Use --data synthetic for a dry run."
         )
-    return NpzDirectoryDataset(files, max_poses=max_poses)
+    return NpzDirectoryDataset(files, max_poses=max_poses, cache=cache)

@@ -113,20 +113,54 @@ def _records(dataset_dir: Path) -> list[dict]:
     return dataset.load_records(dataset_dir)
 
 
+_WORKER: dict = {}
+
+
+def _worker_init(recipe: dict) -> None:
+    from sim.library import build_library
+
+    config = dataset_config_from_recipe(recipe)
+    library = build_library(config.library, progress=False)
+    _WORKER.update(library=library, config=config, pairs=recipe["pairs"])
+
+
+def _derive_one(job: tuple[dict, str]) -> None:
+    from sim import dataset
+
+    record, path = job
+    w = _WORKER
+    obj_name, sup_name, split = w["pairs"][int(record["pair_index"])]
+    obj, sup = w["library"].objects[obj_name], w["library"].supports[sup_name]
+    derived = dataset.derive_pair(obj, sup, record, w["config"])
+    sample = make_hang_sample(**derived, stable_poses=record["stable_poses"])
+    meta = dict(
+        pair_index=np.int64(int(record["pair_index"])),
+        object_name=np.str_(obj_name),
+        support_name=np.str_(sup_name),
+        object_category=np.str_(obj.category),
+        support_family=np.str_(sup.category),
+        split=np.str_(split),
+    )
+    _atomic_savez(Path(path), {**sample._asdict(), **meta})
+
+
 def derive_dataset(
     dataset_dir: str | os.PathLike,
     out_dir: str | os.PathLike | None = None,
     splits: tuple[str, ...] = ("train", "test"),
     limit: int | None = None,
     progress: bool = True,
+    workers: int = 1,
 ) -> dict:
     """Write one HangSample ``.npz`` per pair with stable poses (see module docstring).
+
+    ``workers`` > 1 derives pairs in that many processes (ray casting and contact maps are
+    single-threaded NumPy/MuJoCo; the files are identical either way).
 
     dataset_dir: a generated dataset (recipe.json + shards/). out_dir: default
     ``dataset_dir/derived``. splits: which splits to derive. limit: at most this many new
     files (smoke runs). Returns the summary also written to ``out_dir/derived.json``.
     """
-    from sim import dataset
     from sim.library import build_library
 
     dataset_dir = Path(dataset_dir)
@@ -135,14 +169,13 @@ def derive_dataset(
     out = Path(out_dir) if out_dir is not None else dataset_dir / DERIVED_DIRNAME
     records = _records(dataset_dir)
     pairs = recipe["pairs"]
-    library = build_library(config.library, progress=False)
 
     t0 = time.time()
     written = skipped_existing = 0
     no_stable: list[int] = []
     counts = {s: 0 for s in splits}
-    bar = tqdm(records, desc="derive", unit="pair", disable=not progress)
-    for record in bar:
+    jobs: list[tuple[dict, str]] = []
+    for record in records:
         index = int(record["pair_index"])
         obj_name, sup_name, split = pairs[index]
         if recipe["objects"][int(record["object_id"])] != obj_name or (
@@ -159,22 +192,25 @@ def derive_dataset(
         if path.exists():
             skipped_existing += 1
             continue
-        if limit is not None and written >= limit:
+        if limit is not None and len(jobs) >= limit:
             continue
-        obj, sup = library.objects[obj_name], library.supports[sup_name]
-        derived = dataset.derive_pair(obj, sup, record, config)
-        sample = make_hang_sample(**derived, stable_poses=record["stable_poses"])
-        meta = dict(
-            pair_index=np.int64(index),
-            object_name=np.str_(obj_name),
-            support_name=np.str_(sup_name),
-            object_category=np.str_(obj.category),
-            support_family=np.str_(sup.category),
-            split=np.str_(split),
-        )
-        _atomic_savez(path, {**sample._asdict(), **meta})
-        written += 1
-        bar.set_postfix(written=written)
+        jobs.append((record, os.fspath(path)))
+    bar = tqdm(total=len(jobs), desc="derive", unit="pair", disable=not progress)
+    if workers <= 1 and jobs:
+        library = build_library(config.library, progress=False)
+        _WORKER.update(library=library, config=config, pairs=pairs)
+        for job in jobs:
+            _derive_one(job)
+            written += 1
+            bar.update(1)
+    elif jobs:
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(workers, _worker_init, (recipe,)) as pool:
+            for _ in pool.imap_unordered(_derive_one, jobs, chunksize=4):
+                written += 1
+                bar.update(1)
     bar.close()
     summary = {
         "source": os.fspath(dataset_dir.resolve()),
@@ -187,6 +223,7 @@ def derive_dataset(
         "pairs_without_stable_poses": len(no_stable),
         "points_per_cloud": config.camera.n_points,
         "derive_s_this_run": round(time.time() - t0, 2),
+        "workers": workers,
     }
     out.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=out, prefix=".tmp_")

@@ -20,7 +20,9 @@ import dataclasses
 import functools
 import json
 import os
+import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import flax
@@ -73,6 +75,7 @@ __all__ = [
     "make_train_step",
     "train_stage",
     "restore_stage",
+    "export_weights",
     "train_where",
     "make_dataset",
     "plot_metrics",
@@ -409,6 +412,12 @@ def restore_stage(stage_dir: str, step: int | None = None) -> tuple[WhereConfig,
     with open(path) as f:
         saved = json.load(f)
     stage, config = saved["stage"], config_from_dict(WhereConfig, saved["config"])
+    exported = os.path.join(stage_dir, WEIGHTS_FILE)
+    if not os.path.isdir(os.path.join(stage_dir, "checkpoints")) and os.path.exists(exported):
+        target = jax.eval_shape(make_init_state(stage, config), jax.random.key(0)).params
+        with open(exported, "rb") as f:
+            params = flax.serialization.from_bytes(target, f.read())
+        return config, jax.tree.map(jnp.asarray, params), int(saved.get("step", -1))
     manager = _checkpoint_manager(stage_dir, config)
     step = manager.latest_step() if step is None else step
     if step is None:
@@ -417,6 +426,33 @@ def restore_stage(stage_dir: str, step: int | None = None) -> tuple[WhereConfig,
     state = _restore(manager, target, step)
     manager.close()
     return config, state.params, step
+
+
+WEIGHTS_FILE = "params.msgpack"
+
+
+def export_weights(run_dir: str, out_dir: str, stages: Sequence[str] = STAGES) -> dict[str, int]:
+    """Copy a training folder's latest parameters (no optimiser state, no checkpoint history)
+    to ``out_dir/stage<name>/{config.json, params.msgpack}``: a few MB that
+    :func:`restore_stage` and ``predict.load_predictor`` read like the full folder.
+    Returns the exported step per stage; stages without a trained folder are skipped."""
+    steps = {}
+    for stage in stages:
+        src = _stage_dir(run_dir, stage)
+        if not os.path.exists(os.path.join(src, "config.json")):
+            continue
+        config, params, step = restore_stage(src)
+        dst = _stage_dir(out_dir, stage)
+        os.makedirs(dst, exist_ok=True)
+        with open(os.path.join(src, "config.json")) as f:
+            saved = json.load(f)
+        saved["step"] = int(step)
+        with open(os.path.join(dst, WEIGHTS_FILE), "wb") as f:
+            f.write(flax.serialization.to_bytes(jax.device_get(params)))
+        with open(os.path.join(dst, "config.json"), "w") as f:
+            json.dump(saved, f, indent=2)
+        steps[stage] = int(step)
+    return steps
 
 
 def _to_float(metrics: dict) -> dict:
@@ -463,8 +499,14 @@ def train_stage(
     steps: int | None = None,
     init_params: Any = None,
     progress: bool = True,
+    time_budget_s: float | None = None,
 ) -> TrainState:
     """Train one stage to ``steps`` total steps, resuming from ``workdir/stage<stage>``.
+
+    time_budget_s: stop earlier, after the step that passes this many seconds (a checkpoint
+    is saved there; rerun to continue). The next batch is read in a background thread
+    while the device runs the step. ``stage<stage>/throughput.json`` gets the measured
+    training samples/s (steps after the first, which includes compilation).
 
     init_params: parameters to start from when no checkpoint exists (2b starts from 2a).
     Data and noise are keyed by (seed, step), so a resumed run continues the same stream.
@@ -493,20 +535,60 @@ def train_stage(
     bar = tqdm(
         range(start, steps), desc=f"stage {stage}", disable=not progress, initial=start, total=steps
     )
-    for step in bar:
-        rng = np.random.default_rng([seed, stage_id, step])
-        batch = dataset.sample_batch(rng, config.train.batch_size)
-        state, metrics = train_step(state, batch, jax.random.fold_in(base_key, step))
-        done = step + 1
-        if done % log_every == 0 or done == steps:
-            row = {"step": done, **_to_float(metrics)}
-            with open(metrics_path, "a") as f:
-                f.write(json.dumps(row) + "\n")
-            bar.set_postfix(loss=f"{row['loss']:.4g}")
-        if done % ckpt_every == 0 or done == steps:
-            manager.save(done, args=ocp.args.StandardSave(flax.serialization.to_state_dict(state)))
+
+    def load(step: int) -> HangSample:
+        return dataset.sample_batch(np.random.default_rng([seed, stage_id, step]), batch_size)
+
+    batch_size = config.train.batch_size
+    t_start = time.perf_counter()
+    t_first = None  # after the first step (compilation) has finished
+    done = start
+    with ThreadPoolExecutor(1) as prefetch:
+        upcoming = prefetch.submit(load, start) if start < steps else None
+        for step in bar:
+            batch = upcoming.result()
+            if step + 1 < steps:
+                upcoming = prefetch.submit(load, step + 1)
+            state, metrics = train_step(state, batch, jax.random.fold_in(base_key, step))
+            done = step + 1
+            if t_first is None:
+                jax.block_until_ready(state.step)
+                t_first = time.perf_counter()
+                first_step_s = t_first - t_start
+            out_of_time = (
+                time_budget_s is not None and time.perf_counter() - t_start > time_budget_s
+            )
+            if done % log_every == 0 or done == steps or out_of_time:
+                row = {"step": done, **_to_float(metrics)}
+                with open(metrics_path, "a") as f:
+                    f.write(json.dumps(row) + "\n")
+                bar.set_postfix(loss=f"{row['loss']:.4g}")
+            if done % ckpt_every == 0 or done == steps or out_of_time:
+                manager.save(
+                    done, args=ocp.args.StandardSave(flax.serialization.to_state_dict(state))
+                )
+            if out_of_time:
+                break
+    jax.block_until_ready(state.params)
+    t_end = time.perf_counter()
     manager.wait_until_finished()
     manager.close()
+    if t_first is not None and done - start > 1:
+        timed = done - start - 1
+        throughput = {
+            "stage": stage,
+            "steps_this_run": done - start,
+            "steps_timed": timed,
+            "batch_size": batch_size,
+            "samples_per_s": timed * batch_size / (t_end - t_first),
+            "step_ms": 1000 * (t_end - t_first) / timed,
+            "first_step_s": first_step_s,
+            "stopped_by_time_budget": done < steps,
+            "device": str(jax.devices()[0].device_kind),
+            "jax": jax.__version__,
+        }
+        with open(os.path.join(stage_dir, "throughput.json"), "w") as f:
+            json.dump(throughput, f, indent=1)
     if os.path.exists(metrics_path):
         plot_metrics(metrics_path, os.path.join(stage_dir, "loss.png"))
     return state
@@ -521,7 +603,7 @@ def make_dataset(data: str, config: WhereConfig, split: str = "train") -> data_l
             jax.random.key(config.train.seed + 12345), config.train.synthetic_pairs, n
         )
         return data_lib.ArrayDataset(pool)
-    return data_lib.load_hang_dataset(data, split=split)
+    return data_lib.load_hang_dataset(data, split=split, cache=True)
 
 
 def train_where(
@@ -531,6 +613,7 @@ def train_where(
     config: WhereConfig = WHERE_ORIGINAL,
     steps: int | None = None,
     progress: bool = True,
+    time_budget_s: dict[str, float] | None = None,
 ) -> dict[str, TrainState]:
     """Train the requested stages in order (1, 2a, 2b) into ``out``; resumes each stage.
 
@@ -548,5 +631,8 @@ def train_where(
                 init_params = states["2a"].params
             elif os.path.exists(os.path.join(_stage_dir(out, "2a"), "config.json")):
                 init_params = restore_stage(_stage_dir(out, "2a"))[1]
-        states[stage] = train_stage(stage, config, dataset, out, steps, init_params, progress)
+        budget = (time_budget_s or {}).get(stage)
+        states[stage] = train_stage(
+            stage, config, dataset, out, steps, init_params, progress, time_budget_s=budget
+        )
     return states

@@ -63,6 +63,17 @@ def test_derive_is_resumable_and_checks_its_input(derived, tmp_path):
         dataset_bridge.derive_dataset(tmp_path, progress=False)
 
 
+def test_derive_with_workers_writes_the_same_files(derived, tmp_path):
+    out, summary = derived
+    par = dataset_bridge.derive_dataset(out, tmp_path / "par", progress=False, workers=2)
+    assert par["files_per_split"] == summary["files_per_split"]
+    for split in ("train", "test"):
+        for path in dataset_bridge.derived_files(out / "derived", split):
+            with np.load(path) as a, np.load(tmp_path / "par" / split / path.name) as b:
+                for key in a.files:
+                    np.testing.assert_array_equal(a[key], b[key])
+
+
 def _shifted_fn(shift) -> evaluate.PredictFn:
     truth = evaluate.ground_truth_fn()
 

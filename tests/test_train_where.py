@@ -56,6 +56,23 @@ def test_checkpoint_resume_round_trip(tmp_path, pool):
         train.train_stage("1", other, pool, str(tmp_path / "b"), steps=7, progress=False)
 
 
+def test_time_budget_stops_and_checkpoints_and_records_throughput(tmp_path, pool):
+    """A zero budget stops after the first step (saved); a rerun without it continues; the
+    stage folder records the measured samples/s."""
+    cfg = _tiny(checkpoint_every=100)
+    state = train.train_stage(
+        "1", cfg, pool, str(tmp_path), steps=50, progress=False, time_budget_s=0.0
+    )
+    assert int(state.step) == 1
+    _, _, step = train.restore_stage(str(tmp_path / "stage1"))
+    assert step == 1
+    state = train.train_stage("1", cfg, pool, str(tmp_path), steps=4, progress=False)
+    assert int(state.step) == 4
+    tp = json.loads((tmp_path / "stage1" / "throughput.json").read_text())
+    assert tp["steps_timed"] == 2 and tp["samples_per_s"] > 0
+    assert tp["stopped_by_time_budget"] is False
+
+
 @pytest.fixture(scope="module")
 def trained_dir(tmp_path_factory):
     """All three stages through the command line, 2 steps each on synthetic pairs."""
@@ -75,6 +92,29 @@ def test_cli_train_and_predict(trained_dir):
     with open(os.path.join(trained_dir, "predictions.json")) as f:
         pairs = json.load(f)["pairs"]
     assert np.asarray(pairs[0]["stage2_poses"]).shape == (3, 7)
+
+
+def test_exported_weights_predict_like_the_checkpoints(trained_dir, tmp_path):
+    steps = train.export_weights(trained_dir, str(tmp_path / "w"))
+    assert steps == {"1": 2, "2a": 2, "2b": 2}
+    assert not (tmp_path / "w" / "stage1" / "checkpoints").exists()
+    obj = np.random.default_rng(0).normal(scale=0.05, size=(2, 128, 3)).astype(np.float32)
+    sup = np.random.default_rng(1).normal(scale=0.1, size=(2, 128, 3)).astype(np.float32)
+    key = jax.random.key(3)
+    a = predict.load_predictor(trained_dir)(obj, sup, key=key, num_proposals=3)
+    b = predict.load_predictor(str(tmp_path / "w"))(obj, sup, key=key, num_proposals=3)
+    np.testing.assert_allclose(a.stage2_poses, b.stage2_poses, rtol=1e-6, atol=1e-6)
+
+
+def test_bench_where_writes_latencies(trained_dir, tmp_path):
+    from experiments import bench_where
+
+    out = tmp_path / "bw.json"
+    result = bench_where.main(["--model", trained_dir, "--batches", "1,2", "--repeat", "2",
+                               "--out", str(out)])  # fmt: skip
+    assert [r["batch"] for r in result["latency"]] == [1, 2]
+    assert all(r["median_ms"] > 0 for r in result["latency"])
+    assert json.loads(out.read_text())["device"]
 
 
 def test_predictor_is_jitted_batched_and_finite(trained_dir):

@@ -1,0 +1,77 @@
+#!/usr/bin/env bash
+# One GPU device call (issue 5): derive the generated dataset's training pairs on all CPU
+# cores, train Stages 1 / 2a / 2b on the GPU under time budgets, measure inference latency,
+# and keep the CPU busy generating more dataset shards while the GPU trains.
+#
+#   run(carry=[".whl", ".whl_train"], timeout_s=600, command="bash scripts/device_train.sh")
+#
+# .whl/ holds the py3.12 wheels of mujoco 4.0.0 (+ core, studio, websockets, glfw), trimesh
+# and manifold3d (scripts/device_bench.md); .whl_train/ jaxlie + jax_dataclasses + tyro
+# (pure Python). The device image has jax (CUDA), flax, optax, orbax, scipy, matplotlib, tqdm.
+# Everything comes back in $OUT (< 16 MiB per file): logs, the run's configs, metrics, loss
+# curves, throughput.json per stage, the final weights (train.export_weights) and new shards.
+# Environment knobs: DATA (default datasets/paper), PRESET (small), BATCH (32),
+# DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
+# SKIP_INSTALL=1 for a dry run here (with .venv/bin first on PATH).
+set -uo pipefail
+T0=$(date +%s)
+OUT=${OUT:-/tmp/out}
+DATA=${DATA:-datasets/paper}
+PRESET=${PRESET:-small}
+BATCH=${BATCH:-32}
+DERIVE_S=${DERIVE_S:-170}
+S1=${S1:-170}
+S2A=${S2A:-70}
+S2B=${S2B:-50}
+GEN_PART=${GEN_PART:-0/8}
+END_S=${END_S:-555}
+mkdir -p "$OUT"
+log() { echo "[$(($(date +%s) - T0)) s] $*" | tee -a "$OUT/device_train.log"; }
+
+[ -n "${SKIP_INSTALL:-}" ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
+    .whl/mujoco-*.whl .whl/mujoco_core-*.whl .whl/mujoco_studio-*.whl .whl/websockets-*.whl \
+    .whl/glfw-*.whl .whl/trimesh-*.whl .whl/manifold3d-*.whl .whl_train/*.whl || exit 5
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+nvidia-smi -L | tee -a "$OUT/device_train.log"
+log "installed; $(ls "$DATA/shards" | wc -l) shards in $DATA"
+
+# 1. derive the training split (resumable; whatever is derived when the budget ends is used)
+mkdir -p /tmp/ds && cp -r "$DATA/recipe.json" "$DATA/shards" /tmp/ds/
+timeout -k 5 "$DERIVE_S" python3 -m experiments.derive_dataset --data /tmp/ds --split train \
+    --workers 0 --no-progress >"$OUT/derive.log" 2>&1
+pkill -f experiments.derive_dataset
+log "derived $(ls /tmp/ds/derived/train 2>/dev/null | wc -l) training pairs"
+
+# 2. the CPU cores the trainer does not need generate more shards in the background
+mkdir -p /tmp/gen && cp "$DATA/recipe.json" /tmp/gen/ && mkdir -p /tmp/gen/shards
+cp "$DATA"/shards/shard_*.npz /tmp/gen/shards/ 2>/dev/null
+ls /tmp/gen/shards >/tmp/gen_before.txt
+setsid python3 -m experiments.generate_dataset --preset paper --out /tmp/gen --part "$GEN_PART" \
+    --workers 12 --no-progress >"$OUT/generate.log" 2>&1 &
+
+# 3. train on the GPU
+python3 -m experiments.train_where --data /tmp/ds --out /tmp/run --preset "$PRESET" \
+    --batch "$BATCH" --steps 1000000 --time-budget "1=$S1,2a=$S2A,2b=$S2B" --no-progress \
+    >"$OUT/train.log" 2>&1
+log "trained: $(tail -1 "$OUT/train.log")"
+
+# 4. inference latency, export the weights
+timeout 120 python3 -m experiments.bench_where --model /tmp/run --out "$OUT/bench_where.json" \
+    >>"$OUT/device_train.log" 2>&1
+python3 -c "from omnihang_jax import train; train.export_weights('/tmp/run', '$OUT/weights')" \
+    >>"$OUT/device_train.log" 2>&1
+for s in stage1 stage2a stage2b; do
+    mkdir -p "$OUT/run/$s" && cp /tmp/run/$s/{config.json,metrics.jsonl,loss.png,throughput.json} \
+        "$OUT/run/$s/" 2>/dev/null
+done
+
+# 5. stop the generator before the call's limit; bring back only the new shards
+while [ $(($(date +%s) - T0)) -lt "$END_S" ] && pgrep -f experiments.generate_dataset >/dev/null; do
+    sleep 5
+done
+pkill -f experiments.generate_dataset
+sleep 2
+cd /tmp/gen && ls shards >/tmp/gen_after.txt
+comm -13 /tmp/gen_before.txt /tmp/gen_after.txt | grep '^shard_' | sed 's|^|shards/|' >/tmp/new.txt
+tar -czf "$OUT/new_shards.tgz" -T /tmp/new.txt runs.jsonl 2>/dev/null
+log "new shards: $(wc -l </tmp/new.txt); done"
