@@ -11,7 +11,7 @@
 # Everything comes back in $OUT (< 16 MiB per file): logs, the run's configs, metrics, loss
 # curves, throughput.json per stage, the final weights (train.export_weights) and new shards.
 # Environment knobs: DATA (default datasets/paper), PRESET (small), BATCH (32),
-# DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
+# GEN_S (0: seconds of generation on all cores before deriving), DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
 # SKIP_INSTALL=1 for a dry run here (with .venv/bin first on PATH).
 set -uo pipefail
 T0=$(date +%s)
@@ -35,19 +35,33 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCAT
 nvidia-smi -L | tee -a "$OUT/device_train.log"
 log "installed; $(ls "$DATA/shards" | wc -l) shards in $DATA"
 
-# 1. derive the training split (resumable; whatever is derived when the budget ends is used)
-mkdir -p /tmp/ds && cp -r "$DATA/recipe.json" "$DATA/shards" /tmp/ds/
+# 1. generate more shards on all cores first (GEN_S seconds; killed shards are not written)
+mkdir -p /tmp/gen/shards && cp "$DATA/recipe.json" /tmp/gen/
+cp "$DATA"/shards/shard_*.npz /tmp/gen/shards/ 2>/dev/null
+ls /tmp/gen/shards >/tmp/gen_before.txt
+gen() {
+    setsid python3 -m experiments.generate_dataset --preset paper --out /tmp/gen \
+        --part "$GEN_PART" --workers "$1" --no-progress >>"$OUT/generate.log" 2>&1 &
+}
+if [ "${GEN_S:-0}" -gt 0 ]; then
+    gen 16
+    sleep "$GEN_S"
+    pkill -f experiments.generate_dataset
+    pkill -f multiprocessing.spawn
+    sleep 2
+    log "generated $(($(ls /tmp/gen/shards | wc -l) - $(wc -l </tmp/gen_before.txt))) new shards in $GEN_S s on 16 workers"
+fi
+
+# 2. derive the training split (resumable; whatever is derived when the budget ends is used)
+mkdir -p /tmp/ds && cp -r /tmp/gen/recipe.json /tmp/gen/shards /tmp/ds/
 timeout -k 5 "$DERIVE_S" python3 -m experiments.derive_dataset --data /tmp/ds --split train \
     --workers 0 --no-progress >"$OUT/derive.log" 2>&1
 pkill -f experiments.derive_dataset
+pkill -f multiprocessing.spawn
 log "derived $(ls /tmp/ds/derived/train 2>/dev/null | wc -l) training pairs"
 
-# 2. the CPU cores the trainer does not need generate more shards in the background
-mkdir -p /tmp/gen && cp "$DATA/recipe.json" /tmp/gen/ && mkdir -p /tmp/gen/shards
-cp "$DATA"/shards/shard_*.npz /tmp/gen/shards/ 2>/dev/null
-ls /tmp/gen/shards >/tmp/gen_before.txt
-setsid python3 -m experiments.generate_dataset --preset paper --out /tmp/gen --part "$GEN_PART" \
-    --workers 12 --no-progress >"$OUT/generate.log" 2>&1 &
+# the CPU cores the trainer does not need generate more shards in the background
+gen 12
 
 # 3. train on the GPU
 python3 -m experiments.train_where --data /tmp/ds --out /tmp/run --preset "$PRESET" \
@@ -55,10 +69,10 @@ python3 -m experiments.train_where --data /tmp/ds --out /tmp/run --preset "$PRES
     >"$OUT/train.log" 2>&1
 log "trained: $(tail -1 "$OUT/train.log")"
 
-# 4. inference latency, export the weights
-timeout 120 python3 -m experiments.bench_where --model /tmp/run --out "$OUT/bench_where.json" \
-    >>"$OUT/device_train.log" 2>&1
+# 4. export the weights, inference latency
 python3 -c "from omnihang_jax import train; train.export_weights('/tmp/run', '$OUT/weights')" \
+    >>"$OUT/device_train.log" 2>&1
+timeout 60 python3 -m experiments.bench_where --model /tmp/run --out "$OUT/bench_where.json" \
     >>"$OUT/device_train.log" 2>&1
 for s in stage1 stage2a stage2b; do
     mkdir -p "$OUT/run/$s" && cp /tmp/run/$s/{config.json,metrics.jsonl,loss.png,throughput.json} \
@@ -70,6 +84,7 @@ while [ $(($(date +%s) - T0)) -lt "$END_S" ] && pgrep -f experiments.generate_da
     sleep 5
 done
 pkill -f experiments.generate_dataset
+pkill -f multiprocessing.spawn
 sleep 2
 cd /tmp/gen && ls shards >/tmp/gen_after.txt
 comm -13 /tmp/gen_before.txt /tmp/gen_after.txt | grep '^shard_' | sed 's|^|shards/|' >/tmp/new.txt
