@@ -49,6 +49,13 @@ def main(argv=None) -> dict:
         help="I/N: do only shards k with k %% N == I (split one dataset over machines; "
         "merge by copying shards/ into one DIR and rerunning)",
     )
+    parser.add_argument(
+        "--stop-after",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="start no new shard after this many seconds (for jobs on a time limit)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     config = dataset.PRESETS[args.preset]
@@ -71,6 +78,7 @@ def main(argv=None) -> dict:
         progress=not args.no_progress,
         workers=workers,
         part=(i_part, n_part),
+        stop_after_s=args.stop_after,
     )
     summary = {
         k: card[k]

@@ -8,10 +8,12 @@
 # .whl/ holds the py3.12 wheels of mujoco 4.0.0 (+ core, studio, websockets, glfw), trimesh
 # and manifold3d (scripts/device_bench.md); .whl_train/ jaxlie + jax_dataclasses + tyro
 # (pure Python). The device image has jax (CUDA), flax, optax, orbax, scipy, matplotlib, tqdm.
-# Everything comes back in $OUT (< 16 MiB per file): logs, the run's configs, metrics, loss
-# curves, throughput.json per stage, the final weights (train.export_weights) and new shards.
+# Everything comes back in $OUT as three files (the device returns at most 8 files of
+# 16 MiB): device_train.log, new_shards.tgz and results.tgz (the run's configs, metrics,
+# loss curves, throughput.json per stage, the final weights from train.export_weights,
+# bench_where.json and the logs).
 # Environment knobs: DATA (default datasets/paper), PRESET (small), BATCH (32),
-# GEN_S (0: seconds of generation on all cores before deriving), DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
+# GEN_S (0: seconds after which generation on all cores before deriving starts no shard), DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
 # SKIP_INSTALL=1 for a dry run here (with .venv/bin first on PATH).
 set -uo pipefail
 T0=$(date +%s)
@@ -39,16 +41,12 @@ log "installed; $(ls "$DATA/shards" | wc -l) shards in $DATA"
 mkdir -p /tmp/gen/shards && cp "$DATA/recipe.json" /tmp/gen/
 cp "$DATA"/shards/shard_*.npz /tmp/gen/shards/ 2>/dev/null
 ls /tmp/gen/shards >/tmp/gen_before.txt
-gen() {
-    setsid python3 -m experiments.generate_dataset --preset paper --out /tmp/gen \
-        --part "$GEN_PART" --workers "$1" --no-progress >>"$OUT/generate.log" 2>&1 &
+gen() {  # workers, start no shard after this many seconds (running shards finish)
+    python3 -m experiments.generate_dataset --preset paper --out /tmp/gen \
+        --part "$GEN_PART" --workers "$1" --stop-after "$2" --no-progress >>"$OUT/generate.log" 2>&1
 }
 if [ "${GEN_S:-0}" -gt 0 ]; then
-    gen 16
-    sleep "$GEN_S"
-    pkill -f experiments.generate_dataset
-    pkill -f multiprocessing.spawn
-    sleep 2
+    gen 16 "$GEN_S"
     log "generated $(($(ls /tmp/gen/shards | wc -l) - $(wc -l </tmp/gen_before.txt))) new shards in $GEN_S s on 16 workers"
 fi
 
@@ -56,12 +54,12 @@ fi
 mkdir -p /tmp/ds && cp -r /tmp/gen/recipe.json /tmp/gen/shards /tmp/ds/
 timeout -k 5 "$DERIVE_S" python3 -m experiments.derive_dataset --data /tmp/ds --split train \
     --workers 0 --no-progress >"$OUT/derive.log" 2>&1
-pkill -f experiments.derive_dataset
-pkill -f multiprocessing.spawn
+pkill -f "derive_dataset --data /tmp/ds"
 log "derived $(ls /tmp/ds/derived/train 2>/dev/null | wc -l) training pairs"
 
-# the CPU cores the trainer does not need generate more shards in the background
-gen 12
+# the CPU cores the trainer does not need generate more shards in the background; a shard
+# takes ~3 min per worker there, so none is started later than 200 s before the end
+setsid bash -c "$(declare -f gen); OUT=$OUT GEN_PART=$GEN_PART gen 12 $((END_S - 200 - $(date +%s) + T0))" &
 
 # 3. train on the GPU
 python3 -m experiments.train_where --data /tmp/ds --out /tmp/run --preset "$PRESET" \
@@ -80,13 +78,15 @@ for s in stage1 stage2a stage2b; do
 done
 
 # 5. stop the generator before the call's limit; bring back only the new shards
-while [ $(($(date +%s) - T0)) -lt "$END_S" ] && pgrep -f experiments.generate_dataset >/dev/null; do
+while [ $(($(date +%s) - T0)) -lt "$END_S" ] && pgrep -f "out /tmp/gen" >/dev/null; do
     sleep 5
 done
-pkill -f experiments.generate_dataset
-pkill -f multiprocessing.spawn
+pkill -f "out /tmp/gen"
 sleep 2
 cd /tmp/gen && ls shards >/tmp/gen_after.txt
 comm -13 /tmp/gen_before.txt /tmp/gen_after.txt | grep '^shard_' | sed 's|^|shards/|' >/tmp/new.txt
 tar -czf "$OUT/new_shards.tgz" -T /tmp/new.txt runs.jsonl 2>/dev/null
 log "new shards: $(wc -l </tmp/new.txt); done"
+# the device returns at most 8 files per call: everything else goes into one tarball
+cd "$OUT" && tar -czf results.tgz run weights bench_where.json derive.log train.log \
+    generate.log 2>/dev/null && rm -rf run weights bench_where.json derive.log train.log generate.log

@@ -529,8 +529,10 @@ def _worker_init(config: DatasetConfig, rec: dict, backend: str) -> None:
     _WORKER.update(library=library, config=config, pairs=pairs, rec=rec, backend=backend)
 
 
-def _worker_shard(job: tuple[int, str]) -> tuple[int, int]:
-    k, path = job
+def _worker_shard(job: tuple[int, str, float | None]) -> tuple[int, int]:
+    k, path, deadline = job
+    if deadline is not None and time.time() > deadline:
+        return k, 0  # too late to start a shard: left for the next run
     w = _WORKER
     records, chunk, ids = _shard_records(
         w["library"], w["config"], w["pairs"], w["rec"], k, w["backend"]
@@ -547,6 +549,7 @@ def generate(
     progress: bool = True,
     workers: int = 1,
     part: tuple[int, int] = (0, 1),
+    stop_after_s: float | None = None,
 ) -> dict:
     """Generate (or resume) the dataset into ``out_dir``; returns the dataset card.
 
@@ -554,6 +557,8 @@ def generate(
     the CPU backend only). ``part = (i, n)`` makes this job do only the shards ``k`` with
     ``k % n == i``, so several machines can share one dataset: copy their ``shards/`` into
     one directory and run once more (nothing left to do) to write the card.
+    ``stop_after_s``: start no shard after this many seconds (shards already started are
+    finished), so a job on a time limit ends with whole shards instead of killed ones.
     """
     out = Path(out_dir)
     (out / "shards").mkdir(parents=True, exist_ok=True)
@@ -595,15 +600,18 @@ def generate(
         bar.update(n)
         bar.set_postfix(pairs_per_min=f"{60 * done_pairs / max(time.time() - t0, 1e-9):.1f}")
 
+    deadline = None if stop_after_s is None else time.time() + stop_after_s
     if workers <= 1:
         for k in todo:
+            if deadline is not None and time.time() > deadline:
+                break
             records, chunk, ids = _shard_records(library, config, pairs, rec, k, backend)
             atomic.savez(out / "shards" / f"shard_{k:05d}.npz", **_pack(records, chunk, ids))
             advance(len(chunk))
     elif todo:
         import multiprocessing as mp
 
-        jobs = [(k, str(out / "shards" / f"shard_{k:05d}.npz")) for k in todo]
+        jobs = [(k, str(out / "shards" / f"shard_{k:05d}.npz"), deadline) for k in todo]
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, _worker_init, (config, rec, backend)) as pool:
             for _, n in pool.imap_unordered(_worker_shard, jobs):

@@ -101,6 +101,12 @@ def test_parts_and_workers_give_the_same_shards(generated, tmp_path):
                 np.testing.assert_array_equal(x[key], y[key])
     with pytest.raises(ValueError, match="part"):
         dataset.generate(CFG, a, preset="test", progress=False, part=(2, 2))
+    # a job past its start deadline starts no shard, loses nothing, and the next run resumes
+    c = tmp_path / "c"
+    card = dataset.generate(CFG, c, preset="test", progress=False, stop_after_s=0.0)
+    assert card["pairs_done"] == 0 and not list((c / "shards").glob("*.npz"))
+    card = dataset.generate(CFG, c, preset="test", progress=False, stop_after_s=0.0, workers=2)
+    assert card["pairs_done"] == 0
 
 
 def test_other_config_refuses_to_mix(generated):
