@@ -56,6 +56,12 @@ def main(argv=None) -> dict:
         metavar="SECONDS",
         help="start no new shard after this many seconds (for jobs on a time limit)",
     )
+    parser.add_argument(
+        "--card-only",
+        action="store_true",
+        help="generate nothing: (re)write DIR/dataset_card.json/.md from the shards present "
+        "(safe while another job is generating into DIR)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     config = dataset.PRESETS[args.preset]
@@ -69,7 +75,7 @@ def main(argv=None) -> dict:
         i_part, n_part = (int(x) for x in args.part.split("/"))
     except ValueError:
         parser.error(f"--part must look like I/N (e.g. 0/2), got {args.part!r}")
-    workers = args.workers or len(os.sched_getaffinity(0))
+    workers = 1 if args.card_only else (args.workers or len(os.sched_getaffinity(0)))
     card = dataset.generate(
         config,
         args.out,
@@ -78,7 +84,7 @@ def main(argv=None) -> dict:
         progress=not args.no_progress,
         workers=workers,
         part=(i_part, n_part),
-        stop_after_s=args.stop_after,
+        stop_after_s=0.0 if args.card_only else args.stop_after,
     )
     summary = {
         k: card[k]
