@@ -619,12 +619,20 @@ def takeoff_many(
     poses: np.ndarray,
     config: TakeoffConfig = TakeoffConfig(),
     settings: MJXSettings = MJXSettings(),
+    materials: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> TakeoffResult:
-    """Take-off of ``poses`` [B, 7], pose i on ``scenes[pair[i]]`` (one template)."""
+    """Take-off of ``poses`` [B, 7], pose i on ``scenes[pair[i]]`` (one template).
+
+    ``materials`` (warp impl only): per-pair ``(mass [P], friction [P])``, P = len(scenes),
+    replacing ``config.mass`` / ``config.friction`` pair by pair (as
+    :func:`sim.kernels.with_material` does for one pair); None keeps the config's.
+    """
     poses = kernels.check_poses(poses)
     pair = np.asarray(pair, dtype=np.int32)
     if settings.impl == "warp":
-        return _takeoff_warp(scenes, pair, poses, config, settings)
+        return _takeoff_warp(scenes, pair, poses, config, settings, materials)
+    if materials is not None:
+        raise NotImplementedError("per-pair materials need impl='warp'")
     batch = _batch_for(scenes, settings)
     models = with_material(batch, config.mass, config.friction)
     dt = scenes[0].physics.timestep
@@ -1031,25 +1039,45 @@ def _w_takeoff(model, fields, aux, data0, pair, qpos, force, push, free, every):
     return removed
 
 
-def _takeoff_warp(scenes, pair, poses, config, settings) -> TakeoffResult:
-    return _sequential(_takeoff_warp_removed(scenes, pair, poses, config, settings))
+def _takeoff_warp(scenes, pair, poses, config, settings, materials=None) -> TakeoffResult:
+    return _sequential(_takeoff_warp_removed(scenes, pair, poses, config, settings, materials))
 
 
-def _takeoff_warp_removed(scenes, pair, poses, config, settings) -> np.ndarray:
-    """[B, 11] outcome of every direction on its own (all pushed in parallel)."""
-    batch = _warp_batch_for(scenes, settings)
-    fields = dict(batch.fields)
-    if config.friction is not None:
-        fields["geom_friction"] = fields["geom_friction"].at[:, :, 0].set(config.friction)
-    if config.mass is not None:
-        factor = config.mass / fields["body_mass"][:, W_OBJECT_BODY]
-        fields["body_mass"] = fields["body_mass"].at[:, W_OBJECT_BODY].set(config.mass)
-        fields["body_subtreemass"] = (
-            fields["body_subtreemass"].at[:, W_OBJECT_BODY].set(config.mass)
-        )
+def _warp_material(fields: dict, mass, friction) -> dict:
+    """Per-pair fields with the object's mass (inertia scaled along) and every geom's
+    sliding friction replaced, as :func:`sim.kernels.with_material` does for one pair.
+    ``mass`` / ``friction``: None (keep), a scalar, or one value per pair [P]."""
+    fields = dict(fields)
+    n = fields["body_mass"].shape[0]
+    if friction is not None:
+        fr = jnp.broadcast_to(jnp.asarray(friction, fields["geom_friction"].dtype), (n,))
+        fields["geom_friction"] = fields["geom_friction"].at[:, :, 0].set(fr[:, None])
+    if mass is not None:
+        ms = jnp.broadcast_to(jnp.asarray(mass, fields["body_mass"].dtype), (n,))
+        factor = ms / fields["body_mass"][:, W_OBJECT_BODY]
+        fields["body_mass"] = fields["body_mass"].at[:, W_OBJECT_BODY].set(ms)
+        fields["body_subtreemass"] = fields["body_subtreemass"].at[:, W_OBJECT_BODY].set(ms)
         fields["body_inertia"] = (
             fields["body_inertia"].at[:, W_OBJECT_BODY].multiply(factor[:, None])
         )
+    return fields
+
+
+def _takeoff_warp_removed(scenes, pair, poses, config, settings, materials=None) -> np.ndarray:
+    """[B, 11] outcome of every direction on its own (all pushed in parallel).
+
+    ``materials``: None (``config.mass`` / ``config.friction`` for every pair) or per-pair
+    ``(mass [P], friction [P])`` arrays, P = len(scenes)."""
+    batch = _warp_batch_for(scenes, settings)
+    mass, friction = config.mass, config.friction
+    if materials is not None:
+        mass, friction = (np.asarray(x, float).reshape(-1) for x in materials)
+        if len(mass) != len(scenes) or len(friction) != len(scenes):
+            raise ValueError(
+                f"materials need one mass and one friction per scene ({len(scenes)}), "
+                f"got {len(mass)} and {len(friction)}"
+            )
+    fields = _warp_material(batch.fields, mass, friction)
     nl = settings.lanes
     data0 = _warp_data0(batch, nl)
     dt = scenes[0].physics.timestep
