@@ -45,6 +45,11 @@ from sim.library import Library, LibraryConfig, build_library, check_split
 from sim.scene import build_scene
 
 FORMAT = 2
+# Version of the physics behind the labels. Shards of another version are never mixed in:
+# 1 = take-off with a changed object mass but stale constraint weights (objects could pass
+# through closed supports at masses other than 0.5 kg); 2 = kernels.with_material runs
+# mj_setConst (2026-11-21).
+LABELS_VERSION = 2
 POSITION_STEP = 1e-4  # m: stored positions are int16 multiples of 0.1 mm (range +-3.27 m)
 QUAT_SCALE = 32767  # stored quaternions are int16 of q * 32767 (error < 3e-5)
 
@@ -491,6 +496,7 @@ def recipe(config: DatasetConfig, library: Library, pairs, preset: str) -> dict:
 
     return {
         "format": FORMAT,
+        "labels_version": LABELS_VERSION,
         "preset": preset,
         "config": config_json(config),
         "objects": sorted(library.objects),
@@ -574,6 +580,12 @@ def generate(
     recipe_path = out / "recipe.json"
     if recipe_path.exists():
         old = json.loads(recipe_path.read_text())
+        if old.get("labels_version", 1) != LABELS_VERSION:
+            raise ValueError(
+                f"{recipe_path} holds labels of version {old.get('labels_version', 1)} "
+                f"(this code makes version {LABELS_VERSION}: see sim.dataset.LABELS_VERSION); "
+                "regenerate into a new --out"
+            )
         diff = config_differences(upgrade_config_json(old["config"]), rec["config"])
         if diff or old["pairs"] != rec["pairs"]:
             what = f"config fields {diff}" if diff else "pair list"
@@ -698,6 +710,7 @@ def dataset_card(
     device = platform.processor() or platform.machine()
     card = {
         "format": FORMAT,
+        "labels_version": rec.get("labels_version", 1),
         "preset": rec["preset"],
         "pairs_total": len(pairs),
         "pairs_done": len(records),

@@ -300,6 +300,12 @@ def with_material(scene: Scene, mass: float | None, friction: float | None) -> m
         model.body_inertia[body] *= factor
     if friction is not None:
         model.geom_friction[:, 0] = friction
+    if mass is not None:
+        # Constraint softness is scaled by each body's inverse weight (body_invweight0, set
+        # by mj_setConst from the masses at compile time). Without recomputing it, a heavier
+        # or lighter object keeps the 0.5 kg softness: contacts sank 15 mm and a pulled ring
+        # passed through a closed towel bar (found by comparing with MuJoCo Warp).
+        mujoco.mj_setConst(model, mujoco.MjData(model))
     return model
 
 

@@ -1060,6 +1060,12 @@ def _warp_material(fields: dict, mass, friction) -> dict:
         fields["body_inertia"] = (
             fields["body_inertia"].at[:, W_OBJECT_BODY].multiply(factor[:, None])
         )
+        # what mj_setConst gives (kernels.with_material): mass and inertia scale together, so
+        # every inverse weight of the free body scales by 1 / factor (checked to 1e-12)
+        fields["body_invweight0"] = (
+            fields["body_invweight0"].at[:, W_OBJECT_BODY].divide(factor[:, None])
+        )
+        fields["dof_invweight0"] = fields["dof_invweight0"] / factor[:, None]
     return fields
 
 

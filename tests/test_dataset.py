@@ -111,6 +111,13 @@ def test_parts_and_workers_give_the_same_shards(generated, tmp_path):
 
 def test_other_config_refuses_to_mix(generated):
     out, _ = generated
+    recipe = json.loads((out / "recipe.json").read_text())
+    assert recipe["labels_version"] == dataset.LABELS_VERSION
+    old = out.parent / (out.name + "_v1")
+    old.mkdir()
+    (old / "recipe.json").write_text(json.dumps({**recipe, "labels_version": 1}))
+    with pytest.raises(ValueError, match="labels of version 1"):
+        dataset.generate(CFG, old, preset="test", progress=False)
     with pytest.raises(ValueError, match="another config"):
         dataset.generate(dataclasses.replace(CFG, max_stable=5), out, progress=False)
 
