@@ -42,7 +42,7 @@ from tqdm.auto import tqdm
 from sim import annotate, atomic, camera, kernels, proposals
 from sim.assets.base import Asset
 from sim.library import Library, LibraryConfig, build_library, check_split
-from sim.scene import build_scene
+from sim.scene import Scene, build_scene
 
 FORMAT = 2
 # Version of the physics behind the labels. Shards of another version are never mixed in:
@@ -215,16 +215,9 @@ def generate_pair(
     scene = build_scene(obj, support)
     stable = []
     counts = dict(n_candidates=0, n_penetrating=0, n_fallen=0, n_stable_raw=0)
-    has_features = bool(obj.features) and bool(support.features)
     while counts["n_candidates"] < config.max_candidates and len(stable) < 2 * config.max_stable:
         n = min(config.batch, config.max_candidates - counts["n_candidates"])
-        n_hang = int(round(n * config.hang_fraction)) if has_features else 0
-        cand = np.concatenate(
-            [
-                proposals.hang_poses(obj, support, n_hang, rng) if n_hang else np.zeros((0, 7)),
-                proposals.uniform_poses(obj, support, n - n_hang, rng),
-            ]
-        )
+        cand = draw_candidates(obj, support, rng, n, config)
         res = kernels.stability(scene, cand, config.stability, backend=backend)
         counts["n_candidates"] += n
         counts["n_penetrating"] += int((res.status == kernels.PENETRATING).sum())
@@ -243,12 +236,7 @@ def generate_pair(
     kept = dequantise_poses(*quantise_poses(kept)).astype(float)
     negative_kept = near_misses(scene, kept, seed, config, backend)
 
-    col_poses = collision_poses(obj, support, seed, config)
-    con = kernels.contact_query(
-        scene, col_poses, kernels.ContactConfig(distance_cutoff=config.collision_free_within + 1e-3)
-    )
-    colliding = con.penetration > 0
-    free = (~colliding) & (con.distance <= config.collision_free_within)
+    collision_kept, colliding = collision_labels(scene, obj, support, seed, config)
     # eyes: the view of each body that sees the most contact-map mass at the stable poses
     obj_eye, sup_eye = choose_views(scene, kept, seed, config)
     return dict(
@@ -258,11 +246,79 @@ def generate_pair(
         friction=friction,
         stable_poses=kept.astype(np.float32),
         negative_kept=negative_kept,
-        collision_kept=colliding | free,
+        collision_kept=collision_kept,
         collision_label=colliding,
         object_eye=obj_eye.astype(np.float32),
         support_eye=sup_eye.astype(np.float32),
     )
+
+
+def draw_candidates(
+    obj: Asset, support: Asset, rng: np.random.Generator, n: int, config: DatasetConfig
+) -> np.ndarray:
+    """[n, 7] the next batch of candidates of a pair, drawn from its rng exactly as one
+    iteration of ``generate_pair``'s loop draws them: ``round(n * hang_fraction)``
+    hang-threaded poses (when both assets have hang features), then uniform ones."""
+    has_features = bool(obj.features) and bool(support.features)
+    n_hang = int(round(n * config.hang_fraction)) if has_features else 0
+    return np.concatenate(
+        [
+            proposals.hang_poses(obj, support, n_hang, rng) if n_hang else np.zeros((0, 7)),
+            proposals.uniform_poses(obj, support, n - n_hang, rng),
+        ]
+    )
+
+
+def near_miss_close(
+    scene: Scene, stable_poses: np.ndarray, seed: int, config: DatasetConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """First half of :func:`near_misses` (CPU): the pair's
+    :func:`~sim.dataset.negative_candidates` [N, 7] and the indices [M] of those that start
+    within ``negative_gap`` of the support without touching it (to be rolled out)."""
+    cand = negative_candidates(stable_poses, seed, config)
+    if len(cand) == 0:
+        return cand, np.zeros(0, np.int64)
+    con = kernels.contact_query(
+        scene, cand, kernels.ContactConfig(distance_cutoff=config.negative_gap + 1e-3)
+    )
+    close = (con.penetration == 0) & (con.distance > 0) & (con.distance <= config.negative_gap)
+    return cand, np.flatnonzero(close)
+
+
+def near_miss_kept(
+    cand: np.ndarray,
+    idx: np.ndarray,
+    status: np.ndarray,
+    settled: np.ndarray,
+    config: DatasetConfig,
+) -> np.ndarray:
+    """Second half of :func:`near_misses`: [N] bool, the close candidates
+    ``cand[idx]`` whose short rollout (``status`` [M], ``settled`` poses [M, 7]) fell,
+    diverged or moved more than ``negative_moved``; at most ``max_negatives`` marked."""
+    kept = np.zeros(len(cand), dtype=bool)
+    if len(idx) == 0:
+        return kept
+    moved = np.linalg.norm(settled[:, :3] - cand[idx, :3], axis=1)
+    miss = (
+        (status == kernels.FALLEN) | (status == kernels.DIVERGED) | (moved > config.negative_moved)
+    )
+    kept[idx[miss][: config.max_negatives]] = True
+    return kept
+
+
+def collision_labels(
+    scene: Scene, obj: Asset, support: Asset, seed: int, config: DatasetConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(collision_kept [n_collision], collision_label [n_collision]) of the pair's
+    :func:`~sim.dataset.collision_poses`, as ``generate_pair`` computes them (CPU): colliding
+    poses, plus free ones within ``collision_free_within`` of the support."""
+    col_poses = collision_poses(obj, support, seed, config)
+    con = kernels.contact_query(
+        scene, col_poses, kernels.ContactConfig(distance_cutoff=config.collision_free_within + 1e-3)
+    )
+    colliding = con.penetration > 0
+    free = (~colliding) & (con.distance <= config.collision_free_within)
+    return colliding | free, colliding
 
 
 def negative_candidates(stable_poses: np.ndarray, seed: int, config: DatasetConfig) -> np.ndarray:
@@ -292,26 +348,12 @@ def near_misses(
     """[negative_candidates] bool: which :func:`negative_candidates` are near misses (original:
     start within 1 cm of the support without touching it, then fall or move > 0.3 m within
     0.5 s); at most ``max_negatives`` are marked."""
-    cand = negative_candidates(stable_poses, seed, config)
-    kept = np.zeros(len(cand), dtype=bool)
-    if len(cand) == 0:
-        return kept
-    con = kernels.contact_query(
-        scene, cand, kernels.ContactConfig(distance_cutoff=config.negative_gap + 1e-3)
-    )
-    close = (con.penetration == 0) & (con.distance > 0) & (con.distance <= config.negative_gap)
-    if close.any():
-        idx = np.flatnonzero(close)
-        cfg = dataclasses.replace(config.stability, duration=config.negative_time)
-        res = kernels.stability(scene, cand[idx], cfg, backend=backend)
-        moved = np.linalg.norm(res.settled_pose[:, :3] - cand[idx, :3], axis=1)
-        miss = (
-            (res.status == kernels.FALLEN)
-            | (res.status == kernels.DIVERGED)
-            | (moved > config.negative_moved)
-        )
-        kept[idx[miss][: config.max_negatives]] = True
-    return kept
+    cand, idx = near_miss_close(scene, stable_poses, seed, config)
+    if len(idx) == 0:
+        return np.zeros(len(cand), dtype=bool)
+    cfg = dataclasses.replace(config.stability, duration=config.negative_time)
+    res = kernels.stability(scene, cand[idx], cfg, backend=backend)
+    return near_miss_kept(cand, idx, res.status, res.settled_pose, config)
 
 
 def choose_views(scene, stable_poses: np.ndarray, seed: int, config: DatasetConfig):
@@ -613,11 +655,25 @@ def generate(
         bar.set_postfix(pairs_per_min=f"{60 * done_pairs / max(time.time() - t0, 1e-9):.1f}")
 
     deadline = None if stop_after_s is None else time.time() + stop_after_s
+    shard_fn = _shard_records
+    if backend == "mjx":  # every pair of a shard in one MuJoCo Warp call per round
+        try:
+            import warp  # noqa: F401
+        except ImportError as e:
+            raise ValueError(
+                "--backend mjx generates with MuJoCo Warp: install warp-lang "
+                "(pip install -e '.[gpu]'); or use --backend cpu"
+            ) from e
+        from sim.dataset_batched import shard_records_batched
+
+        def shard_fn(library, config, pairs, rec, k, backend):
+            return shard_records_batched(library, config, pairs, rec, k)
+
     if workers <= 1:
         for k in todo:
             if deadline is not None and time.time() > deadline:
                 break
-            records, chunk, ids = _shard_records(library, config, pairs, rec, k, backend)
+            records, chunk, ids = shard_fn(library, config, pairs, rec, k, backend)
             atomic.savez(out / "shards" / f"shard_{k:05d}.npz", **_pack(records, chunk, ids))
             advance(len(chunk))
     elif todo:

@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sim import dataset, kernels, proposals
+from sim import dataset, kernels
 from sim.assets.base import Asset
 from sim.dataset import DatasetConfig
 from sim.library import Library
@@ -123,77 +123,6 @@ def release(scenes: Sequence[Scene], settings: MJXSettings | None) -> None:
             del mjx_kernels._WARP_DATA[k]
 
 
-# ----------------------------------------------------------------------------- per-pair CPU parts
-
-
-def draw_candidates(
-    obj: Asset, support: Asset, rng: np.random.Generator, n: int, config: DatasetConfig
-) -> np.ndarray:
-    """[n, 7] the next batch of candidates of a pair, drawn from its rng exactly as one
-    iteration of ``generate_pair``'s loop draws them: ``round(n * hang_fraction)``
-    hang-threaded poses (when both assets have hang features), then uniform ones."""
-    has_features = bool(obj.features) and bool(support.features)
-    n_hang = int(round(n * config.hang_fraction)) if has_features else 0
-    return np.concatenate(
-        [
-            proposals.hang_poses(obj, support, n_hang, rng) if n_hang else np.zeros((0, 7)),
-            proposals.uniform_poses(obj, support, n - n_hang, rng),
-        ]
-    )
-
-
-def near_miss_close(
-    scene: Scene, stable_poses: np.ndarray, seed: int, config: DatasetConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """First half of :func:`sim.dataset.near_misses` (CPU): the pair's
-    :func:`~sim.dataset.negative_candidates` [N, 7] and the indices [M] of those that start
-    within ``negative_gap`` of the support without touching it (to be rolled out)."""
-    cand = dataset.negative_candidates(stable_poses, seed, config)
-    if len(cand) == 0:
-        return cand, np.zeros(0, np.int64)
-    con = kernels.contact_query(
-        scene, cand, kernels.ContactConfig(distance_cutoff=config.negative_gap + 1e-3)
-    )
-    close = (con.penetration == 0) & (con.distance > 0) & (con.distance <= config.negative_gap)
-    return cand, np.flatnonzero(close)
-
-
-def near_miss_kept(
-    cand: np.ndarray,
-    idx: np.ndarray,
-    status: np.ndarray,
-    settled: np.ndarray,
-    config: DatasetConfig,
-) -> np.ndarray:
-    """Second half of :func:`sim.dataset.near_misses`: [N] bool, the close candidates
-    ``cand[idx]`` whose short rollout (``status`` [M], ``settled`` poses [M, 7]) fell,
-    diverged or moved more than ``negative_moved``; at most ``max_negatives`` marked."""
-    kept = np.zeros(len(cand), dtype=bool)
-    if len(idx) == 0:
-        return kept
-    moved = np.linalg.norm(settled[:, :3] - cand[idx, :3], axis=1)
-    miss = (
-        (status == kernels.FALLEN) | (status == kernels.DIVERGED) | (moved > config.negative_moved)
-    )
-    kept[idx[miss][: config.max_negatives]] = True
-    return kept
-
-
-def collision_labels(
-    scene: Scene, obj: Asset, support: Asset, seed: int, config: DatasetConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """(collision_kept [n_collision], collision_label [n_collision]) of the pair's
-    :func:`~sim.dataset.collision_poses`, as ``generate_pair`` computes them (CPU): colliding
-    poses, plus free ones within ``collision_free_within`` of the support."""
-    col_poses = dataset.collision_poses(obj, support, seed, config)
-    con = kernels.contact_query(
-        scene, col_poses, kernels.ContactConfig(distance_cutoff=config.collision_free_within + 1e-3)
-    )
-    colliding = con.penetration > 0
-    free = (~colliding) & (con.distance <= config.collision_free_within)
-    return colliding | free, colliding
-
-
 # ----------------------------------------------------------------------------- a shard
 
 
@@ -242,7 +171,7 @@ def _label(scenes, objs, supports, seeds, config, settings):
             c = counts[p]
             if c["n_candidates"] < config.max_candidates and len(stable[p]) < 2 * config.max_stable:
                 n = min(config.batch, config.max_candidates - c["n_candidates"])
-                batch.append(draw_candidates(objs[p], supports[p], rngs[p], n, config))
+                batch.append(dataset.draw_candidates(objs[p], supports[p], rngs[p], n, config))
                 owner.append(np.full(n, p, np.int32))
         if not batch:
             break
@@ -286,7 +215,9 @@ def _label(scenes, objs, supports, seeds, config, settings):
     ]
 
     # 3. near misses: CPU contact queries per pair, one short rollout call for all pairs
-    close = [near_miss_close(sc, k, seed, config) for sc, k, seed in zip(scenes, kept, seeds)]
+    close = [
+        dataset.near_miss_close(sc, k, seed, config) for sc, k, seed in zip(scenes, kept, seeds)
+    ]
     roll_pair = np.concatenate([np.full(len(i), p, np.int32) for p, (_, i) in enumerate(close)])
     negative_kept = [np.zeros(len(c), dtype=bool) for c, _ in close]
     if len(roll_pair):
@@ -296,14 +227,16 @@ def _label(scenes, objs, supports, seeds, config, settings):
         calls["near_miss"] += 1
         for p, (c, i) in enumerate(close):
             rows = roll_pair == p
-            negative_kept[p] = near_miss_kept(
+            negative_kept[p] = dataset.near_miss_kept(
                 c, i, res.status[rows], res.settled_pose[rows], config
             )
 
     # 4. collision labels and views, per pair on the CPU
     records = []
     for p in range(n_pairs):
-        col_kept, col_label = collision_labels(scenes[p], objs[p], supports[p], seeds[p], config)
+        col_kept, col_label = dataset.collision_labels(
+            scenes[p], objs[p], supports[p], seeds[p], config
+        )
         obj_eye, sup_eye = dataset.choose_views(scenes[p], kept[p], seeds[p], config)
         records.append(
             dict(

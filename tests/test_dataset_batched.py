@@ -45,7 +45,7 @@ def _cpu_statuses(library, pairs, chunk, config):
         obj, sup = library.objects[o], library.supports[s]
         seed = dataset.pair_seed(config.seed, o, s)
         rng = np.random.default_rng([seed, 1])
-        cand = dataset_batched.draw_candidates(obj, sup, rng, config.batch, config)
+        cand = dataset.draw_candidates(obj, sup, rng, config.batch, config)
         out.append(kernels.stability(build_scene(obj, sup), cand, config.stability).status)
     return out
 
@@ -121,7 +121,7 @@ def test_takeoff_per_pair_materials_equal_scalar_path(shard):
     for p, sc in enumerate(scenes):
         obj, sup = sc.obj, sc.support
         rng = np.random.default_rng([p, 1])
-        poses.append(dataset_batched.draw_candidates(obj, sup, rng, 2, CFG))
+        poses.append(dataset.draw_candidates(obj, sup, rng, 2, CFG))
         owner.append(np.full(2, p, np.int32))
     poses, owner = np.concatenate(poses), np.concatenate(owner)
     cfg = kernels.TakeoffConfig(push_time=0.1, free_time=0.1)
