@@ -53,34 +53,58 @@ def dedupe_contacts(
     return np.asarray(kept, dtype=int)
 
 
+class CloudGraph:
+    """The k-nearest-neighbour graph of one cloud and a cache of each seed's spread weights.
+
+    A pair's clouds are the same for all of its stable poses, and nearby poses share
+    contact seeds, so :func:`derive_pair <sim.dataset.derive_pair>` builds one per cloud and
+    passes it to every :func:`annotate` call (the maps are identical to building it afresh).
+    """
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray, config: AnnotationConfig):
+        self.n = n = len(points)
+        self.config = config
+        k = min(config.knn + 1, n)
+        dist, nbr = cKDTree(points).query(points, k=k)
+        rows = np.repeat(np.arange(n), k - 1)
+        self.graph = csr_matrix(
+            (np.maximum(dist[:, 1:].ravel(), 1e-9), (rows, nbr[:, 1:].ravel())), shape=(n, n)
+        )
+        self.unit = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        self._weights: dict[int, np.ndarray] = {}
+
+    def weights(self, seeds: np.ndarray) -> list[np.ndarray]:
+        """[N] spread weight of each seed (sorted unique indices), computed once per seed."""
+        new = [int(s) for s in seeds if int(s) not in self._weights]
+        if new:
+            cfg = self.config
+            geo = dijkstra(self.graph, directed=False, indices=new)  # [S, N]
+            for s, g in zip(new, geo, strict=True):
+                angle = np.arccos(np.clip(self.unit @ self.unit[s], -1.0, 1.0))
+                finite = np.isfinite(g)
+                gmax = g[finite].max() if finite.any() and g[finite].max() > 0 else 1.0
+                amax = angle.max() if angle.max() > 0 else 1.0
+                self._weights[s] = np.exp(-cfg.angle_weight * angle / amax) * np.exp(
+                    -cfg.geodesic_weight * np.where(finite, g, np.inf) / gmax
+                )
+        return [self._weights[int(s)] for s in seeds]
+
+
 def soft_contact_map(
     points: np.ndarray,
     normals: np.ndarray,
     seeds: np.ndarray,
     config: AnnotationConfig = AnnotationConfig(),
+    graph: CloudGraph | None = None,
 ) -> np.ndarray:
-    """[N] soft contact map spread from the ``seeds`` (cloud indices), max-normalised."""
+    """[N] soft contact map spread from the ``seeds`` (cloud indices), max-normalised.
+    ``graph``: a :class:`CloudGraph` of this cloud to reuse (built here if None)."""
     n = len(points)
     out = np.zeros(n)
     if len(seeds) == 0:
         return out.astype(np.float32)
-    k = min(config.knn + 1, n)
-    dist, nbr = cKDTree(points).query(points, k=k)
-    rows = np.repeat(np.arange(n), k - 1)
-    graph = csr_matrix(
-        (np.maximum(dist[:, 1:].ravel(), 1e-9), (rows, nbr[:, 1:].ravel())), shape=(n, n)
-    )
-    seeds = np.unique(seeds)
-    geo = dijkstra(graph, directed=False, indices=seeds)  # [S, N]
-    unit = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    for s, g in zip(seeds, geo, strict=True):
-        angle = np.arccos(np.clip(unit @ unit[s], -1.0, 1.0))
-        finite = np.isfinite(g)
-        gmax = g[finite].max() if finite.any() and g[finite].max() > 0 else 1.0
-        amax = angle.max() if angle.max() > 0 else 1.0
-        w = np.exp(-config.angle_weight * angle / amax) * np.exp(
-            -config.geodesic_weight * np.where(finite, g, np.inf) / gmax
-        )
+    graph = graph if graph is not None else CloudGraph(points, normals, config)
+    for w in graph.weights(np.unique(seeds)):
         out += w
     return (out / out.max()).astype(np.float32)
 
@@ -92,13 +116,15 @@ def annotate(
     object_cloud,
     support_cloud,
     config: AnnotationConfig = AnnotationConfig(),
+    graphs: tuple[CloudGraph, CloudGraph] | None = None,
 ) -> ContactAnnotation:
     """Annotate one stable pose.
 
     ``contacts_object`` / ``contacts_support``: [K, 3] world-frame contact points on each body
     (from :func:`sim.kernels.contact_query`, masked); ``pose`` [7] the object's pose;
     ``object_cloud`` (object frame) and ``support_cloud`` (world frame) are
-    :class:`sim.camera.PointCloud`.
+    :class:`sim.camera.PointCloud`. ``graphs``: (object, support) :class:`CloudGraph` of
+    these clouds, shared by all poses of a pair (built per call if None).
     """
     keep = dedupe_contacts(contacts_object, contacts_support, config.dedupe_radius)
     co, cs = contacts_object[keep], contacts_support[keep]
@@ -110,8 +136,12 @@ def annotate(
     else:
         oi = si = np.zeros(0, dtype=int)
     return ContactAnnotation(
-        soft_contact_map(object_cloud.points, object_cloud.normals, oi, config),
-        soft_contact_map(support_cloud.points, support_cloud.normals, si, config),
+        soft_contact_map(
+            object_cloud.points, object_cloud.normals, oi, config, graphs and graphs[0]
+        ),
+        soft_contact_map(
+            support_cloud.points, support_cloud.normals, si, config, graphs and graphs[1]
+        ),
         np.stack([oi, si], axis=1).astype(np.int32) if len(keep) else np.zeros((0, 2), np.int32),
         co_local.astype(np.float32),
         cs.astype(np.float32),

@@ -411,10 +411,15 @@ def derive_pair(obj: Asset, support: Asset, record: dict, config: DatasetConfig)
     pairs = []
     if len(poses):
         con = kernels.contact_query(scene, poses)
+        cfg = annotate.AnnotationConfig()
+        graphs = (
+            annotate.CloudGraph(oc.points, oc.normals, cfg),
+            annotate.CloudGraph(sc.points, sc.normals, cfg),
+        )
         for i in range(len(poses)):
             k = con.mask[i]
             ann = annotate.annotate(
-                con.object_points[i, k], con.support_points[i, k], poses[i], oc, sc
+                con.object_points[i, k], con.support_points[i, k], poses[i], oc, sc, cfg, graphs
             )
             obj_maps[i], sup_maps[i] = ann.object_map, ann.support_map
             pairs.append(ann.pairs)
