@@ -89,6 +89,12 @@ def main(argv=None) -> dict:
         help="stop a stage after this many seconds (checkpointed; rerun to continue), "
         "e.g. 1=300,2a=90,2b=60",
     )
+    parser.add_argument(
+        "--data-on-device",
+        action="store_true",
+        help="keep every pair in device memory and gather batches there (GPU; ~1.8 MB per "
+        "paper-scale pair) instead of stacking batches on the host",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     budget = None
@@ -126,6 +132,7 @@ def main(argv=None) -> dict:
         steps=args.steps,
         progress=not args.no_progress,
         time_budget_s=budget,
+        data_on_device=args.data_on_device,
     )
     summary = {stage: int(state.step) for stage, state in states.items()}
     print(f"trained steps per stage: {summary}; outputs in {args.out}")

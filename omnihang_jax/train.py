@@ -594,16 +594,18 @@ def train_stage(
     return state
 
 
-def make_dataset(data: str, config: WhereConfig, split: str = "train") -> data_lib.HangDataset:
+def make_dataset(
+    data: str, config: WhereConfig, split: str = "train", on_device: bool = False
+) -> data_lib.HangDataset:
     """``"synthetic"`` -> an in-memory pool of ring-on-peg pairs; else a dataset directory
-    (``data.load_hang_dataset``)."""
+    (``data.load_hang_dataset``; ``on_device``: all pairs in device memory)."""
     if data == "synthetic":
         n = config.num_object_points
         pool = data_lib.synthetic_batch(
             jax.random.key(config.train.seed + 12345), config.train.synthetic_pairs, n
         )
         return data_lib.ArrayDataset(pool)
-    return data_lib.load_hang_dataset(data, split=split, cache=True)
+    return data_lib.load_hang_dataset(data, split=split, cache=True, on_device=on_device)
 
 
 def train_where(
@@ -614,13 +616,14 @@ def train_where(
     steps: int | None = None,
     progress: bool = True,
     time_budget_s: dict[str, float] | None = None,
+    data_on_device: bool = False,
 ) -> dict[str, TrainState]:
     """Train the requested stages in order (1, 2a, 2b) into ``out``; resumes each stage.
 
     2b starts from 2a's latest parameters when it has no checkpoint of its own.
     Returns the final TrainState per stage.
     """
-    dataset = make_dataset(data, config)
+    dataset = make_dataset(data, config, on_device=data_on_device)
     states = {}
     for stage in STAGES:
         if stage not in stages:

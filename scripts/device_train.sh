@@ -63,7 +63,7 @@ setsid bash -c "$(declare -f gen); OUT=$OUT GEN_PART=$GEN_PART gen 12 $((END_S -
 
 # 3. train on the GPU
 python3 -m experiments.train_where --data /tmp/ds --out /tmp/run --preset "$PRESET" \
-    --batch "$BATCH" --steps 1000000 --time-budget "1=$S1,2a=$S2A,2b=$S2B" --no-progress \
+    --batch "$BATCH" --steps 1000000 --time-budget "1=$S1,2a=$S2A,2b=$S2B" --data-on-device --no-progress \
     >"$OUT/train.log" 2>&1
 log "trained: $(tail -1 "$OUT/train.log")"
 

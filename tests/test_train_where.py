@@ -184,6 +184,17 @@ def test_dataset_directory_round_trip_and_errors(tmp_path):
     assert batch.stable_poses.shape == (4, 5, 7) and batch.pose_mask.shape == (4, 5)
     assert batch.contact_pairs.shape == (4, 5, 1, 2) and batch.contact_pairs.dtype == np.int32
     assert not batch.pose_mask[:, 3:].any()
+    # the device-resident dataset gives the very same batches for the same rng, and so do
+    # the host cache and the plain reader
+    on_device = data.load_hang_dataset(tmp_path, max_poses=5, on_device=True)
+    cached = data.load_hang_dataset(tmp_path, max_poses=5, cache=True)
+    assert isinstance(on_device, data.DeviceDataset) and len(on_device) == 3
+    for seed in (0, 1):
+        ref = dataset.sample_batch(np.random.default_rng(seed), 4)
+        for other in (on_device, cached):
+            got = other.sample_batch(np.random.default_rng(seed), 4)
+            for field, a, b in zip(data.HangSample._fields, ref, got, strict=True):
+                np.testing.assert_array_equal(np.asarray(b), a, err_msg=field)
 
     # NaN in a stored cloud -> clear ValueError naming the file, when it is read.
     bad_points = samples[0].support_points.copy()
