@@ -28,6 +28,7 @@ Heavy arrays (partial clouds, contact maps, contact pairs) are derived from the 
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import hashlib
 import json
@@ -207,18 +208,37 @@ def collision_poses(obj: Asset, support: Asset, seed: int, config: DatasetConfig
 # ----------------------------------------------------------------------------- one pair
 
 
+# Seconds spent per stage of generate_pair in this process (the dataset card's "time per
+# stage"); process workers send theirs back with each shard.
+STAGE_SECONDS: collections.Counter = collections.Counter()
+
+
+class _timed:
+    def __init__(self, stage: str):
+        self.stage = stage
+
+    def __enter__(self):
+        self.t0 = time.perf_counter()
+
+    def __exit__(self, *exc):
+        STAGE_SECONDS[self.stage] += time.perf_counter() - self.t0
+
+
 def generate_pair(
     obj: Asset, support: Asset, seed: int, config: DatasetConfig, backend: str = "cpu"
 ) -> dict:
     """Labels of one pair (see the module docstring for the fields)."""
     rng = np.random.default_rng([seed, 1])
-    scene = build_scene(obj, support)
+    with _timed("scene"):
+        scene = build_scene(obj, support)
     stable = []
     counts = dict(n_candidates=0, n_penetrating=0, n_fallen=0, n_stable_raw=0)
     while counts["n_candidates"] < config.max_candidates and len(stable) < 2 * config.max_stable:
         n = min(config.batch, config.max_candidates - counts["n_candidates"])
-        cand = draw_candidates(obj, support, rng, n, config)
-        res = kernels.stability(scene, cand, config.stability, backend=backend)
+        with _timed("proposals"):
+            cand = draw_candidates(obj, support, rng, n, config)
+        with _timed("stability"):
+            res = kernels.stability(scene, cand, config.stability, backend=backend)
         counts["n_candidates"] += n
         counts["n_penetrating"] += int((res.status == kernels.PENETRATING).sum())
         counts["n_fallen"] += int((res.status == kernels.FALLEN).sum())
@@ -230,15 +250,18 @@ def generate_pair(
     removable = np.zeros(len(stable_arr), dtype=bool)
     if len(stable_arr):
         take_cfg = dataclasses.replace(config.takeoff, mass=mass, friction=friction)
-        removable = kernels.takeoff(scene, stable_arr, take_cfg, backend=backend).removable
+        with _timed("takeoff"):
+            removable = kernels.takeoff(scene, stable_arr, take_cfg, backend=backend).removable
     kept = stable_arr[removable][: config.max_stable]
     # the stored (quantised) poses are what everything downstream sees, negatives included
     kept = dequantise_poses(*quantise_poses(kept)).astype(float)
-    negative_kept = near_misses(scene, kept, seed, config, backend)
-
-    collision_kept, colliding = collision_labels(scene, obj, support, seed, config)
+    with _timed("negatives"):
+        negative_kept = near_misses(scene, kept, seed, config, backend)
+    with _timed("collision_labels"):
+        collision_kept, colliding = collision_labels(scene, obj, support, seed, config)
     # eyes: the view of each body that sees the most contact-map mass at the stable poses
-    obj_eye, sup_eye = choose_views(scene, kept, seed, config)
+    with _timed("views"):
+        obj_eye, sup_eye = choose_views(scene, kept, seed, config)
     return dict(
         **counts,
         n_takeoff_rejected=int((~removable).sum()),
@@ -582,16 +605,17 @@ def _worker_init(config: DatasetConfig, rec: dict, backend: str) -> None:
     _WORKER.update(library=library, config=config, pairs=pairs, rec=rec, backend=backend)
 
 
-def _worker_shard(job: tuple[int, str, float | None]) -> tuple[int, int]:
+def _worker_shard(job: tuple[int, str, float | None]) -> tuple[int, int, dict]:
     k, path, deadline = job
     if deadline is not None and time.time() > deadline:
-        return k, 0  # too late to start a shard: left for the next run
+        return k, 0, {}  # too late to start a shard: left for the next run
+    STAGE_SECONDS.clear()
     w = _WORKER
     records, chunk, ids = _shard_records(
         w["library"], w["config"], w["pairs"], w["rec"], k, w["backend"]
     )
     atomic.savez(path, **_pack(records, chunk, ids))
-    return k, len(chunk)
+    return k, len(chunk), dict(STAGE_SECONDS)
 
 
 def generate(
@@ -660,6 +684,8 @@ def generate(
         bar.set_postfix(pairs_per_min=f"{60 * done_pairs / max(time.time() - t0, 1e-9):.1f}")
 
     deadline = None if stop_after_s is None else time.time() + stop_after_s
+    STAGE_SECONDS.clear()
+    stage_seconds: collections.Counter = collections.Counter()
     shard_fn = _shard_records
     if backend == "mjx":  # every pair of a shard in one MuJoCo Warp call per round
         try:
@@ -687,10 +713,18 @@ def generate(
         jobs = [(k, str(out / "shards" / f"shard_{k:05d}.npz"), deadline) for k in todo]
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, _worker_init, (config, rec, backend)) as pool:
-            for _, n in pool.imap_unordered(_worker_shard, jobs):
+            for _, n, seconds in pool.imap_unordered(_worker_shard, jobs):
+                stage_seconds.update(seconds)
                 advance(n)
     bar.close()
-    timings = {"generate_s": time.time() - t0, "workers": workers, "part": list(part)}
+    stage_seconds.update(STAGE_SECONDS)
+    timings = {
+        "generate_s": time.time() - t0,
+        "workers": workers,
+        "part": list(part),
+        # summed over worker processes (CPU-seconds when workers > 1)
+        "stage_seconds": {k: round(v, 2) for k, v in sorted(stage_seconds.items())},
+    }
     if done_pairs:  # every run that did work is logged, so throughput survives resumes
         run = {
             "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -701,6 +735,7 @@ def generate(
             "part": list(part),
             "backend": backend,
             "device": _device(),
+            "stage_seconds": timings["stage_seconds"],
         }
         with open(out / "runs.jsonl", "a") as f:
             f.write(json.dumps(run) + "\n")
@@ -801,6 +836,9 @@ def dataset_card(
             "pairs_per_min_this_run": 60 * new_pairs / max(timings["generate_s"], 1e-9),
         },
         "runs": load_runs(out),
+        # seconds per stage of generate_pair, summed over the logged runs (CPU-seconds of
+        # all workers): where generation time goes
+        "time_per_stage_s": _sum_stage_seconds(load_runs(out)),
         "backend": backend,
         "mujoco_warnings_this_run": dict(
             kernels.MUJOCO_WARNINGS
@@ -813,6 +851,13 @@ def dataset_card(
     return card
 
 
+def _sum_stage_seconds(runs: list[dict]) -> dict:
+    total: collections.Counter = collections.Counter()
+    for r in runs:
+        total.update(r.get("stage_seconds", {}))
+    return {k: round(v, 1) for k, v in sorted(total.items())}
+
+
 def card_markdown(card: dict) -> str:
     lines = [
         f"# Dataset card ({card['preset']})",
@@ -823,6 +868,8 @@ def card_markdown(card: dict) -> str:
         f"- stable poses kept: {card['stable_poses']}; negatives: {card['negative_poses']}; collision labels: {card['collision_labels']} ({100 * card['colliding_fraction']:.1f}% colliding)",
         f"- candidates: {card['candidates']}; stable yield {100 * card['stable_yield']:.2f}%; penetrating {100 * card['penetrating_fraction']:.1f}%; take-off rejections {card['takeoff_rejections']}",
         f"- backend {card['backend']} on {card['device']}; {card['timings']['pairs_per_min_this_run']:.1f} pairs/min this run",
+        "- time per stage (CPU-s over logged runs): "
+        + (", ".join(f"{k} {v:.0f}" for k, v in card.get("time_per_stage_s", {}).items()) or "-"),
         "",
         "| run | pairs | minutes | pairs/min | workers | part | device |",
         "|---|---|---|---|---|---|---|",

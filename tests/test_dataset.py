@@ -94,6 +94,11 @@ def test_parts_and_workers_give_the_same_shards(generated, tmp_path):
     assert card["pairs_done"] == 4 and card["timings"]["pairs_this_run"] == 0
     assert [r["part"] for r in card["runs"]] == [[0, 2]]
     assert dataset.load_runs(b)[0]["workers"] == 2
+    # time per stage comes back from the worker processes too
+    stages = dataset.load_runs(b)[0]["stage_seconds"]
+    assert {"stability", "takeoff", "collision_labels", "views"} <= set(stages)
+    assert all(v >= 0 for v in stages.values()) and stages["stability"] > 0
+    assert set(card["time_per_stage_s"]) >= {"stability", "views"}
     for p in sorted((out / "shards").glob("shard_*.npz")):
         with np.load(p) as x, np.load(a / "shards" / p.name) as y:
             assert sorted(x.files) == sorted(y.files)
