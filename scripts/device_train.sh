@@ -13,7 +13,8 @@
 # loss curves, throughput.json per stage, the final weights from train.export_weights,
 # bench_where.json and the logs).
 # Environment knobs: DATA (default datasets/paper), PRESET (small), BATCH (32),
-# GEN_S (0: seconds after which generation on all cores before deriving starts no shard), DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
+# GEN_S (0: generate on all cores first, starting no shard after GEN_S s; the phase lasts
+# about GEN_S + one shard, ~3-4 min per 32-pair paper shard per core there), DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
 # SKIP_INSTALL=1 for a dry run here (with .venv/bin first on PATH).
 set -uo pipefail
 T0=$(date +%s)
@@ -88,5 +89,6 @@ comm -13 /tmp/gen_before.txt /tmp/gen_after.txt | grep '^shard_' | sed 's|^|shar
 tar -czf "$OUT/new_shards.tgz" -T /tmp/new.txt runs.jsonl 2>/dev/null
 log "new shards: $(wc -l </tmp/new.txt); done"
 # the device returns at most 8 files per call: everything else goes into one tarball
-cd "$OUT" && tar -czf results.tgz run weights bench_where.json derive.log train.log \
-    generate.log 2>/dev/null && rm -rf run weights bench_where.json derive.log train.log generate.log
+cd "$OUT" || exit 1
+items=$(ls -d run weights bench_where.json derive.log train.log generate.log 2>/dev/null)
+tar -czf results.tgz $items && rm -rf $items
