@@ -10,12 +10,20 @@ bounding box, touches the ground or diverges). Writes OUT (success per stage: me
 categories and per category, %), ERRORS (pose errors to the nearest ground-truth stable pose)
 and OUT with suffix .pairs.jsonl (one line per pair). --model ground_truth evaluates the
 dataset's own stable poses instead (a check of the protocol).
+
+--figure [PNG] also draws predicted hangs of --figure-pairs held-out pairs (ground truth,
+Stage 1, Stage 1+2; default PNG: OUT with suffix .png; experiments.where_figure). Redraw it
+later from the per-pair JSONL without the model:
+
+    python -m experiments.eval_where --figure-from results/hanging_success.pairs.jsonl \
+        --data data/paper --figure results/hanging_success.png
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from omnihang_jax import evaluate
 
@@ -24,11 +32,9 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument(
-        "--model", required=True, help="folder written by train_where, or 'ground_truth'"
-    )
+    parser.add_argument("--model", help="folder written by train_where, or 'ground_truth'")
     parser.add_argument("--data", required=True, help="generated dataset (or its derived/ folder)")
-    parser.add_argument("--out", required=True, help="results JSON")
+    parser.add_argument("--out", help="results JSON")
     parser.add_argument("--errors", default=None, help="pose-error JSON (default beside --out)")
     parser.add_argument(
         "--pairs-out", default=None, help="per-pair JSONL (default OUT.pairs.jsonl)"
@@ -49,7 +55,36 @@ def main(argv=None) -> dict:
         help="only the Stage-2-from-ground-truth diagnostic of this trained stage folder "
         "(MODEL/stage2b or MODEL/stage2a), written to --out; no simulation",
     )
+    parser.add_argument(
+        "--figure",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="PNG",
+        help="also draw predicted hangs into PNG (default: OUT with suffix .png)",
+    )
+    parser.add_argument("--figure-pairs", type=int, default=8, help="pairs in the figure (8)")
+    parser.add_argument(
+        "--figure-from",
+        metavar="PAIRS_JSONL",
+        default=None,
+        help="only draw the figure from an earlier run's per-pair JSONL (needs --data)",
+    )
     args = parser.parse_args(argv)
+    if args.figure_from is not None:
+        from experiments import where_figure
+
+        src = Path(args.figure_from)
+        png = args.figure or (
+            src.with_name(src.name[: -len(".pairs.jsonl")] + ".png")
+            if src.name.endswith(".pairs.jsonl")
+            else src.with_suffix(".png")
+        )
+        rows = where_figure.draw_where_figure(src, args.data, png, args.figure_pairs)
+        print(json.dumps({"figure": str(png), "rows": rows}, indent=1))
+        return {"figure": str(png), "rows": rows}
+    if args.model is None or args.out is None:
+        parser.error("--model and --out are required (unless --figure-from)")
     if args.stage2_only is not None:
         diag = evaluate.stage2_diagnostics(
             args.stage2_only, args.data, args.split, args.limit, args.seed
@@ -81,6 +116,13 @@ def main(argv=None) -> dict:
     brief = {k: results[k] for k in ("stage1", "stage1_2", "pairs")}
     if "ground_truth_reference" in results:
         brief["ground_truth_reference"] = results["ground_truth_reference"]["mean"]
+    if args.figure is not None:
+        from experiments import where_figure
+
+        png = args.figure or Path(args.out).with_suffix(".png")
+        pairs = args.pairs_out or Path(args.out).with_suffix(".pairs.jsonl")
+        where_figure.draw_where_figure(pairs, args.data, png, args.figure_pairs)
+        brief["figure"] = str(png)
     print(json.dumps(brief, indent=1))
     return results
 
