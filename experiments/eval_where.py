@@ -42,6 +42,13 @@ def main(argv=None) -> dict:
     parser.add_argument("--split", default="test", help="split of the derived pairs")
     parser.add_argument("--proposals", type=int, default=None, help="K (default: Stage-1 eval Z)")
     parser.add_argument("--candidate", type=int, default=0, help="proposal that is evaluated")
+    parser.add_argument(
+        "--select",
+        choices=["first", "penetration"],
+        default="first",
+        help="which proposal is evaluated: the first drawn, or the one whose object cloud "
+        "least enters the observed support cloud (omnihang_jax.heuristics)",
+    )
     parser.add_argument("--backend", choices=["cpu", "mjx"], default="cpu")
     parser.add_argument("--seed", type=int, default=0, help="Stage-1 noise seed")
     parser.add_argument("--label", default="", help="free text stored in the results")
@@ -97,6 +104,7 @@ def main(argv=None) -> dict:
     config = evaluate.EvalConfig(
         num_proposals=args.proposals,
         candidate=args.candidate,
+        select=args.select,
         backend=args.backend,
         seed=args.seed,
         split=args.split,

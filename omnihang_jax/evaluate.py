@@ -57,6 +57,7 @@ __all__ = [
     "EvalConfig",
     "PairPrediction",
     "predictor_fn",
+    "ranked_fn",
     "ground_truth_fn",
     "pose_errors",
     "evaluate_pairs",
@@ -87,6 +88,9 @@ class EvalConfig:
     stability: object | None = None
     num_proposals: int | None = None  # K per pair; None: the Stage-1 config's num_eval_samples
     candidate: int = 0  # the proposal that counts as "the" prediction (no Stage 3 to rank)
+    # "first": proposals in their drawn order; "penetration": each stage's K proposals sorted
+    # by omnihang_jax.heuristics.rank_by_penetration (observed clouds only), least first
+    select: str = "first"
     backend: str = "cpu"  # physics backend of sim.kernels.stability
     seed: int = 0  # Stage-1 noise: key = fold_in(key(seed), pair_index)
     split: str = "test"
@@ -120,6 +124,26 @@ def predictor_fn(predictor, num_proposals: int | None = None, seed: int = 0) -> 
         return PairPrediction(np.asarray(out.stage1_poses[0]), np.asarray(out.stage2_poses[0]))
 
     return predict
+
+
+def ranked_fn(predict: PredictFn, object_stride: int = 4) -> PredictFn:
+    """Reorder each stage's K proposals by :func:`omnihang_jax.heuristics.rank_by_penetration`
+    (least penetration of the object cloud into the observed support cloud first), so that
+    the evaluated candidate is the heuristic's pick. Uses only the sample's partial clouds
+    (every ``object_stride``-th object point, for speed)."""
+    from omnihang_jax.heuristics import rank_by_penetration
+
+    def ranked(sample: HangSample, meta: dict) -> PairPrediction:
+        out = predict(sample, meta)
+        obj = np.asarray(sample.object_points)[::object_stride]
+        sup, nrm = np.asarray(sample.support_points), np.asarray(sample.support_normals)
+        poses = []
+        for stage in (out.stage1_poses, out.stage2_poses):
+            order, _ = rank_by_penetration(obj, sup, nrm, np.asarray(stage, np.float32))
+            poses.append(np.asarray(stage)[np.asarray(order)])
+        return PairPrediction(*poses)
+
+    return ranked
 
 
 def ground_truth_fn(index: int = 0) -> PredictFn:
@@ -447,6 +471,10 @@ def evaluate_where(
         predictor = load_predictor(model_dir, seed=config.seed)
         k = config.num_proposals or predictor.stage1_config.num_eval_samples
         predict = predictor_fn(predictor, k, config.seed)
+        if config.select == "penetration":
+            predict = ranked_fn(predict)
+        elif config.select != "first":
+            raise ValueError(f"select must be 'first' or 'penetration', got {config.select!r}")
     else:
         predict = ground_truth_fn()
     records = evaluate_pairs(files, predict, library, config, progress)
@@ -478,7 +506,13 @@ def evaluate_where(
             "stability": dataclasses.asdict(stability),
             "backend": config.backend,
             "num_proposals": records[0]["num_proposals"] if records else None,
-            "candidate": f"proposal {config.candidate} of K (no Stage 3 to rank them)",
+            "candidate": (
+                f"proposal {config.candidate} of K (no Stage 3 to rank them)"
+                if config.select == "first"
+                else f"proposal {config.candidate} of K after sorting each stage's proposals "
+                "by observed-cloud penetration (omnihang_jax.heuristics), least first"
+            ),
+            "select": config.select,
             "stage1_2": "Stage-2 refinement of the same proposal",
             "success": "status stable after 1 s from rest; fails if initial penetration > 3 mm, "
             "boxes stop overlapping, ground touched or simulation diverged",

@@ -1,0 +1,67 @@
+"""The observed-cloud penetration heuristic: a ball sunk into a wall scores above one resting
+on it, proposals are ranked least-penetrating first, and the evaluation's ranked predictor
+puts the heuristic's pick in front."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from omnihang_jax import evaluate, heuristics
+from omnihang_jax.data import HangSample
+
+
+def _clouds(rng):
+    # the observed support: the face z = 0 of a slab, normals +z (towards the camera)
+    xy = rng.uniform(-0.1, 0.1, size=(2000, 2))
+    support = np.concatenate([xy, np.zeros((2000, 1))], axis=1).astype(np.float32)
+    normals = np.tile(np.float32([0, 0, 1]), (2000, 1))
+    d = rng.normal(size=(500, 3))
+    ball = (0.02 * d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    return ball, support, normals
+
+
+def _pose(z):
+    return np.float32([0.0, 0.0, z, 1.0, 0.0, 0.0, 0.0])
+
+
+def test_sunk_ball_scores_above_resting_ball_and_far_points_do_not_count():
+    ball, support, normals = _clouds(np.random.default_rng(0))
+    resting = heuristics.penetration_score(ball, support, normals, _pose(0.0205))
+    sunk = heuristics.penetration_score(ball, support, normals, _pose(0.012))
+    deep = heuristics.penetration_score(ball, support, normals, _pose(-0.05))
+    assert float(resting) == 0.0
+    assert 0.05 < float(sunk) < 0.5
+    # wholly behind the visible face, farther than the window: not counted (partial view)
+    assert float(deep) == 0.0
+
+
+def test_rank_by_penetration_orders_least_first_and_is_stable():
+    ball, support, normals = _clouds(np.random.default_rng(1))
+    poses = np.stack([_pose(0.012), _pose(0.03), _pose(0.005), _pose(0.04)])
+    order, scores = heuristics.rank_by_penetration(ball, support, normals, poses)
+    assert scores[1] == scores[3] == 0.0 and scores[2] > scores[0] > 0
+    assert np.asarray(order).tolist() == [1, 3, 0, 2]
+
+
+def test_ranked_predictor_puts_the_clear_proposal_first():
+    ball, support, normals = _clouds(np.random.default_rng(2))
+    sample = HangSample(
+        object_points=ball,
+        object_normals=ball,
+        support_points=support,
+        support_normals=normals,
+        stable_poses=_pose(0.02)[None],
+        pose_mask=np.ones(1, bool),
+        object_contact_maps=np.zeros((1, 500), np.float32),
+        support_contact_maps=np.zeros((1, 2000), np.float32),
+        contact_pairs=np.zeros((1, 1, 2), np.int32),
+        contact_mask=np.zeros((1, 1), bool),
+    )
+    sunk, clear = _pose(0.01), _pose(0.025)
+
+    def predict(sample, meta):
+        return evaluate.PairPrediction(np.stack([sunk, clear]), np.stack([clear, sunk]))
+
+    out = evaluate.ranked_fn(predict, object_stride=1)(sample, {"pair_index": 0})
+    np.testing.assert_array_equal(out.stage1_poses[0], clear)
+    np.testing.assert_array_equal(out.stage2_poses[0], clear)
