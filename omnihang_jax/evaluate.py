@@ -126,6 +126,16 @@ def predictor_fn(predictor, num_proposals: int | None = None, seed: int = 0) -> 
     return predict
 
 
+def default_errors_path(results_path: str | os.PathLike) -> Path:
+    """Pose-error JSON beside the results: ``hanging_success<X>.json`` ->
+    ``pose_errors<X>.json``, any other ``name.json`` -> ``name.pose_errors.json`` (so two
+    evaluations written to different results files never overwrite each other's errors)."""
+    p = Path(results_path)
+    if p.stem.startswith("hanging_success"):
+        return p.with_name("pose_errors" + p.stem[len("hanging_success") :] + ".json")
+    return p.with_name(p.stem + ".pose_errors.json")
+
+
 def ranked_fn(predict: PredictFn, object_stride: int = 4) -> PredictFn:
     """Reorder each stage's K proposals by :func:`omnihang_jax.heuristics.rank_by_penetration`
     (least penetration of the object cloud into the observed support cloud first), so that
@@ -548,7 +558,7 @@ def evaluate_where(
     if diagnostics:
         errors["stage2_from_ground_truth"] = diagnostics
     results_path = Path(results_path)
-    errors_path = Path(errors_path) if errors_path else results_path.with_name("pose_errors.json")
+    errors_path = Path(errors_path) if errors_path else default_errors_path(results_path)
     pairs_path = Path(pairs_path) if pairs_path else results_path.with_suffix(".pairs.jsonl")
     _atomic_write_text(results_path, json.dumps(results, indent=1) + "\n")
     _atomic_write_text(errors_path, json.dumps(errors, indent=1) + "\n")

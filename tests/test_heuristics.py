@@ -65,3 +65,11 @@ def test_ranked_predictor_puts_the_clear_proposal_first():
     out = evaluate.ranked_fn(predict, object_stride=1)(sample, {"pair_index": 0})
     np.testing.assert_array_equal(out.stage1_poses[0], clear)
     np.testing.assert_array_equal(out.stage2_poses[0], clear)
+
+
+def test_pose_errors_default_beside_their_results():
+    assert evaluate.default_errors_path("r/hanging_success.json").name == "pose_errors.json"
+    assert (
+        evaluate.default_errors_path("r/hanging_success_demo.json").name == "pose_errors_demo.json"
+    )
+    assert evaluate.default_errors_path("r/x.json").name == "x.pose_errors.json"
