@@ -211,3 +211,18 @@ def test_datasets_from_before_a_new_config_field_stay_resumable(generated):
     with pytest.raises(ValueError, match="n_views"):
         dataset.generate(CFG, out, preset="test", progress=False)
     path.write_text(original)  # the module's fixture is shared
+
+
+def test_export_sample_cli(generated, tmp_path, capsys):
+    from experiments import export_sample
+
+    out, _ = generated
+    rows = export_sample.main(["--data", str(out), "--list", "3"])["pairs"]
+    assert rows and all(r["poses"] > 0 for r in rows)
+    meta = export_sample.main(
+        ["--data", str(out), "--pair", str(rows[0]["pair"]), "--out", str(tmp_path / "s")]
+    )
+    assert (tmp_path / "s" / "object.obj").exists() and (tmp_path / "s" / "support.obj").exists()
+    assert np.asarray(meta["matrix_4x4"]).shape == (4, 4)
+    with pytest.raises(SystemExit):
+        export_sample.main(["--data", str(out), "--pair", "99999", "--out", str(tmp_path / "x")])
