@@ -226,3 +226,12 @@ def test_export_sample_cli(generated, tmp_path, capsys):
     assert np.asarray(meta["matrix_4x4"]).shape == (4, 4)
     with pytest.raises(SystemExit):
         export_sample.main(["--data", str(out), "--pair", "99999", "--out", str(tmp_path / "x")])
+
+
+def test_mjx_backend_without_warp_says_what_to_install(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "warp", None)  # import warp -> ImportError
+    with pytest.raises(ValueError, match="warp-lang"):
+        dataset.generate(CFG, tmp_path, preset="test", progress=False, backend="mjx")
+    assert not list((tmp_path / "shards").glob("*.npz"))
