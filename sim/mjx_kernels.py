@@ -326,6 +326,10 @@ def with_material(batch: Batch, mass: float | None, friction: float | None) -> m
         m = m.replace(
             body_mass=m.body_mass.at[:, OBJECT_BODY].set(mass),
             body_inertia=m.body_inertia.at[:, OBJECT_BODY].multiply(factor[:, None]),
+            # as mj_setConst after a mass change (kernels.with_material): the free object's
+            # inverse weights scale by 1 / factor; its 6 dofs are the model's only dofs
+            body_invweight0=m.body_invweight0.at[:, OBJECT_BODY].divide(factor[:, None]),
+            dof_invweight0=m.dof_invweight0 / factor[:, None],
         )
     if friction is not None:
         m = m.replace(pair_friction=m.pair_friction.at[:, :, 0:2].set(friction))
