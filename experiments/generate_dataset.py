@@ -14,6 +14,8 @@ import argparse
 import dataclasses
 import json
 import os
+import signal
+import sys
 
 from sim import dataset
 
@@ -75,8 +77,24 @@ def main(argv=None) -> dict:
         i_part, n_part = (int(x) for x in args.part.split("/"))
     except ValueError:
         parser.error(f"--part must look like I/N (e.g. 0/2), got {args.part!r}")
+    # SIGTERM (a job scheduler's or `timeout`'s stop) ends the run like Ctrl-C: finished
+    # shards stay, the run is logged in DIR/runs.jsonl as interrupted
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     workers = 1 if args.card_only else (args.workers or len(os.sched_getaffinity(0)))
-    card = dataset.generate(
+    try:
+        card = _generate(args, config, workers, i_part, n_part)
+    except KeyboardInterrupt:
+        print(
+            f"interrupted: finished shards are kept in {args.out}/shards and the run is logged "
+            "in runs.jsonl; run the same command again to resume",
+            file=sys.stderr,
+        )
+        raise SystemExit(130) from None
+    return _report(args, card)
+
+
+def _generate(args, config, workers: int, i_part: int, n_part: int) -> dict:
+    return dataset.generate(
         config,
         args.out,
         preset=args.preset,
@@ -86,6 +104,9 @@ def main(argv=None) -> dict:
         part=(i_part, n_part),
         stop_after_s=0.0 if args.card_only else args.stop_after,
     )
+
+
+def _report(args, card: dict) -> dict:
     summary = {
         k: card[k]
         for k in (

@@ -700,45 +700,50 @@ def generate(
         def shard_fn(library, config, pairs, rec, k, backend):
             return shard_records_batched(library, config, pairs, rec, k)
 
-    if workers <= 1:
-        for k in todo:
-            if deadline is not None and time.time() > deadline:
-                break
-            records, chunk, ids = shard_fn(library, config, pairs, rec, k, backend)
-            atomic.savez(out / "shards" / f"shard_{k:05d}.npz", **_pack(records, chunk, ids))
-            advance(len(chunk))
-    elif todo:
-        import multiprocessing as mp
+    interrupted = True
+    try:
+        if workers <= 1:
+            for k in todo:
+                if deadline is not None and time.time() > deadline:
+                    break
+                records, chunk, ids = shard_fn(library, config, pairs, rec, k, backend)
+                atomic.savez(out / "shards" / f"shard_{k:05d}.npz", **_pack(records, chunk, ids))
+                advance(len(chunk))
+        elif todo:
+            import multiprocessing as mp
 
-        jobs = [(k, str(out / "shards" / f"shard_{k:05d}.npz"), deadline) for k in todo]
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, _worker_init, (config, rec, backend)) as pool:
-            for _, n, seconds in pool.imap_unordered(_worker_shard, jobs):
-                stage_seconds.update(seconds)
-                advance(n)
-    bar.close()
-    stage_seconds.update(STAGE_SECONDS)
-    timings = {
-        "generate_s": time.time() - t0,
-        "workers": workers,
-        "part": list(part),
-        # summed over worker processes (CPU-seconds when workers > 1)
-        "stage_seconds": {k: round(v, 2) for k, v in sorted(stage_seconds.items())},
-    }
-    if done_pairs:  # every run that did work is logged, so throughput survives resumes
-        run = {
-            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "pairs": done_pairs,
-            "seconds": round(timings["generate_s"], 2),
-            "pairs_per_min": round(60 * done_pairs / max(timings["generate_s"], 1e-9), 2),
+            jobs = [(k, str(out / "shards" / f"shard_{k:05d}.npz"), deadline) for k in todo]
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(workers, _worker_init, (config, rec, backend)) as pool:
+                for _, n, seconds in pool.imap_unordered(_worker_shard, jobs):
+                    stage_seconds.update(seconds)
+                    advance(n)
+        interrupted = False
+    finally:
+        bar.close()
+        stage_seconds.update(STAGE_SECONDS)
+        timings = {
+            "generate_s": time.time() - t0,
             "workers": workers,
             "part": list(part),
-            "backend": backend,
-            "device": _device(),
-            "stage_seconds": timings["stage_seconds"],
+            # summed over worker processes (CPU-seconds when workers > 1)
+            "stage_seconds": {k: round(v, 2) for k, v in sorted(stage_seconds.items())},
         }
-        with open(out / "runs.jsonl", "a") as f:
-            f.write(json.dumps(run) + "\n")
+        if done_pairs:  # every run that did work is logged, so throughput survives resumes
+            run = {
+                "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "pairs": done_pairs,
+                "seconds": round(timings["generate_s"], 2),
+                "pairs_per_min": round(60 * done_pairs / max(timings["generate_s"], 1e-9), 2),
+                "workers": workers,
+                "part": list(part),
+                "backend": backend,
+                "device": _device(),
+                "stage_seconds": timings["stage_seconds"],
+                "interrupted": interrupted,  # killed (Ctrl-C / SIGTERM): shards so far count
+            }
+            with open(out / "runs.jsonl", "a") as f:
+                f.write(json.dumps(run) + "\n")
     card = dataset_card(out, library, pairs, rec, timings, backend, done_pairs)
     return card
 

@@ -235,3 +235,21 @@ def test_mjx_backend_without_warp_says_what_to_install(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="warp-lang"):
         dataset.generate(CFG, tmp_path, preset="test", progress=False, backend="mjx")
     assert not list((tmp_path / "shards").glob("*.npz"))
+
+
+def test_an_interrupted_run_keeps_its_shards_and_logs_itself(tmp_path, monkeypatch):
+    real = dataset._shard_records
+    calls = []
+
+    def stop_on_second(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # what SIGTERM becomes in experiments.generate_dataset
+        return real(*args)
+
+    monkeypatch.setattr(dataset, "_shard_records", stop_on_second)
+    with pytest.raises(KeyboardInterrupt):
+        dataset.generate(CFG, tmp_path, preset="test", progress=False)
+    assert len(list((tmp_path / "shards").glob("shard_*.npz"))) == 1
+    (run,) = dataset.load_runs(tmp_path)
+    assert run["interrupted"] and run["pairs"] == CFG.shard_size
