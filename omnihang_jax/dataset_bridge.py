@@ -89,18 +89,6 @@ def pair_file_name(pair_index: int, object_name: str, support_name: str) -> str:
     return f"{pair_index:05d}_{object_name}__{support_name}.npz"
 
 
-def _atomic_savez(path: Path, arrays: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp_", suffix=".npz")
-    os.close(fd)
-    try:
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-
-
 def _records(dataset_dir: Path) -> list[dict]:
     from sim import dataset
 
@@ -141,7 +129,9 @@ def _derive_one(job: tuple[dict, str]) -> None:
         support_family=np.str_(sup.category),
         split=np.str_(split),
     )
-    _atomic_savez(Path(path), {**sample._asdict(), **meta})
+    from sim import atomic
+
+    atomic.savez(path, **sample._asdict(), **meta)
 
 
 def derive_dataset(
