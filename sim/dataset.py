@@ -671,6 +671,7 @@ def generate(
     todo = [k for k in mine if not (out / "shards" / f"shard_{k:05d}.npz").exists()]
     t0 = time.time()
     done_pairs = 0
+    written: list[int] = []  # shards this run wrote (provenance in runs.jsonl)
     total = sum(min(config.shard_size, len(pairs) - k * config.shard_size) for k in mine)
     bar = tqdm(total=total, desc="pairs", unit="pair", disable=not progress, smoothing=0.1)
     bar.update(
@@ -708,6 +709,7 @@ def generate(
                     break
                 records, chunk, ids = shard_fn(library, config, pairs, rec, k, backend)
                 atomic.savez(out / "shards" / f"shard_{k:05d}.npz", **_pack(records, chunk, ids))
+                written.append(k)
                 advance(len(chunk))
         elif todo:
             import multiprocessing as mp
@@ -715,8 +717,10 @@ def generate(
             jobs = [(k, str(out / "shards" / f"shard_{k:05d}.npz"), deadline) for k in todo]
             ctx = mp.get_context("spawn")
             with ctx.Pool(workers, _worker_init, (config, rec, backend)) as pool:
-                for _, n, seconds in pool.imap_unordered(_worker_shard, jobs):
+                for k, n, seconds in pool.imap_unordered(_worker_shard, jobs):
                     stage_seconds.update(seconds)
+                    if n:
+                        written.append(k)
                     advance(n)
         interrupted = False
     finally:
@@ -741,6 +745,7 @@ def generate(
                 "device": _device(),
                 "stage_seconds": timings["stage_seconds"],
                 "interrupted": interrupted,  # killed (Ctrl-C / SIGTERM): shards so far count
+                "shards": sorted(written),  # which labels this backend/device made
             }
             with open(out / "runs.jsonl", "a") as f:
                 f.write(json.dumps(run) + "\n")

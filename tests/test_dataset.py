@@ -94,6 +94,9 @@ def test_parts_and_workers_give_the_same_shards(generated, tmp_path):
     assert card["pairs_done"] == 4 and card["timings"]["pairs_this_run"] == 0
     assert [r["part"] for r in card["runs"]] == [[0, 2]]
     assert dataset.load_runs(b)[0]["workers"] == 2
+    # provenance: which shards each run wrote
+    assert dataset.load_runs(b)[0]["shards"] == [1]
+    assert dataset.load_runs(a)[0]["shards"] == [0]
     # time per stage comes back from the worker processes too
     stages = dataset.load_runs(b)[0]["stage_seconds"]
     assert {"stability", "takeoff", "collision_labels", "views"} <= set(stages)
@@ -253,3 +256,4 @@ def test_an_interrupted_run_keeps_its_shards_and_logs_itself(tmp_path, monkeypat
     assert len(list((tmp_path / "shards").glob("shard_*.npz"))) == 1
     (run,) = dataset.load_runs(tmp_path)
     assert run["interrupted"] and run["pairs"] == CFG.shard_size
+    assert run["shards"] == [0]

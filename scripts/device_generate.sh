@@ -1,0 +1,75 @@
+#!/usr/bin/env bash
+# Device side of issue 4's GPU measurement: paper-dataset generation with `--backend mjx`
+# (MuJoCo Warp, every pair of a 32-pair shard in one GPU call per round).
+#
+# Run as the last of the warp-bundle calls (scripts/device_bench.md), after join + install
+# into /tmp/site:  bash scripts/device_generate.sh
+#
+# Phase 1: one generator process on part MJX_PARTS[0] (its first shard includes MuJoCo
+#          Warp's kernel compilation, ~235 s on a fresh machine; cached in ~/.cache/warp).
+# Phase 2: once that first shard exists, MJX_PROCS-1 more processes on the other parts, so
+#          the CPU stages of one (views, collision labels, contact queries) overlap the GPU
+#          rounds of the others. No shard is started after END_S (running ones finish; the
+#          hard stop at KILL_S loses only unfinished shards, never a written one).
+# Everything comes back in $OUT as: device_generate.log, mjx_shards.tgz (new shards +
+# runs.jsonl with one line per process: pairs, seconds, stage seconds, shards),
+# shard_times.txt (shard, seconds after start), smi.csv (GPU utilisation every 5 s).
+set -uo pipefail
+T0=$(date +%s)
+OUT=${OUT:-/tmp/out}
+DATA=${DATA:-datasets/paper}
+MJX_PROCS=${MJX_PROCS:-4}
+MJX_PARTS=${MJX_PARTS:-"0/8 1/8 2/8 3/8"}
+END_S=${END_S:-420}
+KILL_S=${KILL_S:-560}
+G=/tmp/gmjx
+mkdir -p "$OUT" "$G/shards"
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+log() { echo "[$(($(date +%s) - T0)) s] $*" | tee -a "$OUT/device_generate.log"; }
+nvidia-smi -L | tee -a "$OUT/device_generate.log"
+nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -l 5 >"$OUT/smi.csv" &
+SMI=$!
+cp "$DATA/recipe.json" "$G/"
+cp "$DATA"/shards/shard_*.npz "$G/shards/" 2>/dev/null
+ls "$G/shards" >/tmp/mjx_before.txt
+log "$(wc -l </tmp/mjx_before.txt) shards already done"
+
+gen() {  # part, seconds left for starting shards
+    python3 -m experiments.generate_dataset --preset paper --out "$G" --backend mjx \
+        --part "$1" --stop-after "$2" --no-progress >>"$OUT/generate_${1/\//of}.log" 2>&1
+}
+new_shards() { comm -13 /tmp/mjx_before.txt <(ls "$G/shards") | grep -c '^shard_'; }
+
+set -- $MJX_PARTS
+first=$1
+shift
+gen "$first" $((END_S - $(date +%s) + T0)) &
+pids=($!)
+while [ "$(new_shards)" -eq 0 ] && kill -0 "${pids[0]}" 2>/dev/null &&
+    [ $(($(date +%s) - T0)) -lt "$END_S" ]; do
+    sleep 2
+done
+log "first mjx shard written (includes Warp compilation): $(new_shards) new"
+for p in "$@"; do
+    [ ${#pids[@]} -ge "$MJX_PROCS" ] && break
+    left=$((END_S - $(date +%s) + T0))
+    [ "$left" -gt 0 ] || break
+    gen "$p" "$left" &
+    pids+=($!)
+    log "started part $p (pid $!)"
+done
+while [ $(($(date +%s) - T0)) -lt "$KILL_S" ] && pgrep -f "out $G" >/dev/null; do
+    sleep 3
+done
+pkill -f "out $G" && log "stopped generators still running at ${KILL_S} s"
+sleep 2
+kill $SMI 2>/dev/null
+cd "$G" || exit 1
+comm -13 /tmp/mjx_before.txt <(ls shards) | grep '^shard_' >/tmp/mjx_new.txt
+while read -r f; do
+    echo "$f $(($(stat -c %Y "shards/$f") - T0))"
+done </tmp/mjx_new.txt >"$OUT/shard_times.txt"
+sed 's|^|shards/|' /tmp/mjx_new.txt >/tmp/mjx_new_paths.txt
+tar -czf "$OUT/mjx_shards.tgz" -T /tmp/mjx_new_paths.txt runs.jsonl "$OUT"/generate_*.log 2>/dev/null
+rm -f "$OUT"/generate_*.log
+log "new shards: $(wc -l </tmp/mjx_new.txt); $(cat runs.jsonl 2>/dev/null | wc -l) runs logged; done"
