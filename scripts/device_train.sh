@@ -15,6 +15,7 @@
 # Environment knobs: DATA (default datasets/paper), PRESET (small), BATCH (32),
 # GEN_S (0: generate on all cores first, starting no shard after GEN_S s; the phase lasts
 # about GEN_S + one shard, ~3-4 min per 32-pair paper shard per core there), DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
+# GEN_ONLY=1: stop after the generation phase (a CPU-throughput call);
 # SKIP_INSTALL=1 for a dry run here (with .venv/bin first on PATH).
 set -uo pipefail
 T0=$(date +%s)
@@ -43,12 +44,18 @@ mkdir -p /tmp/gen/shards && cp "$DATA/recipe.json" /tmp/gen/
 cp "$DATA"/shards/shard_*.npz /tmp/gen/shards/ 2>/dev/null
 ls /tmp/gen/shards >/tmp/gen_before.txt
 gen() {  # workers, start no shard after this many seconds (running shards finish)
-    python3 -m experiments.generate_dataset --preset paper --out /tmp/gen \
+    timeout -s TERM "${GEN_HARD_S:-100000}" python3 -m experiments.generate_dataset --preset paper --out /tmp/gen \
         --part "$GEN_PART" --workers "$1" --stop-after "$2" --no-progress >>"$OUT/generate.log" 2>&1
 }
 if [ "${GEN_S:-0}" -gt 0 ]; then
-    gen 16 "$GEN_S"
+    GEN_HARD_S=${GEN_HARD_S:-$((GEN_S + 250))} gen 16 "$GEN_S"  # SIGTERM: written shards stay
     log "generated $(($(ls /tmp/gen/shards | wc -l) - $(wc -l </tmp/gen_before.txt))) new shards in $GEN_S s on 16 workers"
+fi
+if [ -n "${GEN_ONLY:-}" ]; then  # a generation-only call: bring back the new shards, stop
+    cd /tmp/gen && comm -13 /tmp/gen_before.txt <(ls shards) | grep '^shard_' | sed 's|^|shards/|' >/tmp/new.txt
+    tar -czf "$OUT/new_shards.tgz" -T /tmp/new.txt runs.jsonl "$OUT/generate.log" 2>/dev/null
+    log "new shards: $(wc -l </tmp/new.txt); generation only, done"
+    exit 0
 fi
 
 # 2. derive the training split (resumable; whatever is derived when the budget ends is used)
