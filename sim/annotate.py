@@ -109,6 +109,20 @@ def soft_contact_map(
     return (out / out.max()).astype(np.float32)
 
 
+def contact_points(
+    contacts_object: np.ndarray,
+    contacts_support: np.ndarray,
+    pose: np.ndarray,
+    config: AnnotationConfig = AnnotationConfig(),
+) -> tuple[np.ndarray, np.ndarray]:
+    """The deduplicated contact points of :func:`annotate` without the soft maps: (object
+    points [K, 3] in the object frame, support points [K, 3] in the world frame)."""
+    keep = dedupe_contacts(contacts_object, contacts_support, config.dedupe_radius)
+    co, cs = contacts_object[keep], contacts_support[keep]
+    rot = Rotation.from_quat(np.roll(np.asarray(pose[3:7], float), -1)).as_matrix()
+    return (co - pose[:3]) @ rot, cs  # object points: world -> object frame
+
+
 def annotate(
     contacts_object: np.ndarray,
     contacts_support: np.ndarray,
@@ -126,11 +140,8 @@ def annotate(
     :class:`sim.camera.PointCloud`. ``graphs``: (object, support) :class:`CloudGraph` of
     these clouds, shared by all poses of a pair (built per call if None).
     """
-    keep = dedupe_contacts(contacts_object, contacts_support, config.dedupe_radius)
-    co, cs = contacts_object[keep], contacts_support[keep]
-    rot = Rotation.from_quat(np.roll(np.asarray(pose[3:7], float), -1)).as_matrix()
-    co_local = (co - pose[:3]) @ rot  # world -> object frame
-    if len(keep):
+    co_local, cs = contact_points(contacts_object, contacts_support, pose, config)
+    if len(cs):
         oi = cKDTree(object_cloud.points).query(co_local)[1]
         si = cKDTree(support_cloud.points).query(cs)[1]
     else:
@@ -142,7 +153,7 @@ def annotate(
         soft_contact_map(
             support_cloud.points, support_cloud.normals, si, config, graphs and graphs[1]
         ),
-        np.stack([oi, si], axis=1).astype(np.int32) if len(keep) else np.zeros((0, 2), np.int32),
+        np.stack([oi, si], axis=1).astype(np.int32) if len(cs) else np.zeros((0, 2), np.int32),
         co_local.astype(np.float32),
         cs.astype(np.float32),
     )

@@ -20,6 +20,7 @@ pose for the render), the support's in the support (world) frame.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import NamedTuple
 
 import mujoco
@@ -60,15 +61,23 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return np.stack([right, down, fwd], axis=1)
 
 
-def camera_rays(eye, target, config: CameraConfig) -> np.ndarray:
-    """[H * W, 3] unit ray directions in row-major pixel order (pinhole camera)."""
-    h, w = config.height, config.width
-    f = 0.5 * h / np.tan(np.deg2rad(config.fovy_deg) / 2)
-    u = (np.arange(w) + 0.5 - w / 2) / f
-    v = (np.arange(h) + 0.5 - h / 2) / f
+@functools.lru_cache(maxsize=8)
+def _pixel_rays(height: int, width: int, fovy_deg: float) -> np.ndarray:
+    """[H * W, 3] unit ray directions in the camera frame (read-only, cached per intrinsics:
+    this was ~80% of the time of a 640x480 render when computed per call)."""
+    f = 0.5 * height / np.tan(np.deg2rad(fovy_deg) / 2)
+    u = (np.arange(width) + 0.5 - width / 2) / f
+    v = (np.arange(height) + 0.5 - height / 2) / f
     uu, vv = np.meshgrid(u, v)
     local = np.stack([uu, vv, np.ones_like(uu)], axis=-1).reshape(-1, 3)
     local /= np.linalg.norm(local, axis=1, keepdims=True)
+    local.setflags(write=False)
+    return local
+
+
+def camera_rays(eye, target, config: CameraConfig) -> np.ndarray:
+    """[H * W, 3] unit ray directions in row-major pixel order (pinhole camera)."""
+    local = _pixel_rays(config.height, config.width, float(config.fovy_deg))
     return local @ look_at(eye, target).T
 
 

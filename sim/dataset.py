@@ -397,10 +397,10 @@ def choose_views(scene, stable_poses: np.ndarray, seed: int, config: DatasetConf
         crng = np.random.default_rng([seed, 4, i])
         oc = camera.partial_cloud(scene, "object", oe, crng, cam)
         sc = camera.partial_cloud(scene, "support", se, crng, cam)
-        ann = annotate.annotate(con.object_points[0, m], con.support_points[0, m], pose, oc, sc)
+        co, cs = annotate.contact_points(con.object_points[0, m], con.support_points[0, m], pose)
         # mass seen: how close the visible cloud comes to the contacts, as soft-map mass
-        o_mass = _visible_contact_mass(oc.points, ann.object_points)
-        s_mass = _visible_contact_mass(sc.points, ann.support_points)
+        o_mass = _visible_contact_mass(oc.points, co.astype(np.float32))
+        s_mass = _visible_contact_mass(sc.points, cs.astype(np.float32))
         if o_mass > best_o[0]:
             best_o = (o_mass, oe)
         if s_mass > best_s[0]:

@@ -203,6 +203,12 @@ def test_camera_never_sees_a_back_face():
             assert cloud.points.shape == (512, 3) and np.isfinite(cloud.points).all()
     # the support camera stays on the room side of the wall
     assert sup_eye[1] > scene.support.wall_y
+    # cached camera-frame rays: read-only, unit length, same as computing them afresh
+    rays = camera.camera_rays(sup_eye, np.zeros(3), cfg)
+    assert rays.shape == (120 * 160, 3) and np.allclose(np.linalg.norm(rays, axis=1), 1.0)
+    local = camera._pixel_rays(cfg.height, cfg.width, float(cfg.fovy_deg))
+    assert not local.flags.writeable
+    np.testing.assert_array_equal(rays, local @ camera.look_at(sup_eye, np.zeros(3)).T)
 
 
 def test_contact_annotation_maps_peak_at_contacts():
@@ -226,6 +232,10 @@ def test_contact_annotation_maps_peak_at_contacts():
     # points far from every contact get little mass
     far = np.linalg.norm(oc.points - ann.object_points[0], axis=1) > 0.04
     assert ann.object_map[far].mean() < 0.3
+    # the map-free contact points (used to choose views) are the annotation's own
+    co, cs = annotate.contact_points(con.object_points[0, m], con.support_points[0, m], settled[0])
+    np.testing.assert_array_equal(co.astype(np.float32), ann.object_points)
+    np.testing.assert_array_equal(cs.astype(np.float32), ann.support_points)
     # duplicates within 1 mm are merged
     pts = np.zeros((3, 3))
     pts[2] = 0.01
