@@ -43,7 +43,8 @@ def main(argv=None) -> dict:
         "--workers",
         type=int,
         default=1,
-        help="processes, one shard each at a time (CPU backend; 0 = one per core)",
+        help="processes, one shard each at a time (CPU backend; 0 = one per core); with "
+        "--backend mjx: processes for the per-pair CPU stage",
     )
     parser.add_argument(
         "--part",
@@ -57,6 +58,15 @@ def main(argv=None) -> dict:
         default=None,
         metavar="SECONDS",
         help="start no new shard after this many seconds (for jobs on a time limit)",
+    )
+    parser.add_argument(
+        "--shards-per-call",
+        type=int,
+        default=1,
+        metavar="N",
+        help="--backend mjx: label N shards in one device model (fewer compilations, fuller "
+        "GPU); --workers then sets the processes for the per-pair CPU stage, which runs "
+        "for one group while the GPU labels the next",
     )
     parser.add_argument(
         "--card-only",
@@ -103,6 +113,7 @@ def _generate(args, config, workers: int, i_part: int, n_part: int) -> dict:
         workers=workers,
         part=(i_part, n_part),
         stop_after_s=0.0 if args.card_only else args.stop_after,
+        shards_per_call=args.shards_per_call,
     )
 
 

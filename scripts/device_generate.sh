@@ -5,12 +5,14 @@
 # Run as the last of the warp-bundle calls (scripts/device_bench.md), after join + install
 # into /tmp/site:  bash scripts/device_generate.sh
 #
-# Phase 1: one generator process on part MJX_PARTS[0] (its first shard includes MuJoCo
-#          Warp's kernel compilation, ~235 s on a fresh machine; cached in ~/.cache/warp).
-# Phase 2: once that first shard exists, MJX_PROCS-1 more processes on the other parts, so
-#          the CPU stages of one (views, collision labels, contact queries) overlap the GPU
-#          rounds of the others. No shard is started after END_S (running ones finish; the
-#          hard stop at KILL_S loses only unfinished shards, never a written one).
+# Phase 1: one generator process on part MJX_PARTS[0] (its first group includes MuJoCo
+#          Warp's kernel compilation, ~150-235 s on a fresh machine; cached in ~/.cache/warp),
+#          SHARDS_PER_CALL shards per device model, CPU_WORKERS processes for the per-pair
+#          CPU stage (collision labels, views) of one group while the GPU labels the next.
+# Phase 2 (MJX_PROCS > 1; 2026-11-21: 4 processes of one shard each failed on Warp GPU
+#          allocations at their second shard): more processes on the other parts.
+# No group is started after END_S (running ones finish; the hard stop at KILL_S loses only
+# unfinished shards, never a written one).
 # Everything comes back in $OUT as: device_generate.log, mjx_shards.tgz (new shards +
 # runs.jsonl with one line per process: pairs, seconds, stage seconds, shards),
 # shard_times.txt (shard, seconds after start), smi.csv (GPU utilisation every 5 s).
@@ -18,7 +20,9 @@ set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/out}
 DATA=${DATA:-datasets/paper}
-MJX_PROCS=${MJX_PROCS:-4}
+MJX_PROCS=${MJX_PROCS:-1}
+SHARDS_PER_CALL=${SHARDS_PER_CALL:-4}
+CPU_WORKERS=${CPU_WORKERS:-12}
 MJX_PARTS=${MJX_PARTS:-"0/8 1/8 2/8 3/8"}
 END_S=${END_S:-420}
 KILL_S=${KILL_S:-560}
@@ -36,7 +40,8 @@ log "$(wc -l </tmp/mjx_before.txt) shards already done"
 
 gen() {  # part, seconds left for starting shards
     python3 -m experiments.generate_dataset --preset paper --out "$G" --backend mjx \
-        --part "$1" --stop-after "$2" --no-progress >>"$OUT/generate_${1/\//of}.log" 2>&1
+        --part "$1" --stop-after "$2" --shards-per-call "$SHARDS_PER_CALL" \
+        --workers "$CPU_WORKERS" --no-progress >>"$OUT/generate_${1/\//of}.log" 2>&1
 }
 new_shards() { comm -13 /tmp/mjx_before.txt <(ls "$G/shards") | grep -c '^shard_'; }
 

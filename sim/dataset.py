@@ -627,11 +627,16 @@ def generate(
     workers: int = 1,
     part: tuple[int, int] = (0, 1),
     stop_after_s: float | None = None,
+    shards_per_call: int = 1,
+    mjx_settings=None,
 ) -> dict:
     """Generate (or resume) the dataset into ``out_dir``; returns the dataset card.
 
-    ``workers`` > 1 runs shards in that many processes (one single-threaded rollout each;
-    the CPU backend only). ``part = (i, n)`` makes this job do only the shards ``k`` with
+    ``workers`` > 1 runs shards in that many processes (one single-threaded rollout each)
+    with the CPU backend; with ``backend="mjx"`` the physics stays in this process (MuJoCo
+    Warp, ``shards_per_call`` shards in one device model; ``mjx_settings``: an
+    ``MJXSettings``, default ``sim.dataset_batched.DEFAULT_SETTINGS``) and ``workers``
+    processes compute the per-pair CPU stage of one group while the GPU labels the next. ``part = (i, n)`` makes this job do only the shards ``k`` with
     ``k % n == i``, so several machines can share one dataset: copy their ``shards/`` into
     one directory and run once more (nothing left to do) to write the card.
     ``stop_after_s``: start no shard after this many seconds (shards already started are
@@ -642,8 +647,8 @@ def generate(
     i_part, n_part = part
     if not (n_part >= 1 and 0 <= i_part < n_part):
         raise ValueError(f"part must be (i, n) with 0 <= i < n, got {part}")
-    if workers > 1 and backend != "cpu":
-        raise ValueError("workers > 1 is for the CPU backend (the mjx backend batches itself)")
+    if shards_per_call < 1:
+        raise ValueError(f"shards_per_call must be >= 1, got {shards_per_call}")
     library = build_library(config.library, progress=progress)
     check_split(library)
     pairs = pair_list(library, config)
@@ -687,8 +692,7 @@ def generate(
     deadline = None if stop_after_s is None else time.time() + stop_after_s
     STAGE_SECONDS.clear()
     stage_seconds: collections.Counter = collections.Counter()
-    shard_fn = _shard_records
-    if backend == "mjx":  # every pair of a shard in one MuJoCo Warp call per round
+    if backend == "mjx":  # every pair of a group of shards in one MuJoCo Warp call per round
         try:
             import warp  # noqa: F401
         except ImportError as e:
@@ -696,21 +700,33 @@ def generate(
                 "--backend mjx generates with MuJoCo Warp: install warp-lang "
                 "(pip install -e '.[gpu]'); or use --backend cpu"
             ) from e
-        from sim.dataset_batched import shard_records_batched
 
-        def shard_fn(library, config, pairs, rec, k, backend):
-            return shard_records_batched(library, config, pairs, rec, k)
+    def save(k: int, records, chunk, ids) -> None:
+        atomic.savez(out / "shards" / f"shard_{k:05d}.npz", **_pack(records, chunk, ids))
+        written.append(k)
+        advance(len(chunk))
 
     interrupted = True
     try:
-        if workers <= 1:
+        if backend == "mjx":
+            _generate_mjx(
+                config,
+                rec,
+                library,
+                pairs,
+                todo,
+                save,
+                workers,
+                shards_per_call,
+                deadline,
+                stage_seconds,
+                mjx_settings,
+            )
+        elif workers <= 1:
             for k in todo:
                 if deadline is not None and time.time() > deadline:
                     break
-                records, chunk, ids = shard_fn(library, config, pairs, rec, k, backend)
-                atomic.savez(out / "shards" / f"shard_{k:05d}.npz", **_pack(records, chunk, ids))
-                written.append(k)
-                advance(len(chunk))
+                save(k, *_shard_records(library, config, pairs, rec, k, backend))
         elif todo:
             import multiprocessing as mp
 
@@ -747,10 +763,44 @@ def generate(
                 "interrupted": interrupted,  # killed (Ctrl-C / SIGTERM): shards so far count
                 "shards": sorted(written),  # which labels this backend/device made
             }
+            if backend == "mjx":
+                run["shards_per_call"] = shards_per_call
             with open(out / "runs.jsonl", "a") as f:
                 f.write(json.dumps(run) + "\n")
     card = dataset_card(out, library, pairs, rec, timings, backend, done_pairs)
     return card
+
+
+def _generate_mjx(
+    config,
+    rec,
+    library,
+    pairs,
+    todo,
+    save,
+    workers,
+    shards_per_call,
+    deadline,
+    stage_seconds,
+    settings,
+) -> None:
+    """The ``backend="mjx"`` branch of :func:`generate` (``sim.dataset_batched.generate_groups``)."""
+    from sim import dataset_batched
+
+    if settings is None:
+        settings = dataset_batched.DEFAULT_SETTINGS
+    groups = [todo[i : i + shards_per_call] for i in range(0, len(todo), shards_per_call)]
+    if workers <= 1:
+        dataset_batched.generate_groups(
+            library, config, pairs, rec, groups, save, settings, None, deadline, stage_seconds
+        )
+        return
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(workers, _worker_init, (config, rec, "cpu")) as pool:
+        dataset_batched.generate_groups(
+            library, config, pairs, rec, groups, save, settings, pool, deadline, stage_seconds
+        )
 
 
 def _device() -> str:

@@ -25,7 +25,8 @@ with the Warp impl labels differ only where the engines do.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -157,6 +158,18 @@ def label_pairs_batched(
 
 def _label(scenes, objs, supports, seeds, config, settings):
     """Body of :func:`label_pairs_batched`, steps 1-4 of the module docstring."""
+    physics, kept, status, calls = label_physics(scenes, objs, supports, seeds, config, settings)
+    records = [
+        dict(**ph, **cpu_stage(scenes[p], objs[p], supports[p], seeds[p], kept[p], config))
+        for p, ph in enumerate(physics)
+    ]
+    return records, status, calls
+
+
+def label_physics(scenes, objs, supports, seeds, config, settings):
+    """Steps 1-3 of the module docstring for the pairs of ``scenes``: (per pair the record
+    fields from the physics, per pair the kept poses (float64, what step 4 needs), per pair
+    the candidate statuses, kernel-call counts)."""
     n_pairs = len(objs)
     rngs = [np.random.default_rng([seed, 1]) for seed in seeds]
     stable: list[list[np.ndarray]] = [[] for _ in range(n_pairs)]
@@ -176,7 +189,8 @@ def _label(scenes, objs, supports, seeds, config, settings):
         if not batch:
             break
         pair = np.concatenate(owner)
-        res = _stability(scenes, pair, np.concatenate(batch), config.stability, settings)
+        with dataset._timed("stability"):
+            res = _stability(scenes, pair, np.concatenate(batch), config.stability, settings)
         calls["stability"] += 1
         for p in np.unique(pair):
             rows = pair == p
@@ -198,15 +212,16 @@ def _label(scenes, objs, supports, seeds, config, settings):
     removable = [np.zeros(len(s), dtype=bool) for s in stable_arr]
     take_pair = np.concatenate([np.full(len(s), p, np.int32) for p, s in enumerate(stable_arr)])
     if len(take_pair):
-        rem = _removable(
-            scenes,
-            take_pair,
-            np.concatenate(stable_arr),
-            config.takeoff,
-            mass,
-            friction,
-            settings,
-        )
+        with dataset._timed("takeoff"):
+            rem = _removable(
+                scenes,
+                take_pair,
+                np.concatenate(stable_arr),
+                config.takeoff,
+                mass,
+                friction,
+                settings,
+            )
         calls["takeoff"] += 1
         removable = [rem[take_pair == p] for p in range(n_pairs)]
     kept = [
@@ -215,6 +230,7 @@ def _label(scenes, objs, supports, seeds, config, settings):
     ]
 
     # 3. near misses: CPU contact queries per pair, one short rollout call for all pairs
+    t_neg = time.perf_counter()
     close = [
         dataset.near_miss_close(sc, k, seed, config) for sc, k, seed in zip(scenes, kept, seeds)
     ]
@@ -230,30 +246,43 @@ def _label(scenes, objs, supports, seeds, config, settings):
             negative_kept[p] = dataset.near_miss_kept(
                 c, i, res.status[rows], res.settled_pose[rows], config
             )
+    dataset.STAGE_SECONDS["negatives"] += time.perf_counter() - t_neg
 
-    # 4. collision labels and views, per pair on the CPU
-    records = []
-    for p in range(n_pairs):
-        col_kept, col_label = dataset.collision_labels(
-            scenes[p], objs[p], supports[p], seeds[p], config
-        )
-        obj_eye, sup_eye = dataset.choose_views(scenes[p], kept[p], seeds[p], config)
-        records.append(
-            dict(
-                **counts[p],
-                n_takeoff_rejected=int((~removable[p]).sum()),
-                mass=float(mass[p]),
-                friction=float(friction[p]),
-                stable_poses=kept[p].astype(np.float32),
-                negative_kept=negative_kept[p],
-                collision_kept=col_kept,
-                collision_label=col_label,
-                object_eye=obj_eye.astype(np.float32),
-                support_eye=sup_eye.astype(np.float32),
-            )
-        )
+    physics = _physics_records(counts, removable, mass, friction, kept, negative_kept)
     status = [np.concatenate(s) if s else np.zeros(0, np.int8) for s in statuses]
-    return records, status, calls
+    return physics, kept, status, calls
+
+
+def _physics_records(counts, removable, mass, friction, kept, negative_kept) -> list[dict]:
+    """Per pair, the record fields that come from the physics (steps 1-3), in record order."""
+    return [
+        dict(
+            **counts[p],
+            n_takeoff_rejected=int((~removable[p]).sum()),
+            mass=float(mass[p]),
+            friction=float(friction[p]),
+            stable_poses=kept[p].astype(np.float32),
+            negative_kept=negative_kept[p],
+        )
+        for p in range(len(counts))
+    ]
+
+
+def cpu_stage(
+    scene: Scene, obj: Asset, support: Asset, seed: int, kept: np.ndarray, config: DatasetConfig
+) -> dict:
+    """Step 4 for one pair on the CPU: collision labels and the camera views, exactly as
+    ``generate_pair`` computes them (``kept``: the pair's kept stable poses, float64)."""
+    with dataset._timed("collision_labels"):
+        col_kept, col_label = dataset.collision_labels(scene, obj, support, seed, config)
+    with dataset._timed("views"):
+        obj_eye, sup_eye = dataset.choose_views(scene, kept, seed, config)
+    return dict(
+        collision_kept=col_kept,
+        collision_label=col_label,
+        object_eye=obj_eye.astype(np.float32),
+        support_eye=sup_eye.astype(np.float32),
+    )
 
 
 def shard_run_batched(
@@ -265,14 +294,7 @@ def shard_run_batched(
     settings: MJXSettings | None = DEFAULT_SETTINGS,
 ) -> ShardRun:
     """:func:`shard_records_batched` plus per-candidate statuses and kernel-call counts."""
-    obj_index = {n: i for i, n in enumerate(rec["objects"])}
-    sup_index = {n: i for i, n in enumerate(rec["supports"])}
-    chunk = list(range(k * config.shard_size, min((k + 1) * config.shard_size, len(pairs))))
-    names = [pairs[i][:2] for i in chunk]
-    seeds = [dataset.pair_seed(config.seed, o, s) for o, s in names]
-    ids = [(obj_index[o], sup_index[s], seed) for (o, s), seed in zip(names, seeds)]
-    objs = [library.objects[o] for o, _ in names]
-    sups = [library.supports[s] for _, s in names]
+    chunk, ids, objs, sups, seeds, _ = _shard_inputs(library, config, pairs, rec, k)
     records, status, calls = label_pairs_batched(objs, sups, seeds, config, settings)
     return ShardRun(records, chunk, ids, status, calls)
 
@@ -290,3 +312,112 @@ def shard_records_batched(
     reference, identical to ``_shard_records(..., backend="cpu")``."""
     run = shard_run_batched(library, config, pairs, rec, k, settings)
     return run.records, run.chunk, run.ids
+
+
+# ----------------------------------------------------------------------------- many shards
+
+
+def _shard_inputs(library: Library, config: DatasetConfig, pairs, rec: dict, k: int):
+    """(chunk, ids, objs, supports, seeds, names) of shard ``k``, as ``_shard_records``."""
+    obj_index = {n: i for i, n in enumerate(rec["objects"])}
+    sup_index = {n: i for i, n in enumerate(rec["supports"])}
+    chunk = list(range(k * config.shard_size, min((k + 1) * config.shard_size, len(pairs))))
+    names = [tuple(pairs[i][:2]) for i in chunk]
+    seeds = [dataset.pair_seed(config.seed, o, s) for o, s in names]
+    ids = [(obj_index[o], sup_index[s], seed) for (o, s), seed in zip(names, seeds)]
+    objs = [library.objects[o] for o, _ in names]
+    sups = [library.supports[s] for _, s in names]
+    return chunk, ids, objs, sups, seeds, names
+
+
+def _cpu_stage_job(job: tuple) -> tuple[dict, dict]:
+    """Pool side of :func:`generate_groups`: step 4 of one pair in a worker process set up
+    by ``sim.dataset._worker_init`` (which holds the asset library); returns (fields, stage
+    seconds of this job)."""
+    obj_name, sup_name, seed, kept, config = job
+    lib = dataset._WORKER["library"]
+    dataset.STAGE_SECONDS.clear()
+    obj, sup = lib.objects[obj_name], lib.supports[sup_name]
+    with dataset._timed("scene"):
+        scene = build_scene(obj, sup)
+    out = cpu_stage(scene, obj, sup, seed, kept, config)
+    return out, dict(dataset.STAGE_SECONDS)
+
+
+def generate_groups(
+    library: Library,
+    config: DatasetConfig,
+    pairs,
+    rec: dict,
+    groups: Sequence[Sequence[int]],
+    save: Callable[[int, list[dict], list[int], list[tuple[int, int, int]]], None],
+    settings: MJXSettings | None = DEFAULT_SETTINGS,
+    pool=None,
+    deadline: float | None = None,
+    stage_seconds: dict | None = None,
+) -> int:
+    """Label the shards of each group (a list of shard indices) with one device model per
+    group, and ``save(k, records, chunk, ids)`` every shard; returns the shards saved.
+
+    With a ``pool`` (``multiprocessing`` pool whose workers ran ``sim.dataset._worker_init``)
+    step 4 (collision labels, views) of group g runs in the pool while this process labels
+    group g+1 on the GPU; without one it runs here. Records equal
+    :func:`shard_records_batched`'s shard by shard (same physics calls per group: the rounds
+    of a group batch all its pairs; with ``settings=None`` bit-equal to the CPU path, tested).
+    ``deadline``: start no group after this time (groups under way are finished).
+    ``stage_seconds``: a Counter that receives the time per stage (pool seconds included).
+    """
+    saved = 0
+    pending = None
+
+    def finish(item) -> None:
+        nonlocal saved
+        shards, physics, fields = item
+        if pool is not None:
+            got = fields.get()
+            fields = [f for f, _ in got]
+            if stage_seconds is not None:
+                for _, sec in got:
+                    stage_seconds.update(sec)
+        p = 0
+        for k, chunk, ids in shards:
+            records = [dict(**physics[p + j], **fields[p + j]) for j in range(len(chunk))]
+            p += len(chunk)
+            save(k, records, chunk, ids)
+            saved += 1
+
+    for group in groups:
+        if deadline is not None and time.time() > deadline:
+            break
+        dataset.STAGE_SECONDS.clear()
+        shards, objs, sups, seeds, names = [], [], [], [], []
+        for k in group:
+            chunk, ids, o, s, sd, nm = _shard_inputs(library, config, pairs, rec, k)
+            shards.append((k, chunk, ids))
+            objs += o
+            sups += s
+            seeds += sd
+            names += nm
+        with dataset._timed("scene"):
+            scenes = [build_scene(o, s) for o, s in zip(objs, sups)]
+        try:
+            physics, kept, _, _ = label_physics(scenes, objs, sups, seeds, config, settings)
+        finally:
+            release(scenes, settings)
+        if pool is not None:
+            jobs = [(o, s, sd, kp, config) for (o, s), sd, kp in zip(names, seeds, kept)]
+            fields = pool.map_async(_cpu_stage_job, jobs, chunksize=1)
+        else:
+            fields = [
+                cpu_stage(sc, o, s, sd, kp, config)
+                for sc, o, s, sd, kp in zip(scenes, objs, sups, seeds, kept)
+            ]
+        if stage_seconds is not None:  # this process's seconds for the group, counted once
+            stage_seconds.update(dataset.STAGE_SECONDS)
+            dataset.STAGE_SECONDS.clear()
+        if pending is not None:
+            finish(pending)  # the previous group's CPU stage ran while this group's physics did
+        pending = (shards, physics, fields)
+    if pending is not None:
+        finish(pending)
+    return saved

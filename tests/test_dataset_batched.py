@@ -148,3 +148,33 @@ def test_takeoff_per_pair_materials_equal_scalar_path(shard):
     res = mjx_kernels.takeoff_many(scenes, owner, poses, cfg, settings, materials=mats)
     assert res.removable.tolist() == a.any(1).tolist()
     dataset_batched.release(scenes, settings)
+
+
+def test_generate_mjx_groups_of_shards_with_a_cpu_stage_pool(shard, tmp_path):
+    """generate(backend="mjx", shards_per_call=2, workers=2): both tiny shards in one Warp
+    model, the per-pair CPU stage in a 2-process pool; the CPU-made fields equal the CPU
+    generator's and the run is logged with its grouping."""
+    library, pairs, rec = shard
+    card = dataset.generate(
+        CFG,
+        tmp_path,
+        preset="test",
+        backend="mjx",
+        progress=False,
+        workers=2,
+        shards_per_call=2,
+        mjx_settings=WARP,
+    )
+    assert card["pairs_done"] == len(pairs)
+    (run,) = dataset.load_runs(tmp_path)
+    assert run["backend"] == "mjx" and run["shards_per_call"] == 2 and run["shards"] == [0, 1]
+    assert {"stability", "views", "collision_labels"} <= set(run["stage_seconds"])
+    got = dataset.load_records(tmp_path)
+    for k in (0, 1):
+        ref, _, _ = dataset._shard_records(library, CFG, pairs, rec, k, "cpu")
+        mine = [
+            r for r in got if r["pair_index"] in range(k * CFG.shard_size, (k + 1) * CFG.shard_size)
+        ]
+        for g, r in zip(mine, ref):
+            np.testing.assert_array_equal(g["collision_label"], r["collision_label"])
+            assert g["n_candidates"] == r["n_candidates"]
