@@ -15,6 +15,10 @@ share a call (one union model, :func:`sim.mjx_kernels.build_warp_batch`), so
    of the close candidates of all pairs in one stability call (``negative_time``);
 4. collision labels and camera views per pair on the CPU, as ``generate_pair``.
 
+:func:`generate_groups` runs several shards per device model and moves step 4 to a process
+pool, so that the CPU stage of one group overlaps the GPU physics of the next (the
+generator's ``--backend mjx --shards-per-call N --workers W``).
+
 The records have exactly the keys of ``generate_pair``'s and go through
 :func:`sim.dataset._pack` unchanged. With ``settings=None`` the physics runs on the CPU
 reference pair by pair, over exactly the poses ``generate_pair`` would give it in the same
