@@ -89,6 +89,17 @@ def pair_file_name(pair_index: int, object_name: str, support_name: str) -> str:
     return f"{pair_index:05d}_{object_name}__{support_name}.npz"
 
 
+def interleave_by_category(jobs: list[tuple[dict, str]], pairs) -> list[tuple[dict, str]]:
+    """``jobs`` (record, path) reordered round robin over the records' object categories
+    (each category in pair-index order; categories alphabetically within a round)."""
+    by_cat: dict[str, list] = {}
+    for job in jobs:
+        obj_name = pairs[int(job[0]["pair_index"])][0]
+        by_cat.setdefault(obj_name.rsplit("_", 1)[0], []).append(job)
+    queues = [by_cat[c] for c in sorted(by_cat)]
+    return [q[i] for i in range(max(map(len, queues), default=0)) for q in queues if i < len(q)]
+
+
 def _records(dataset_dir: Path) -> list[dict]:
     from sim import dataset
 
@@ -182,9 +193,12 @@ def derive_dataset(
         if path.exists():
             skipped_existing += 1
             continue
-        if limit is not None and len(jobs) >= limit:
-            continue
         jobs.append((record, os.fspath(path)))
+    # round robin over object categories, so a derive cut short (a time budget, --limit)
+    # still covers every category present instead of the alphabetically first ones
+    jobs = interleave_by_category(jobs, pairs)
+    if limit is not None:
+        jobs = jobs[:limit]
     bar = tqdm(total=len(jobs), desc="derive", unit="pair", disable=not progress)
     if workers <= 1 and jobs:
         library = build_library(config.library, progress=False)

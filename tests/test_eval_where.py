@@ -173,3 +173,16 @@ def test_stage2_from_ground_truth_diagnostic(derived):
         assert np.isfinite(diag[key]["mean"]) and diag[key]["min"] >= 0.0
     # Perfect correspondences land close to the ground-truth pose (the data is consistent).
     assert diag["oracle_contacts"]["max"] < 0.02
+
+
+def test_derive_order_is_round_robin_over_categories():
+    """A derive cut short (time budget, --limit) covers every category present: jobs go
+    round robin over object categories, each in pair-index order."""
+    pairs = [
+        (f"{c}_{i:04d}", "hook_0000", "train") for c in ("bag", "cap", "mug") for i in range(3)
+    ]
+    pairs = pairs[:7]  # bag x3, cap x3, mug x1
+    jobs = [({"pair_index": i}, f"p{i}") for i in range(len(pairs))]
+    order = [j[1] for j in dataset_bridge.interleave_by_category(jobs, pairs)]
+    assert order == ["p0", "p3", "p6", "p1", "p4", "p2", "p5"]
+    assert dataset_bridge.interleave_by_category([], pairs) == []
