@@ -49,6 +49,12 @@ def main(argv=None) -> dict:
         help="which proposal is evaluated: the first drawn, or the one whose object cloud "
         "least enters the observed support cloud (omnihang_jax.heuristics)",
     )
+    parser.add_argument(
+        "--separate",
+        action="store_true",
+        help="back every proposal out of the observed support cloud along its outward "
+        "normal before it is scored (omnihang_jax.heuristics.separate; before --select)",
+    )
     parser.add_argument("--backend", choices=["cpu", "mjx"], default="cpu")
     parser.add_argument("--seed", type=int, default=0, help="Stage-1 noise seed")
     parser.add_argument("--label", default="", help="free text stored in the results")
@@ -105,6 +111,7 @@ def main(argv=None) -> dict:
         num_proposals=args.proposals,
         candidate=args.candidate,
         select=args.select,
+        separate=args.separate,
         backend=args.backend,
         seed=args.seed,
         split=args.split,

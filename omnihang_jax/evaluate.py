@@ -91,6 +91,9 @@ class EvalConfig:
     # "first": proposals in their drawn order; "penetration": each stage's K proposals sorted
     # by omnihang_jax.heuristics.rank_by_penetration (observed clouds only), least first
     select: str = "first"
+    # back every proposal out of the observed support before it is scored
+    # (omnihang_jax.heuristics.separate); applied before ``select``
+    separate: bool = False
     backend: str = "cpu"  # physics backend of sim.kernels.stability
     seed: int = 0  # Stage-1 noise: key = fold_in(key(seed), pair_index)
     split: str = "test"
@@ -154,6 +157,30 @@ def ranked_fn(predict: PredictFn, object_stride: int = 4) -> PredictFn:
         return PairPrediction(*poses)
 
     return ranked
+
+
+def separated_fn(predict: PredictFn, object_stride: int = 8) -> PredictFn:
+    """Every proposal of both stages backed out of the observed support along the support's
+    outward normal (:func:`omnihang_jax.heuristics.separate`, observed clouds only; every
+    ``object_stride``-th object point)."""
+    import jax
+
+    from omnihang_jax.heuristics import separate
+
+    many = jax.jit(jax.vmap(separate, in_axes=(None, None, None, 0)))
+
+    def separated(sample: HangSample, meta: dict) -> PairPrediction:
+        out = predict(sample, meta)
+        obj = np.asarray(sample.object_points, np.float32)[::object_stride]
+        sup = np.asarray(sample.support_points, np.float32)
+        nrm = np.asarray(sample.support_normals, np.float32)
+        poses = []
+        for stage in (out.stage1_poses, out.stage2_poses):
+            moved, _, _ = many(obj, sup, nrm, np.asarray(stage, np.float32))
+            poses.append(np.asarray(moved, np.float64))
+        return PairPrediction(*poses)
+
+    return separated
 
 
 def ground_truth_fn(index: int = 0) -> PredictFn:
@@ -481,6 +508,8 @@ def evaluate_where(
         predictor = load_predictor(model_dir, seed=config.seed)
         k = config.num_proposals or predictor.stage1_config.num_eval_samples
         predict = predictor_fn(predictor, k, config.seed)
+        if config.separate:
+            predict = separated_fn(predict)
         if config.select == "penetration":
             predict = ranked_fn(predict)
         elif config.select != "first":
@@ -523,6 +552,7 @@ def evaluate_where(
                 "by observed-cloud penetration (omnihang_jax.heuristics), least first"
             ),
             "select": config.select,
+            "separate": config.separate,
             "stage1_2": "Stage-2 refinement of the same proposal",
             "success": "status stable after 1 s from rest; fails if initial penetration > 3 mm, "
             "boxes stop overlapping, ground touched or simulation diverged",

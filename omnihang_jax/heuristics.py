@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 
-__all__ = ["penetration_score", "rank_by_penetration"]
+__all__ = ["penetration_score", "rank_by_penetration", "separate"]
 
 
 def penetration_score(
@@ -58,3 +58,40 @@ def rank_by_penetration(
         object_points, support_points, support_normals, poses
     )
     return jnp.argsort(scores, stable=True).astype(jnp.int32), scores
+
+
+@jax.jit
+def separate(
+    object_points: jax.Array,
+    support_points: jax.Array,
+    support_normals: jax.Array,
+    pose: jax.Array,
+    max_shift: float = 0.03,
+    accept: float = 0.01,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Back a penetrating pose out of the observed support: (pose [7], shift [] m, score []).
+
+    The direction is the mean outward normal of the support points nearest to the object
+    points that are inside (module docstring); the shift is the smallest of 0, 2, ..., 30 mm
+    (``max_shift``) whose :func:`penetration_score` is at most ``accept``, else the shift of
+    least penetration. Rotation unchanged. A pose with nothing inside is returned as is.
+    """
+    q = pose[3:7] / jnp.maximum(jnp.linalg.norm(pose[3:7]), 1e-12)
+    rot = jaxlie.SO3(wxyz=q).as_matrix()
+    p = object_points @ rot.T + pose[:3]
+    d2 = jnp.sum((p[:, None, :] - support_points[None, :, :]) ** 2, axis=-1)
+    j = jnp.argmin(d2, axis=1)
+    s, n = support_points[j], support_normals[j]
+    n = n / jnp.maximum(jnp.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    dist = jnp.sqrt(jnp.take_along_axis(d2, j[:, None], axis=1)[:, 0])
+    inside = (jnp.sum((p - s) * n, axis=-1) < -0.002) & (dist < 0.015)
+    direction = jnp.sum(jnp.where(inside[:, None], n, 0.0), axis=0)
+    direction = direction / jnp.maximum(jnp.linalg.norm(direction), 1e-12)
+    offsets = jnp.linspace(0.0, max_shift, 16)
+    moved = pose[None, :].repeat(16, 0).at[:, :3].add(offsets[:, None] * direction[None, :])
+    scores = jax.vmap(penetration_score, in_axes=(None, None, None, 0))(
+        object_points, support_points, support_normals, moved
+    )
+    ok = scores <= accept
+    k = jnp.where(jnp.any(ok), jnp.argmax(ok), jnp.argmin(scores))
+    return moved[k], offsets[k], scores[k]

@@ -73,3 +73,23 @@ def test_pose_errors_default_beside_their_results():
         evaluate.default_errors_path("r/hanging_success_demo.json").name == "pose_errors_demo.json"
     )
     assert evaluate.default_errors_path("r/x.json").name == "x.pose_errors.json"
+
+
+def test_separate_backs_a_sunken_pose_out_and_leaves_a_free_one():
+    """A flat support patch (normal +z) and an object patch: sunk 1 cm into it, separate
+    moves it up until nothing is inside; a pose above the surface is left unchanged."""
+    g = np.stack(np.meshgrid(np.linspace(-0.03, 0.03, 13), np.linspace(-0.03, 0.03, 13)), -1)
+    g = g.reshape(-1, 2)
+    sup = np.concatenate([g, np.zeros((len(g), 1))], 1).astype(np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (len(sup), 1))
+    obj = np.concatenate([g * 0.5, np.zeros((len(g), 1))], 1).astype(np.float32)
+    sunk = np.float32([0, 0, -0.01, 1, 0, 0, 0])
+    assert float(heuristics.penetration_score(obj, sup, nrm, sunk)) > 0.9
+    pose, shift, score = heuristics.separate(obj, sup, nrm, sunk)
+    assert float(score) <= 0.01 and 0.008 <= float(shift) <= 0.014
+    np.testing.assert_allclose(np.asarray(pose)[:2], 0.0, atol=1e-6)  # straight up
+    np.testing.assert_array_equal(np.asarray(pose)[3:], sunk[3:])  # rotation kept
+    free = np.float32([0, 0, 0.005, 1, 0, 0, 0])
+    pose, shift, _ = heuristics.separate(obj, sup, nrm, free)
+    assert float(shift) == 0.0
+    np.testing.assert_array_equal(np.asarray(pose), free)
