@@ -59,6 +59,13 @@ def main(argv=None) -> dict:
     parser.add_argument("--seed", type=int, default=0, help="Stage-1 noise seed")
     parser.add_argument("--label", default="", help="free text stored in the results")
     parser.add_argument("--limit", type=int, default=None, help="first N pairs only (smoke runs)")
+    parser.add_argument(
+        "--per-category",
+        type=int,
+        default=None,
+        metavar="N",
+        help="at most N pairs per object category, evenly spaced (a balanced subset)",
+    )
     parser.add_argument("--no-reference", action="store_true", help="skip the ground-truth check")
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     parser.add_argument(
@@ -126,6 +133,7 @@ def main(argv=None) -> dict:
         label=args.label,
         reference=not args.no_reference,
         limit=args.limit,
+        per_category=args.per_category,
         progress=not args.no_progress,
     )
     brief = {k: results[k] for k in ("stage1", "stage1_2", "pairs")}

@@ -129,6 +129,18 @@ def predictor_fn(predictor, num_proposals: int | None = None, seed: int = 0) -> 
     return predict
 
 
+def spread_per_category(files: list[Path], n: int) -> list[Path]:
+    """At most ``n`` pair files per object category, evenly spaced in name (= pair-index)
+    order: ``fs[::max(1, len(fs) // n)][:n]`` per category; a balanced, reproducible subset
+    of a split (file names ``<index>_<category>_<k>__<support>.npz``)."""
+    by_cat: dict[str, list[Path]] = {}
+    for f in files:
+        obj = f.name.split("__")[0].split("_", 1)[1]
+        by_cat.setdefault(obj.rsplit("_", 1)[0], []).append(f)
+    out = [f for fs in by_cat.values() for f in fs[:: max(1, len(fs) // n)][:n]]
+    return sorted(out)
+
+
 def default_errors_path(results_path: str | os.PathLike) -> Path:
     """Pose-error JSON beside the results: ``hanging_success<X>.json`` ->
     ``pose_errors<X>.json``, any other ``name.json`` -> ``name.pose_errors.json`` (so two
@@ -482,6 +494,7 @@ def evaluate_where(
     reference: bool = True,
     limit: int | None = None,
     progress: bool = True,
+    per_category: int | None = None,
 ) -> dict:
     """Evaluate a trained model folder (``stage1/`` + ``stage2b/``) on the derived pairs of
     ``config.split`` and write the results JSON (``results_path``), the pose errors JSON
@@ -498,7 +511,10 @@ def evaluate_where(
     recipe = dataset_bridge.read_recipe(dataset_dir)
     dataset_config = dataset_bridge.dataset_config_from_recipe(recipe)
     library = build_library(dataset_config.library, progress=False)
-    files = dataset_bridge.derived_files(derived_dir, config.split)[:limit]
+    files = dataset_bridge.derived_files(derived_dir, config.split)
+    if per_category is not None:
+        files = spread_per_category(files, per_category)
+    files = files[:limit]
     stability = config.stability or protocol_stability()
     config = dataclasses.replace(config, stability=stability)
 

@@ -93,3 +93,13 @@ def test_separate_backs_a_sunken_pose_out_and_leaves_a_free_one():
     pose, shift, _ = heuristics.separate(obj, sup, nrm, free)
     assert float(shift) == 0.0
     np.testing.assert_array_equal(np.asarray(pose), free)
+
+
+def test_spread_per_category_is_balanced_and_ordered():
+    from pathlib import Path
+
+    names = [f"{i:05d}_bag_{i % 3:04d}__hook_0000.npz" for i in range(10)]
+    names += [f"{i:05d}_clothes_hanger_0001__hook_0000.npz" for i in range(10, 12)]
+    got = [f.name for f in evaluate.spread_per_category([Path(n) for n in names], 3)]
+    assert got == sorted(got) and len(got) == 5
+    assert [n for n in got if "_bag_" in n] == [names[0], names[3], names[6]]
