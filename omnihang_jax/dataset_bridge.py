@@ -208,10 +208,9 @@ def derive_dataset(
             written += 1
             bar.update(1)
     elif jobs:
-        import multiprocessing as mp
+        from sim.workers import spawn_pool
 
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, _worker_init, (recipe,)) as pool:
+        with spawn_pool(workers, _worker_init, (recipe,)) as pool:
             for _ in pool.imap_unordered(_derive_one, jobs, chunksize=4):
                 written += 1
                 bar.update(1)

@@ -41,6 +41,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from sim import annotate, atomic, camera, kernels, proposals
+from sim import workers as workers_mod
 from sim.assets.base import Asset
 from sim.library import Library, LibraryConfig, build_library, check_split
 from sim.scene import Scene, build_scene
@@ -728,11 +729,8 @@ def generate(
                     break
                 save(k, *_shard_records(library, config, pairs, rec, k, backend))
         elif todo:
-            import multiprocessing as mp
-
             jobs = [(k, str(out / "shards" / f"shard_{k:05d}.npz"), deadline) for k in todo]
-            ctx = mp.get_context("spawn")
-            with ctx.Pool(workers, _worker_init, (config, rec, backend)) as pool:
+            with workers_mod.spawn_pool(workers, _worker_init, (config, rec, backend)) as pool:
                 for k, n, seconds in pool.imap_unordered(_worker_shard, jobs):
                     stage_seconds.update(seconds)
                     if n:
@@ -795,9 +793,7 @@ def _generate_mjx(
             library, config, pairs, rec, groups, save, settings, None, deadline, stage_seconds
         )
         return
-    import multiprocessing as mp
-
-    with mp.get_context("spawn").Pool(workers, _worker_init, (config, rec, "cpu")) as pool:
+    with workers_mod.spawn_pool(workers, _worker_init, (config, rec, "cpu")) as pool:
         dataset_batched.generate_groups(
             library, config, pairs, rec, groups, save, settings, pool, deadline, stage_seconds
         )

@@ -300,3 +300,22 @@ def test_grouped_generation_equals_cpu_shards(generated, pooled):
         dataset_batched.generate_groups(library, CFG, pairs, rec, groups, save, None, deadline=0)
         == 0
     )
+
+
+def test_spawned_workers_start_single_threaded(monkeypatch):
+    """sim.workers.spawn_pool: the workers see one-thread settings for the BLAS/OpenMP
+    pools and XLA; the parent's environment is unchanged afterwards."""
+    import os
+
+    from sim import workers
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.delenv("OMNIHANG_WORKER_THREADS", raising=False)
+    with workers.spawn_pool(1) as pool:
+        env = pool.apply(workers.thread_settings)
+    assert env["OMP_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == "1"
+    assert "intra_op_parallelism_threads=1" in env["XLA_FLAGS"]
+    assert "OMP_NUM_THREADS" not in os.environ
+    monkeypatch.setenv("OMNIHANG_WORKER_THREADS", "0")  # library defaults, for measuring
+    with workers.worker_environment():
+        assert "OMP_NUM_THREADS" not in os.environ
