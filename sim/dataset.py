@@ -927,10 +927,10 @@ def card_markdown(card: dict) -> str:
         "- time per stage (CPU-s over logged runs): "
         + (", ".join(f"{k} {v:.0f}" for k, v in card.get("time_per_stage_s", {}).items()) or "-"),
         "",
-        "| run | pairs | minutes | pairs/min | workers | part | device |",
-        "|---|---|---|---|---|---|---|",
+        "| run | pairs | minutes | pairs/min | backend | workers | part | device |",
+        "|---|---|---|---|---|---|---|---|",
         *(
-            f"| {r['date']} | {r['pairs']} | {r['seconds'] / 60:.1f} | {r['pairs_per_min']:.1f} | {r['workers']} | {'/'.join(map(str, r['part']))} | {r['device']} |"
+            f"| {r['date']} | {r['pairs']} | {r['seconds'] / 60:.1f} | {r['pairs_per_min']:.1f} | {r.get('backend', 'cpu')} | {r['workers']} | {'/'.join(map(str, r['part']))} | {r['device']} |"
             for r in card.get("runs", [])
         ),
         "",
