@@ -22,16 +22,13 @@ import jaxlie
 
 __all__ = ["penetration_score", "rank_by_penetration", "separate"]
 
+TOL = 0.002  # m behind the support surface before a point counts as inside
+WINDOW = 0.015  # m: farther from every observed support point, a point is not counted
 
-def penetration_score(
-    object_points: jax.Array,
-    support_points: jax.Array,
-    support_normals: jax.Array,
-    pose: jax.Array,
-    tol: float = 0.002,
-    window: float = 0.015,
-) -> jax.Array:
-    """Fraction [] of object points inside the observed support at ``pose`` (see module)."""
+
+def _inside(object_points, support_points, support_normals, pose, tol, window):
+    """(inside [N] bool, outward normal [N, 3] of each object point's nearest support point)
+    for the object cloud moved to ``pose`` (module docstring)."""
     q = pose[3:7] / jnp.maximum(jnp.linalg.norm(pose[3:7]), 1e-12)
     rot = jaxlie.SO3(wxyz=q).as_matrix()
     p = object_points @ rot.T + pose[:3]
@@ -41,7 +38,19 @@ def penetration_score(
     n = n / jnp.maximum(jnp.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
     signed = jnp.sum((p - s) * n, axis=-1)
     dist = jnp.sqrt(jnp.take_along_axis(d2, j[:, None], axis=1)[:, 0])
-    inside = (signed < -tol) & (dist < window)
+    return (signed < -tol) & (dist < window), n
+
+
+def penetration_score(
+    object_points: jax.Array,
+    support_points: jax.Array,
+    support_normals: jax.Array,
+    pose: jax.Array,
+    tol: float = TOL,
+    window: float = WINDOW,
+) -> jax.Array:
+    """Fraction [] of object points inside the observed support at ``pose`` (see module)."""
+    inside, _ = _inside(object_points, support_points, support_normals, pose, tol, window)
     return jnp.mean(inside.astype(jnp.float32))
 
 
@@ -76,15 +85,7 @@ def separate(
     (``max_shift``) whose :func:`penetration_score` is at most ``accept``, else the shift of
     least penetration. Rotation unchanged. A pose with nothing inside is returned as is.
     """
-    q = pose[3:7] / jnp.maximum(jnp.linalg.norm(pose[3:7]), 1e-12)
-    rot = jaxlie.SO3(wxyz=q).as_matrix()
-    p = object_points @ rot.T + pose[:3]
-    d2 = jnp.sum((p[:, None, :] - support_points[None, :, :]) ** 2, axis=-1)
-    j = jnp.argmin(d2, axis=1)
-    s, n = support_points[j], support_normals[j]
-    n = n / jnp.maximum(jnp.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-    dist = jnp.sqrt(jnp.take_along_axis(d2, j[:, None], axis=1)[:, 0])
-    inside = (jnp.sum((p - s) * n, axis=-1) < -0.002) & (dist < 0.015)
+    inside, n = _inside(object_points, support_points, support_normals, pose, TOL, WINDOW)
     direction = jnp.sum(jnp.where(inside[:, None], n, 0.0), axis=0)
     direction = direction / jnp.maximum(jnp.linalg.norm(direction), 1e-12)
     offsets = jnp.linspace(0.0, max_shift, 16)

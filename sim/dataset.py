@@ -29,6 +29,7 @@ Heavy arrays (partial clouds, contact maps, contact pairs) are derived from the 
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -581,18 +582,23 @@ def recipe(config: DatasetConfig, library: Library, pairs, preset: str) -> dict:
     }
 
 
-def _shard_records(library: Library, config: DatasetConfig, pairs, rec, k: int, backend: str):
+def shard_inputs(library: Library, config: DatasetConfig, pairs, rec: dict, k: int):
+    """Shard ``k``'s (chunk = pair indices, ids = (object id, support id, seed) per pair,
+    objects, supports, seeds)."""
     obj_index = {n: i for i, n in enumerate(rec["objects"])}
     sup_index = {n: i for i, n in enumerate(rec["supports"])}
     chunk = list(range(k * config.shard_size, min((k + 1) * config.shard_size, len(pairs))))
-    records, ids = [], []
-    for i in chunk:
-        o, s, _ = pairs[i]
-        seed = pair_seed(config.seed, o, s)
-        records.append(
-            generate_pair(library.objects[o], library.supports[s], seed, config, backend)
-        )
-        ids.append((obj_index[o], sup_index[s], seed))
+    names = [tuple(pairs[i][:2]) for i in chunk]
+    seeds = [pair_seed(config.seed, o, s) for o, s in names]
+    ids = [(obj_index[o], sup_index[s], seed) for (o, s), seed in zip(names, seeds)]
+    objs = [library.objects[o] for o, _ in names]
+    sups = [library.supports[s] for _, s in names]
+    return chunk, ids, objs, sups, seeds
+
+
+def _shard_records(library: Library, config: DatasetConfig, pairs, rec, k: int, backend: str):
+    chunk, ids, objs, sups, seeds = shard_inputs(library, config, pairs, rec, k)
+    records = [generate_pair(o, s, seed, config, backend) for o, s, seed in zip(objs, sups, seeds)]
     return records, chunk, ids
 
 
@@ -710,19 +716,28 @@ def generate(
     interrupted = True
     try:
         if backend == "mjx":
-            _generate_mjx(
-                config,
-                rec,
-                library,
-                pairs,
-                todo,
-                save,
-                workers,
-                shards_per_call,
-                deadline,
-                stage_seconds,
-                mjx_settings,
+            from sim import dataset_batched
+
+            groups = [todo[i : i + shards_per_call] for i in range(0, len(todo), shards_per_call)]
+            settings = mjx_settings or dataset_batched.DEFAULT_SETTINGS
+            pool_cm = (  # the per-pair CPU stage of one group runs while the GPU does the next
+                workers_mod.spawn_pool(workers, _worker_init, (config, rec, "cpu"))
+                if workers > 1
+                else contextlib.nullcontext()
             )
+            with pool_cm as pool:
+                dataset_batched.generate_groups(
+                    library,
+                    config,
+                    pairs,
+                    rec,
+                    groups,
+                    save,
+                    settings,
+                    pool,
+                    deadline,
+                    stage_seconds,
+                )
         elif workers <= 1:
             for k in todo:
                 if deadline is not None and time.time() > deadline:
@@ -767,36 +782,6 @@ def generate(
                 f.write(json.dumps(run) + "\n")
     card = dataset_card(out, library, pairs, rec, timings, backend, done_pairs)
     return card
-
-
-def _generate_mjx(
-    config,
-    rec,
-    library,
-    pairs,
-    todo,
-    save,
-    workers,
-    shards_per_call,
-    deadline,
-    stage_seconds,
-    settings,
-) -> None:
-    """The ``backend="mjx"`` branch of :func:`generate` (``sim.dataset_batched.generate_groups``)."""
-    from sim import dataset_batched
-
-    if settings is None:
-        settings = dataset_batched.DEFAULT_SETTINGS
-    groups = [todo[i : i + shards_per_call] for i in range(0, len(todo), shards_per_call)]
-    if workers <= 1:
-        dataset_batched.generate_groups(
-            library, config, pairs, rec, groups, save, settings, None, deadline, stage_seconds
-        )
-        return
-    with workers_mod.spawn_pool(workers, _worker_init, (config, rec, "cpu")) as pool:
-        dataset_batched.generate_groups(
-            library, config, pairs, rec, groups, save, settings, pool, deadline, stage_seconds
-        )
 
 
 def _device() -> str:

@@ -298,7 +298,7 @@ def shard_run_batched(
     settings: MJXSettings | None = DEFAULT_SETTINGS,
 ) -> ShardRun:
     """:func:`shard_records_batched` plus per-candidate statuses and kernel-call counts."""
-    chunk, ids, objs, sups, seeds, _ = _shard_inputs(library, config, pairs, rec, k)
+    chunk, ids, objs, sups, seeds = dataset.shard_inputs(library, config, pairs, rec, k)
     records, status, calls = label_pairs_batched(objs, sups, seeds, config, settings)
     return ShardRun(records, chunk, ids, status, calls)
 
@@ -319,19 +319,6 @@ def shard_records_batched(
 
 
 # ----------------------------------------------------------------------------- many shards
-
-
-def _shard_inputs(library: Library, config: DatasetConfig, pairs, rec: dict, k: int):
-    """(chunk, ids, objs, supports, seeds, names) of shard ``k``, as ``_shard_records``."""
-    obj_index = {n: i for i, n in enumerate(rec["objects"])}
-    sup_index = {n: i for i, n in enumerate(rec["supports"])}
-    chunk = list(range(k * config.shard_size, min((k + 1) * config.shard_size, len(pairs))))
-    names = [tuple(pairs[i][:2]) for i in chunk]
-    seeds = [dataset.pair_seed(config.seed, o, s) for o, s in names]
-    ids = [(obj_index[o], sup_index[s], seed) for (o, s), seed in zip(names, seeds)]
-    objs = [library.objects[o] for o, _ in names]
-    sups = [library.supports[s] for _, s in names]
-    return chunk, ids, objs, sups, seeds, names
 
 
 def _cpu_stage_job(job: tuple) -> tuple[dict, dict]:
@@ -394,14 +381,13 @@ def generate_groups(
         if deadline is not None and time.time() > deadline:
             break
         dataset.STAGE_SECONDS.clear()
-        shards, objs, sups, seeds, names = [], [], [], [], []
+        shards, objs, sups, seeds = [], [], [], []
         for k in group:
-            chunk, ids, o, s, sd, nm = _shard_inputs(library, config, pairs, rec, k)
+            chunk, ids, o, s, sd = dataset.shard_inputs(library, config, pairs, rec, k)
             shards.append((k, chunk, ids))
             objs += o
             sups += s
             seeds += sd
-            names += nm
         with dataset._timed("scene"):
             scenes = [build_scene(o, s) for o, s in zip(objs, sups)]
         try:
@@ -409,7 +395,9 @@ def generate_groups(
         finally:
             release(scenes, settings)
         if pool is not None:
-            jobs = [(o, s, sd, kp, config) for (o, s), sd, kp in zip(names, seeds, kept)]
+            jobs = [
+                (o.name, s.name, sd, kp, config) for o, s, sd, kp in zip(objs, sups, seeds, kept)
+            ]
             fields = pool.map_async(_cpu_stage_job, jobs, chunksize=1)
         else:
             fields = [
