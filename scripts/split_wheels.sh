@@ -4,6 +4,8 @@
 #   scripts/split_wheels.sh [PART_MIB]        (run here, in the repo root; default 56)
 #   SLIM=0 scripts/split_wheels.sh            keep warp-clang.so (one part more)
 #   XZ=1 scripts/split_wheels.sh 60           xz stream: 2 parts of <= 60 MiB (~3 min here)
+#   NO_PYBULLET=1 XZ=1 scripts/split_wheels.sh 30   dataset generation only (no PyBullet baseline)
+#   RECUT=1 scripts/split_wheels.sh 23        re-cut the existing stream into smaller parts
 #
 # The device machine has no mujoco, mujoco-mjx, trimesh, pybullet or warp-lang, and one
 # call carries at most 64 MiB (working tree + carried paths). warp-lang 1.19.0's wheel
@@ -58,12 +60,25 @@ with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w", zipfile.ZIP_DEFLATED
 print(f"slim warp-lang wheel: {dst}")
 EOF
 
+if [ "${RECUT:-0}" = 1 ]; then
+    # RECUT=1: cut the existing stream (.whlparts/p*/bundle.part.*) into PART_MIB pieces
+    # without rebuilding or recompressing it (seconds instead of minutes)
+    CODEC=$(awk '$1 == "codec" {print $2}' .whlparts/MANIFEST)
+    mkdir -p .whlparts.new/tmp
+    cat $(ls .whlparts/p*/bundle.part.* | awk -F. '{print $NF, $0}' | sort -n | cut -d' ' -f2) |
+        split -b "${PART_MIB}M" -d -a 1 - .whlparts.new/tmp/bundle.part.
+    rm -rf .whlparts && mv .whlparts.new .whlparts
+else
 rm -rf .whlparts && mkdir -p .whlparts/tmp
 # the stream: .whl/* and the slim warp wheel, flat, in one tar (wheels are already zips)
 CODEC=tar
 COMPRESS=cat
 if [ "${XZ:-0}" = 1 ]; then CODEC=tar.xz COMPRESS="xz -6 -T0"; fi
-tar -cf - -C .whl . -C ../.whl_gpu/slim "$WARP" | $COMPRESS | split -b "${PART_MIB}M" -d -a 1 - .whlparts/tmp/bundle.part.
+# NO_PYBULLET=1 leaves out the PyBullet sdist (only the benchmark's baseline needs it; 6 MB)
+EXCL=()
+[ "${NO_PYBULLET:-0}" = 1 ] && EXCL=(--exclude='./pybullet-*')
+tar -cf - "${EXCL[@]}" -C .whl . -C ../.whl_gpu/slim "$WARP" | $COMPRESS | split -b "${PART_MIB}M" -d -a 1 - .whlparts/tmp/bundle.part.
+fi
 n=$(ls .whlparts/tmp | wc -l)
 (
     cd .whlparts/tmp
