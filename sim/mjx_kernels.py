@@ -781,12 +781,18 @@ def union_xml(scenes: Sequence[Scene], settings: MJXSettings):
         obj.append(_geom_xml(_dummy("capsule", 0.0), f"o_cap{k}", 1, obj_attr, {}))
     for k in range(o_box):
         obj.append(_geom_xml(_dummy("box", 0.0), f"o_box{k}", 1, obj_attr, {}))
+    # Mesh geoms are shared by every pair with the same convex part (same vertices): a
+    # group of dataset shards holds few distinct objects (pairs are ordered by object), and
+    # every world carries every union geom through the broad phase, so one geom per pair
+    # made a group of 128 cap pairs 1,905 mesh geoms instead of ~160 (docs/dataset.md).
+    mesh_names: dict[tuple[str, bytes, int], str] = {}
     for p, scene in enumerate(scenes):
         for prefix, parts, out, attr, uprefix in (
             ("support_", scene.support.parts, sup, sup_attr, "s"),
             ("object_", scene.obj.parts, obj, obj_attr, "o"),
         ):
             nc = nb = 0
+            seen: collections.Counter = collections.Counter()  # same part twice in one pair
             for i, part in enumerate(parts):
                 if isinstance(part, Capsule):
                     maps[p][f"{uprefix}_cap{nc}"] = f"{prefix}{i}"
@@ -795,12 +801,15 @@ def union_xml(scenes: Sequence[Scene], settings: MJXSettings):
                     maps[p][f"{uprefix}_box{nb}"] = f"{prefix}{i}"
                     nb += 1
                 else:
-                    name = f"{uprefix}_mesh{p}_{i}"
-                    assets.append(
-                        f'<mesh name="{name}_m" vertex="{_fmt(np.asarray(part.vertices))}"/>'
-                    )
-                    out.append(_geom_xml(part, name, 2, attr, {name: f"{name}_m"}))
-                    maps[p][name] = f"{prefix}{i}"
+                    vertices = np.ascontiguousarray(part.vertices, dtype=np.float64)
+                    key = (uprefix, vertices.tobytes(), seen[(uprefix, vertices.tobytes())])
+                    seen[key[:2]] += 1
+                    if key not in mesh_names:
+                        name = f"{uprefix}_mesh{len(mesh_names)}"
+                        mesh_names[key] = name
+                        assets.append(f'<mesh name="{name}_m" vertex="{_fmt(vertices)}"/>')
+                        out.append(_geom_xml(part, name, 2, attr, {name: f"{name}_m"}))
+                    maps[p][mesh_names[key]] = f"{prefix}{i}"
         if scene.support.wall_y is not None:
             maps[p]["wall"] = "wall"
     h = physics.wall_half_size

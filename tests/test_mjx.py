@@ -217,3 +217,30 @@ def test_pybullet_reference_loads_every_mesh_part(category):
         np.testing.assert_allclose(hi, box[1], atol=5e-3)
     finally:
         world.close()
+
+
+def test_warp_union_shares_mesh_geoms_between_pairs():
+    """Pairs with the same convex parts share the union's mesh geoms (a group of shards has
+    few distinct objects, and every world carries every geom through the broad phase); a
+    part repeated inside one pair still gets a geom of its own."""
+    import mujoco
+
+    from sim.scene import build_scene
+
+    cube = geometry.hull(
+        np.array([[x, y, z] for x in (0, 0.02) for y in (0, 0.02) for z in (0, 0.02)])
+    )
+    twin = geometry.hull(cube.vertices + [0.0, 0.0, 0.0])  # same vertices, another part
+    block = Asset("blocks", "object", "others", 0, [cube, twin], [], {})
+    other = Asset("block", "object", "others", 1, [geometry.hull(cube.vertices * 1.5)], [], {})
+    hook = support_of("single_rod_hook", style="angled")
+    scenes = [build_scene(block, hook), build_scene(block, hook), build_scene(other, hook)]
+    xml, maps = mjx_kernels.union_xml(scenes, mjx_kernels.MJXSettings(impl="warp"))
+    mj = mujoco.MjModel.from_xml_string(xml)
+    names = [mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_GEOM, g) for g in range(mj.ngeom)]
+    object_meshes = [n for n in names if n.startswith("o_mesh")]
+    assert len(object_meshes) == 3  # cube and twin (one pair needs both), the larger block
+    assert maps[0] == maps[1]
+    mine = {u for u in maps[0] if u.startswith("o_mesh")}
+    assert len(mine) == 2 and sorted(maps[0][u] for u in mine) == ["object_0", "object_1"]
+    assert {u for u in maps[2] if u.startswith("o_mesh")}.isdisjoint(mine)
