@@ -802,8 +802,9 @@ def union_xml(scenes: Sequence[Scene], settings: MJXSettings):
                     nb += 1
                 else:
                     vertices = np.ascontiguousarray(part.vertices, dtype=np.float64)
-                    key = (uprefix, vertices.tobytes(), seen[(uprefix, vertices.tobytes())])
-                    seen[key[:2]] += 1
+                    raw = vertices.tobytes()
+                    key = (uprefix, raw, seen[raw])
+                    seen[raw] += 1
                     if key not in mesh_names:
                         name = f"{uprefix}_mesh{len(mesh_names)}"
                         mesh_names[key] = name

@@ -16,7 +16,9 @@ import multiprocessing as mp
 import os
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+# XLA CPU: no multi-threaded Eigen (the only XLA_FLAGS knob for the intra-op pool;
+# TF's intra_op_parallelism_threads is not an XLA flag)
+XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false"
 
 
 @contextlib.contextmanager

@@ -314,7 +314,7 @@ def test_spawned_workers_start_single_threaded(monkeypatch):
     with workers.spawn_pool(1) as pool:
         env = pool.apply(workers.thread_settings)
     assert env["OMP_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == "1"
-    assert "intra_op_parallelism_threads=1" in env["XLA_FLAGS"]
+    assert "--xla_cpu_multi_thread_eigen=false" in env["XLA_FLAGS"]
     assert "OMP_NUM_THREADS" not in os.environ
     monkeypatch.setenv("OMNIHANG_WORKER_THREADS", "0")  # library defaults, for measuring
     with workers.worker_environment():
