@@ -16,6 +16,7 @@ import json
 import os
 import signal
 import sys
+from concurrent.futures.process import BrokenProcessPool
 
 from sim import dataset
 
@@ -100,6 +101,14 @@ def main(argv=None) -> dict:
             file=sys.stderr,
         )
         raise SystemExit(130) from None
+    except BrokenProcessPool as e:  # a worker was killed (out of memory?): nothing is lost
+        print(
+            f"a worker process died ({e}); finished shards are kept in {args.out}/shards and "
+            "the run is logged in runs.jsonl; check memory (fewer --workers) and run the same "
+            "command again to resume",
+            file=sys.stderr,
+        )
+        raise SystemExit(1) from None
     return _report(args, card)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from sim import dataset
 from sim.library import build_library
 
+ROOT = Path(__file__).resolve().parents[1]
 CFG = dataset.PRESETS["tiny"]  # 4 pairs: mug, wrench x single_rod_hook, towel_bar
 
 
@@ -259,13 +261,95 @@ def test_an_interrupted_run_keeps_its_shards_and_logs_itself(tmp_path, monkeypat
     assert run["shards"] == [0]
 
 
+POOL_SCRIPT = """
+import signal, sys, time
+from sim import workers
+
+def job(x):
+    time.sleep(60 if x == 0 else 0.01)  # one busy worker, the others wait for work
+    return x
+
+if __name__ == "__main__":
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        with workers.spawn_pool(3) as pool:
+            for x in pool.imap_unordered(job, range(6)):
+                print("done", x, flush=True)
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+        sys.exit(130)
+"""
+
+
+def _run_and_signal_group(cmd, ready, tmp_path):
+    """Start cmd in its own process group, SIGTERM the group once ready() holds; returns
+    (returncode, stdout + stderr, seconds from the signal to the exit)."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    log = open(tmp_path / "log.txt", "w+")
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=log, stderr=log, cwd=ROOT)
+    t0 = time.time()
+    while time.time() - t0 < 300 and proc.poll() is None and not ready():
+        time.sleep(0.1)
+    assert proc.poll() is None, "finished before the signal: make the job longer"
+    os.killpg(proc.pid, signal.SIGTERM)
+    t_kill = time.time()
+    try:
+        proc.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        raise AssertionError("still running 60 s after SIGTERM") from None
+    log.seek(0)
+    return proc.returncode, log.read(), time.time() - t_kill
+
+
+def test_sigterm_to_the_process_group_does_not_hang_the_worker_pool(tmp_path):
+    """`timeout` and job schedulers signal the whole process group. A multiprocessing.Pool
+    whose idle worker dies that way hangs forever in terminate() (a device call lost its
+    shards so); sim.workers.WorkerPool leaves the signal to the parent, which kills the
+    workers and goes on at once."""
+    import sys
+
+    (tmp_path / "pool_job.py").write_text(POOL_SCRIPT)
+    log = tmp_path / "log.txt"
+    rc, out, seconds = _run_and_signal_group(
+        [sys.executable, str(tmp_path / "pool_job.py")],
+        lambda: log.exists() and log.read_text().count("done") >= 5,
+        tmp_path,
+    )
+    assert rc == 130 and "interrupted" in out, out
+    assert seconds < 20
+
+
+def test_sigterm_mid_run_keeps_finished_shards_and_logs_the_run(tmp_path):
+    """Kill `generate_dataset` (process group, SIGTERM) once its first shard is written:
+    it exits 130 at once, the run is logged as interrupted with the shards it finished, and
+    no partial file is left."""
+    import sys
+
+    out = tmp_path / "ds"
+    cmd = [sys.executable, "-m", "experiments.generate_dataset", "--preset", "demo"]
+    cmd += ["--max-pairs", "40", "--out", str(out), "--workers", "2", "--no-progress"]
+    rc, log, seconds = _run_and_signal_group(cmd, lambda: any(out.glob("shards/*.npz")), tmp_path)
+    assert rc == 130 and "interrupted" in log, log
+    assert seconds < 30
+    shards = sorted(out.glob("shards/*"))
+    assert shards and all(f.name.endswith(".npz") for f in shards)
+    (run,) = dataset.load_runs(out)
+    assert run["interrupted"] and len(run["shards"]) == len(shards) < 5
+
+
 @pytest.mark.parametrize("pooled", [False, True])
 def test_grouped_generation_equals_cpu_shards(generated, pooled):
     """sim.dataset_batched.generate_groups (the GPU generator's pipeline), run on the CPU
     reference physics: both shards of the tiny preset in one group, the per-pair CPU stage
     in a 2-process pool (or in this process), give the CPU generator's shards bit for bit."""
     import collections
-    import multiprocessing as mp
+
+    from sim import workers
 
     dataset_batched = pytest.importorskip("sim.dataset_batched")
     out, _ = generated
@@ -280,7 +364,7 @@ def test_grouped_generation_equals_cpu_shards(generated, pooled):
     seconds = collections.Counter()
     groups = [[0, 1]]
     if pooled:
-        with mp.get_context("spawn").Pool(2, dataset._worker_init, (CFG, rec, "cpu")) as pool:
+        with workers.spawn_pool(2, dataset._worker_init, (CFG, rec, "cpu")) as pool:
             n = dataset_batched.generate_groups(
                 library, CFG, pairs, rec, groups, save, None, pool, stage_seconds=seconds
             )
