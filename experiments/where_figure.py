@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import gzip
 import json
 import os
 from collections.abc import Iterable, Sequence
@@ -47,8 +48,10 @@ OK_COLOUR, BAD_COLOUR = "#1a7f37", "#c62828"
 
 
 def read_pairs_jsonl(path: str | os.PathLike) -> list[dict]:
-    """The rows of a per-pair JSONL written by ``omnihang_jax.evaluate.evaluate_where``."""
-    with open(path) as f:
+    """The rows of a per-pair JSONL written by ``omnihang_jax.evaluate.evaluate_where``
+    (``.jsonl`` or gzipped ``.jsonl.gz``, as the archived results are)."""
+    opener = gzip.open if os.fspath(path).endswith(".gz") else open
+    with opener(path, "rt") as f:
         return [json.loads(line) for line in f if line.strip()]
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import shutil
 
 from PIL import Image
@@ -60,6 +61,9 @@ def test_eval_where_draws_the_figure_and_redraws_it_from_the_jsonl(tmp_path):
 
     # Afterwards, from the per-pair JSONL only (no model); the derived folder works as --data.
     jsonl = out.with_suffix(".pairs.jsonl")
+    gz = tmp_path / "archived.pairs.jsonl.gz"  # archived results are gzipped
+    gz.write_bytes(gzip.compress(jsonl.read_bytes()))
+    assert where_figure.read_pairs_jsonl(gz) == where_figure.read_pairs_jsonl(jsonl)
     again = eval_where.main(
         ["--figure-from", str(jsonl), "--data", str(data / "derived"), "--figure-pairs", "1"]
     )
