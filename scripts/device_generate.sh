@@ -11,6 +11,7 @@
 #          CPU stage (collision labels, views) of one group while the GPU labels the next.
 # Phase 2 (MJX_PROCS > 1; 2026-11-21: 4 processes of one shard each failed on Warp GPU
 #          allocations at their second shard): more processes on the other parts.
+# FRESH=1: ignore the shards already in DATA (measure on a finished dataset).
 # No group is started after END_S (running ones finish; the hard stop at KILL_S loses only
 # unfinished shards, never a written one).
 # Everything comes back in $OUT as: device_generate.log, mjx_shards.tgz (new shards +
@@ -34,7 +35,9 @@ nvidia-smi -L | tee -a "$OUT/device_generate.log"
 nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -l 5 >"$OUT/smi.csv" &
 SMI=$!
 cp "$DATA/recipe.json" "$G/"
-cp "$DATA"/shards/shard_*.npz "$G/shards/" 2>/dev/null
+# FRESH=1: start from no shards (a throughput measurement on a finished dataset; the shards
+# it makes are compared with the committed CPU ones afterwards)
+[ -n "${FRESH:-}" ] || cp "$DATA"/shards/shard_*.npz "$G/shards/" 2>/dev/null
 ls "$G/shards" >/tmp/mjx_before.txt
 log "$(wc -l </tmp/mjx_before.txt) shards already done"
 
