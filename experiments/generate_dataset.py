@@ -70,6 +70,13 @@ def main(argv=None) -> dict:
         "for one group while the GPU labels the next",
     )
     parser.add_argument(
+        "--max-shards",
+        type=int,
+        default=None,
+        metavar="N",
+        help="do at most N of the shards left, then write the card (bounded chunks of work)",
+    )
+    parser.add_argument(
         "--card-only",
         action="store_true",
         help="generate nothing: (re)write DIR/dataset_card.json/.md from the shards present "
@@ -109,6 +116,20 @@ def main(argv=None) -> dict:
             file=sys.stderr,
         )
         raise SystemExit(1) from None
+    except Exception as e:
+        if args.backend != "mjx" or "Failed to allocate" not in str(e):
+            raise
+        # MuJoCo Warp allocates scratch memory inside the jitted step; after a few device
+        # models in one process that fails although the GPU has memory to spare (upstream:
+        # mujoco_warp issues 926 and 1385). A fresh process starts clean.
+        print(
+            f"MuJoCo Warp could not allocate GPU memory in this process ({str(e)[-160:]}); "
+            f"finished shards are kept in {args.out}/shards and the run is logged in "
+            "runs.jsonl; run again (a new process) to resume, e.g. with --max-shards equal "
+            "to --shards-per-call for one device model per process",
+            file=sys.stderr,
+        )
+        raise SystemExit(3) from None
     return _report(args, card)
 
 
@@ -123,6 +144,7 @@ def _generate(args, config, workers: int, i_part: int, n_part: int) -> dict:
         part=(i_part, n_part),
         stop_after_s=0.0 if args.card_only else args.stop_after,
         shards_per_call=args.shards_per_call,
+        max_shards=args.max_shards,
     )
 
 

@@ -12,6 +12,8 @@
 # Phase 2 (MJX_PROCS > 1; 2026-11-21: 4 processes of one shard each failed on Warp GPU
 #          allocations at their second shard): more processes on the other parts.
 # FRESH=1: ignore the shards already in DATA (measure on a finished dataset).
+# ONE_MODEL=1: one process per group (--max-shards SHARDS_PER_CALL), restarted until END_S:
+#          MuJoCo Warp's in-step allocations fail after a few device models in one process.
 # No group is started after END_S (running ones finish; the hard stop at KILL_S loses only
 # unfinished shards, never a written one).
 # Everything comes back in $OUT as: device_generate.log, mjx_shards.tgz (new shards +
@@ -41,10 +43,25 @@ cp "$DATA/recipe.json" "$G/"
 ls "$G/shards" >/tmp/mjx_before.txt
 log "$(wc -l </tmp/mjx_before.txt) shards already done"
 
-gen() {  # part, seconds left for starting shards
+gen1() {  # part, seconds left for starting shards: one process
     python3 -m experiments.generate_dataset --preset paper --out "$G" --backend mjx \
         --part "$1" --stop-after "$2" --shards-per-call "$SHARDS_PER_CALL" \
+        ${ONE_MODEL:+--max-shards "$SHARDS_PER_CALL"} \
         --workers "$CPU_WORKERS" --no-progress >>"$OUT/generate_${1/\//of}.log" 2>&1
+}
+gen() {  # ONE_MODEL=1: a new process per device model (group), until END_S or the part is done
+    if [ -z "${ONE_MODEL:-}" ]; then
+        gen1 "$@"
+        return
+    fi
+    while [ $(($(date +%s) - T0)) -lt "$END_S" ]; do
+        before=$(ls "$G/shards" | wc -l)
+        gen1 "$1" $((END_S - $(date +%s) + T0))
+        rc=$?
+        log "part $1: process exited $rc, $(($(ls "$G/shards" | wc -l) - before)) new shards"
+        [ "$rc" = 0 ] && [ "$(ls "$G/shards" | wc -l)" = "$before" ] && break  # part done
+        [ "$rc" = 0 ] || [ "$rc" = 3 ] || break
+    done
 }
 new_shards() { comm -13 /tmp/mjx_before.txt <(ls "$G/shards") | grep -c '^shard_'; }
 
@@ -66,9 +83,11 @@ for p in "$@"; do
     pids+=($!)
     log "started part $p (pid $!)"
 done
-while [ $(($(date +%s) - T0)) -lt "$KILL_S" ] && pgrep -f "out $G" >/dev/null; do
+alive() { for p in "${pids[@]}"; do kill -0 "$p" 2>/dev/null && return 0; done; return 1; }
+while [ $(($(date +%s) - T0)) -lt "$KILL_S" ] && alive; do
     sleep 3
 done
+kill "${pids[@]}" 2>/dev/null  # the ONE_MODEL loops first, so that they start nothing new
 pkill -f "out $G" && log "stopped generators still running at ${KILL_S} s"
 sleep 2
 kill $SMI 2>/dev/null

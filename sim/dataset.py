@@ -636,6 +636,7 @@ def generate(
     stop_after_s: float | None = None,
     shards_per_call: int = 1,
     mjx_settings=None,
+    max_shards: int | None = None,
 ) -> dict:
     """Generate (or resume) the dataset into ``out_dir``; returns the dataset card.
 
@@ -648,6 +649,8 @@ def generate(
     one directory and run once more (nothing left to do) to write the card.
     ``stop_after_s``: start no shard after this many seconds (shards already started are
     finished), so a job on a time limit ends with whole shards instead of killed ones.
+    ``max_shards``: do at most this many of the shards left (bounded chunks of work, e.g.
+    one device model per process with ``backend="mjx"``).
     """
     out = Path(out_dir)
     (out / "shards").mkdir(parents=True, exist_ok=True)
@@ -681,6 +684,10 @@ def generate(
     n_shards = (len(pairs) + config.shard_size - 1) // config.shard_size
     mine = [k for k in range(n_shards) if k % n_part == i_part]
     todo = [k for k in mine if not (out / "shards" / f"shard_{k:05d}.npz").exists()]
+    if max_shards is not None:
+        if max_shards < 0:
+            raise ValueError(f"max_shards must be >= 0, got {max_shards}")
+        todo = todo[:max_shards]
     t0 = time.time()
     done_pairs = 0
     written: list[int] = []  # shards this run wrote (provenance in runs.jsonl)

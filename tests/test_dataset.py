@@ -403,3 +403,13 @@ def test_spawned_workers_start_single_threaded(monkeypatch):
     monkeypatch.setenv("OMNIHANG_WORKER_THREADS", "0")  # library defaults, for measuring
     with workers.worker_environment():
         assert "OMP_NUM_THREADS" not in os.environ
+
+
+def test_max_shards_bounds_one_run_and_the_next_resumes(tmp_path):
+    dataset.generate(CFG, tmp_path, preset="test", progress=False, max_shards=1)
+    assert len(list((tmp_path / "shards").glob("shard_*.npz"))) == 1
+    dataset.generate(CFG, tmp_path, preset="test", progress=False, max_shards=5)
+    assert len(list((tmp_path / "shards").glob("shard_*.npz"))) == 2
+    assert [r["shards"] for r in dataset.load_runs(tmp_path)] == [[0], [1]]
+    with pytest.raises(ValueError, match="max_shards"):
+        dataset.generate(CFG, tmp_path, preset="test", progress=False, max_shards=-1)
