@@ -413,3 +413,17 @@ def test_max_shards_bounds_one_run_and_the_next_resumes(tmp_path):
     assert [r["shards"] for r in dataset.load_runs(tmp_path)] == [[0], [1]]
     with pytest.raises(ValueError, match="max_shards"):
         dataset.generate(CFG, tmp_path, preset="test", progress=False, max_shards=-1)
+
+
+def test_compare_shards_of_one_generation_with_itself(generated, tmp_path):
+    from experiments import compare_shards
+
+    out, card = generated
+    result = compare_shards.main(
+        ["--a", str(out), "--b", str(out), "--out", str(tmp_path / "c.json")]
+    )
+    total = result["total"]
+    assert total["with_stable_agree"] == total["pairs"] == 4
+    assert total["stable_poses_a"] == total["stable_poses_b"] > 0
+    assert total["collision_labels_equal"] == total["collision_labels_compared"] > 0
+    assert json.loads((tmp_path / "c.json").read_text())["shards"] == 2
