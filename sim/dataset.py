@@ -761,6 +761,12 @@ def generate(
         interrupted = False
     finally:
         bar.close()
+        # a worker may have written its shard just before a kill reached the parent: every
+        # shard of this run's list that exists now was written by this run
+        for k in todo:
+            if k not in written and (out / "shards" / f"shard_{k:05d}.npz").exists():
+                written.append(k)
+                done_pairs += min(config.shard_size, len(pairs) - k * config.shard_size)
         stage_seconds.update(STAGE_SECONDS)
         timings = {
             "generate_s": time.time() - t0,
