@@ -160,9 +160,12 @@ def _report(args, card: dict) -> dict:
         )
     }
     print(json.dumps(summary, indent=1))
-    print(
-        f"pairs/min this run: {card['timings']['pairs_per_min_this_run']:.1f}; card: {args.out}/dataset_card.md"
+    rate = (
+        f"pairs/min this run: {card['timings']['pairs_per_min_this_run']:.1f}"
+        if card["timings"].get("pairs_this_run")
+        else "nothing generated in this run"
     )
+    print(f"{rate}; card: {args.out}/dataset_card.md")
     return card
 
 

@@ -921,7 +921,13 @@ def card_markdown(card: dict) -> str:
         f"- objects / supports: {card['objects']} / {card['supports']}",
         f"- stable poses kept: {card['stable_poses']}; negatives: {card['negative_poses']}; collision labels: {card['collision_labels']} ({100 * card['colliding_fraction']:.1f}% colliding)",
         f"- candidates: {card['candidates']}; stable yield {100 * card['stable_yield']:.2f}%; penetrating {100 * card['penetrating_fraction']:.1f}%; take-off rejections {card['takeoff_rejections']}",
-        f"- backend {card['backend']} on {card['device']}; {card['timings']['pairs_per_min_this_run']:.1f} pairs/min this run",
+        (
+            f"- last run: backend {card['backend']} on {card['device']}, "
+            f"{card['timings']['pairs_per_min_this_run']:.1f} pairs/min"
+            if card["timings"].get("pairs_this_run")
+            else f"- last run generated nothing (card rewritten on {card['device']}); "
+            "the runs that made the shards are listed below"
+        ),
         "- time per stage (CPU-s over logged runs): "
         + (", ".join(f"{k} {v:.0f}" for k, v in card.get("time_per_stage_s", {}).items()) or "-"),
         "",
