@@ -94,6 +94,8 @@ class WorkerPool:
 
     def kill(self) -> None:
         """Cancel pending work and SIGKILL the workers (finished results are kept)."""
+        # the executor's own process table (private, hence the getattr): shutdown() alone
+        # would wait for the running tasks
         processes = list((getattr(self._executor, "_processes", None) or {}).values())
         self._executor.shutdown(wait=False, cancel_futures=True)
         for proc in processes:
@@ -109,17 +111,20 @@ class WorkerPool:
 
     def imap_unordered(self, fn, iterable, chunksize: int = 1):
         """``fn(x)`` for each x, results in the order they finish (chunks of ``chunksize``)."""
-        items = list(iterable)
-        chunks = [items[i : i + chunksize] for i in range(0, len(items), max(1, chunksize))]
-        futures = [self._executor.submit(_run_chunk, fn, chunk) for chunk in chunks]
-        for future in cf.as_completed(futures):
+        for future in cf.as_completed(self._submit_chunks(fn, iterable, chunksize)):
             yield from future.result()
 
     def map_async(self, fn, iterable, chunksize: int = 1) -> _MapResult:
         """Start ``fn(x)`` for each x now; ``.get()`` returns the results in order."""
+        return _MapResult(self._submit_chunks(fn, iterable, chunksize))
+
+    def _submit_chunks(self, fn, iterable, chunksize: int) -> list[cf.Future]:
         items = list(iterable)
-        chunks = [items[i : i + chunksize] for i in range(0, len(items), max(1, chunksize))]
-        return _MapResult([self._executor.submit(_run_chunk, fn, chunk) for chunk in chunks])
+        step = max(1, chunksize)
+        return [
+            self._executor.submit(_run_chunk, fn, items[i : i + step])
+            for i in range(0, len(items), step)
+        ]
 
 
 class _MapResult:

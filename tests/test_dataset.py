@@ -289,21 +289,22 @@ def _run_and_signal_group(cmd, ready, tmp_path):
     import subprocess
     import time
 
-    log = open(tmp_path / "log.txt", "w+")
-    proc = subprocess.Popen(cmd, start_new_session=True, stdout=log, stderr=log, cwd=ROOT)
-    t0 = time.time()
-    while time.time() - t0 < 300 and proc.poll() is None and not ready():
-        time.sleep(0.1)
-    assert proc.poll() is None, "finished before the signal: make the job longer"
-    os.killpg(proc.pid, signal.SIGTERM)
-    t_kill = time.time()
-    try:
-        proc.wait(timeout=60)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        raise AssertionError("still running 60 s after SIGTERM") from None
-    log.seek(0)
-    return proc.returncode, log.read(), time.time() - t_kill
+    with open(tmp_path / "log.txt", "w+") as log:
+        proc = subprocess.Popen(cmd, start_new_session=True, stdout=log, stderr=log, cwd=ROOT)
+        t0 = time.time()
+        while time.time() - t0 < 300 and proc.poll() is None and not ready():
+            time.sleep(0.1)
+        assert proc.poll() is None, "finished before the signal: make the job longer"
+        os.killpg(proc.pid, signal.SIGTERM)
+        t_kill = time.time()
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            raise AssertionError("still running 60 s after SIGTERM") from None
+        seconds = time.time() - t_kill
+        log.seek(0)
+        return proc.returncode, log.read(), seconds
 
 
 def test_sigterm_to_the_process_group_does_not_hang_the_worker_pool(tmp_path):
