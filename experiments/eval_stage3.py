@@ -1,0 +1,85 @@
+"""Held-out hanging success of Stages 1, 1+2, 1+3 and all stages (protocol: docs/evaluation.md).
+
+Example (after deriving held-out pairs and training V):
+
+    python -m experiments.derive_dataset --data datasets/paper --split test --limit 16
+    python -m experiments.eval_stage3 --value weights/value_small_paper --limit 16 \\
+        --out out/hanging_success_stage3.json
+
+``--pairs-from results/hanging_success.pairs.jsonl`` evaluates exactly the pairs of an earlier
+run (the committed figures use the 1,814 pairs of results/hanging_success.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from omnihang_jax import dataset_bridge, eval_pipeline, evaluate, refine
+from omnihang_jax.stage3 import CEMConfig
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--data", default="datasets/paper", help="dataset with derived/test")
+    parser.add_argument("--weights", default="weights/where_small_paper", help="Stages 1-2")
+    parser.add_argument("--value", default="weights/value_small_paper", help="V (Stage 3)")
+    parser.add_argument("--out", required=True, help="summary JSON (pairs go to .pairs.jsonl)")
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--pairs-from", default=None, help="evaluate the pairs of this JSONL")
+    parser.add_argument("--limit", type=int, default=None, help="first N pairs")
+    parser.add_argument("--per-category", type=int, default=None, help="N pairs per category")
+    parser.add_argument("--proposals", type=int, default=5, help="K (default 5, facts)")
+    parser.add_argument("--rounds", type=int, default=1, help="CEM rounds (1 = facts)")
+    parser.add_argument("--batch", type=int, default=16, help="pairs per network call")
+    parser.add_argument("--workers", type=int, default=0, help="simulation processes")
+    parser.add_argument("--label", default="")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    try:
+        dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(args.data)
+        files = dataset_bridge.derived_files(derived_dir, args.split)
+        if args.pairs_from:
+            wanted = [json.loads(x)["file"] for x in Path(args.pairs_from).read_text().splitlines()]
+            have = {Path(f).name: f for f in files}
+            missing = [w for w in wanted if w not in have]
+            if missing:
+                raise FileNotFoundError(
+                    f"{len(missing)} of {len(wanted)} pairs of {args.pairs_from} are not derived"
+                    f" under {derived_dir}/{args.split} (first: {missing[0]}); derive them first"
+                )
+            files = [have[w] for w in wanted]
+        if args.per_category:
+            files = evaluate.spread_per_category(files, args.per_category)
+        if args.limit:
+            files = files[: args.limit]
+        if not files:
+            raise FileNotFoundError(f"no derived {args.split} pairs under {derived_dir}")
+        records, timings = eval_pipeline.evaluate_pipeline(
+            files, args.weights, args.value, dataset_dir, num_proposals=args.proposals,
+            cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
+            progress=not args.no_progress,
+        )  # fmt: skip
+    except (FileNotFoundError, ValueError) as err:
+        print(f"eval_stage3: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    summary = eval_pipeline.summarize_pipeline(records, args.proposals)
+    summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
+                   cem_rounds=args.rounds, num_proposals=args.proposals)  # fmt: skip
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    refine.write_json(out, summary)
+    pairs = out.with_name(out.name.removesuffix(".json") + ".pairs.jsonl")
+    pairs.write_text("".join(json.dumps(r) + "\n" for r in records))
+    brief = {s: round(summary[s]["mean"], 1) for s in eval_pipeline.STAGES}
+    brief.update(pairs=len(records), ranker=summary["ranker"], ceiling=summary["ceiling"])
+    print(json.dumps(brief, indent=1))
+    return summary
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,97 @@
+"""Train Stage 3 (value function V + CEM) with simulated rewards; resumable.
+
+Example (CPU, a few minutes on 2 cores, needs derived training pairs):
+
+    python -m experiments.derive_dataset --data datasets/paper --split train --limit 24
+    python -m experiments.train_stage3 --preset tiny --out runs/stage3_tiny
+
+On a GPU machine the ``paper`` preset is the job of scripts/device_stage3.sh. Rerunning the
+same command resumes from ``OUT`` (buffer, V checkpoint, round counter).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+
+from omnihang_jax import stage3
+from omnihang_jax.rl import RLConfig, train_stage3
+from omnihang_jax.stage3 import CEMConfig
+
+PRESETS = {
+    # tests and CPU smoke runs: tiny network, few pairs, a couple of rounds
+    "tiny": RLConfig(
+        value=stage3.VALUE_TINY,
+        cem=CEMConfig(population=8, iterations=3, elites=3),
+        num_proposals=2,
+        max_pairs=12,
+        perturb_wide=4,
+        perturb_tight=4,
+        pretrain_steps=30,
+        rounds=2,
+        round_pairs=6,
+        round_steps=20,
+        val_every=1,
+        val_pairs=4,
+        eval_every=20,
+        val_fraction=0.25,
+    ),
+    # the GPU job: every derived training pair, the small PointNet++ preset
+    "paper": RLConfig(workers=15, time_budget=0.0),
+}
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
+    parser.add_argument("--out", required=True, help="job folder (created; resumed if present)")
+    parser.add_argument(
+        "--data", default="datasets/paper", help="dataset with derived/ (default datasets/paper)"
+    )
+    parser.add_argument(
+        "--weights",
+        default="weights/where_small_paper",
+        help="Stage 1/2 weights (default weights/where_small_paper)",
+    )
+    parser.add_argument("--max-pairs", type=int, default=None, help="training pairs (0 = all)")
+    parser.add_argument("--pretrain-steps", type=int, default=None)
+    parser.add_argument("--rounds", type=int, default=None)
+    parser.add_argument("--round-pairs", type=int, default=None)
+    parser.add_argument("--round-steps", type=int, default=None)
+    parser.add_argument("--batch", type=int, default=None, help="V training batch")
+    parser.add_argument("--workers", type=int, default=None, help="simulation processes")
+    parser.add_argument("--time-budget", type=float, default=None, help="seconds for the job")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    config = PRESETS[args.preset]
+    over = {
+        "max_pairs": args.max_pairs,
+        "pretrain_steps": args.pretrain_steps,
+        "rounds": args.rounds,
+        "round_pairs": args.round_pairs,
+        "round_steps": args.round_steps,
+        "workers": args.workers,
+        "time_budget": args.time_budget,
+    }
+    config = dataclasses.replace(config, **{k: v for k, v in over.items() if v is not None})
+    if args.batch:
+        config = dataclasses.replace(
+            config, value=dataclasses.replace(config.value, batch_size=args.batch)
+        )
+    try:
+        summary = train_stage3(
+            config, args.out, args.data, args.weights, progress=not args.no_progress
+        )
+    except (FileNotFoundError, ValueError) as err:
+        print(f"train_stage3: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    print(json.dumps(summary, indent=1))
+    return summary
+
+
+if __name__ == "__main__":
+    main()

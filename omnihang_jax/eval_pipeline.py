@@ -1,0 +1,210 @@
+"""Held-out hanging success of the whole where-to-hang pipeline (Stages 1, 1+2, 1+3, 1-3).
+
+The protocol is ``omnihang_jax.evaluate``'s (module docstring there): one candidate per pair
+is simulated for 1 s under ``protocol_stability``; success = STABLE; the score is the mean over
+object categories. What differs is only which candidate counts:
+
+* ``stage1`` / ``stage1_2``: the first of the K proposals (no score to rank by);
+* ``stage1_3``: CEM on V from each Stage-1 proposal, the candidate with the best final V;
+* ``all_stages``: CEM on V from each Stage-2 proposal, the best final V (facts: "the
+  candidate with the best final Stage-3 score is evaluated").
+
+All 4K candidates of a pair are simulated (one batched job per pair in a process pool) so the
+same run also reports: any-of-K per stage, V as a ranker of the *unrefined* Stage-2
+proposals (best initial V against any-of-K), CEM's gain per proposal, V's accuracy on every
+simulated candidate, and the ceiling of CEM's box (a ground-truth stable pose within +-2 cm
+and 0.5 rad of some proposal).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from omnihang_jax import dataset_bridge, refine, stage3
+from omnihang_jax.evaluate import pose_errors, summarize_success
+from omnihang_jax.stage3 import PairClouds
+
+__all__ = ["STAGES", "evaluate_pipeline", "within_box", "summarize_pipeline"]
+
+STAGES = ("stage1", "stage1_2", "stage1_3", "all_stages")
+PAPER = {"stage1": 36.0, "stage1_2": 34.2, "stage1_3": 56.2, "all_stages": 68.3}
+
+
+def within_box(poses: np.ndarray, targets: np.ndarray, translation: float, rotation: float):
+    """[K] bool: some target pose lies within +-``translation`` per axis and ``rotation``
+    rad of geodesic angle of each pose (the reach of one CEM run)."""
+    from scipy.spatial.transform import Rotation
+
+    if len(targets) == 0:
+        return np.zeros(len(poses), bool)
+    dt = np.abs(poses[:, None, :3] - targets[None, :, :3]).max(-1)  # [K, D]
+    rp = Rotation.from_quat(np.roll(poses[:, 3:], -1, axis=1))
+    out = np.zeros(len(poses), bool)
+    for i in range(len(poses)):
+        rt = Rotation.from_quat(np.roll(targets[:, 3:], -1, axis=1))
+        ang = (rp[i].inv() * rt).magnitude()
+        out[i] = bool(np.any((dt[i] <= translation) & (ang <= rotation)))
+    return out
+
+
+def evaluate_pipeline(
+    files: Sequence[str | os.PathLike],
+    weights: str | os.PathLike,
+    value_dir: str | os.PathLike,
+    dataset_dir: str | os.PathLike,
+    num_proposals: int = 5,
+    cem: stage3.CEMConfig = stage3.CEMConfig(),
+    batch: int = 16,
+    workers: int = 0,
+    seed: int = 0,
+    progress: bool = True,
+) -> tuple[list[dict], dict]:
+    """Run Stages 1-3 on every pair file and simulate every candidate. Returns (records,
+    timings)."""
+    from omnihang_jax.predict import load_predictor
+    from sim import kernels
+
+    t0 = time.time()
+    predictor = load_predictor(weights)
+    value_config, value_params = refine.load_value(value_dir)
+    refine_fn = jax.jit(stage3.make_refiner(value_config, cem))
+    value_fn = jax.jit(stage3.make_value(value_config).value)
+    key = jax.random.key(seed)
+    k = num_proposals
+    records, jobs, cands = [], [], []
+    t_net = 0.0
+    bar = tqdm(range(0, len(files), batch), desc="stages 1-3", disable=not progress)
+    for i in bar:
+        chunk = list(files[i : i + batch])
+        m = len(chunk)
+        loaded = [dataset_bridge.load_pair_file(f) for f in chunk]
+        loaded += [loaded[0]] * (batch - m)  # pad: one compilation
+        samples = [s for s, _ in loaded]
+        full = PairClouds(*(np.stack([np.asarray(getattr(s, f), np.float32) for s in samples])
+                            for f in ("object_points", "object_normals", "support_points",
+                                      "support_normals")))  # fmt: skip
+        tn = time.time()
+        pred = predictor(full.object_points, full.support_points,
+                         key=jax.random.fold_in(key, i), num_proposals=k)  # fmt: skip
+        small = stage3.subsample_clouds(jax.tree.map(jnp.asarray, full), value_config)
+        r2 = refine_fn(value_params, jax.random.fold_in(key, 2 * i + 1), small,
+                       jnp.asarray(pred.stage2_poses))  # fmt: skip
+        r1 = refine_fn(value_params, jax.random.fold_in(key, 2 * i + 2), small,
+                       jnp.asarray(pred.stage1_poses))  # fmt: skip
+        # V of the unrefined Stage-2 proposals is r2.initial_scores; V of every candidate:
+        allp = jnp.concatenate([jnp.asarray(pred.stage1_poses), jnp.asarray(pred.stage2_poses),
+                                r1.poses, r2.poses], axis=1)  # [B, 4K, 7]  # fmt: skip
+        tiled = jax.tree.map(lambda x: jnp.repeat(x, 4 * k, axis=0), small)
+        v_all = value_fn(value_params, tiled, allp.reshape(-1, 7)).reshape(batch, 4 * k)
+        jax.block_until_ready(v_all)
+        t_net += time.time() - tn
+        allp, v_all = np.asarray(allp), np.asarray(v_all)
+        for j in range(m):
+            sample, meta = loaded[j]
+            records.append({
+                "pair_index": int(meta["pair_index"]),
+                "object": str(meta["object_name"]),
+                "support": str(meta["support_name"]),
+                "category": str(meta["object_category"]),
+                "family": str(meta["support_family"]),
+                "file": os.path.basename(os.fspath(chunk[j])),
+                "best_stage1_3": int(r1.best[j]),
+                "best_all_stages": int(r2.best[j]),
+                "best_initial_v": int(np.argmax(np.asarray(r2.initial_scores[j]))),
+                "v": v_all[j].tolist(),
+                "_sample": sample,
+            })  # fmt: skip
+            jobs.append((str(meta["object_name"]), str(meta["support_name"]), allp[j]))
+            cands.append(allp[j])
+    labeller = refine.Labeller(dataset_dir, workers)
+    ts = time.time()
+    try:
+        results = labeller(jobs, progress=progress)
+    finally:
+        labeller.close()
+    t_sim = time.time() - ts
+    for rec, (status, pen), poses in zip(records, results, cands, strict=True):
+        sample = rec.pop("_sample")
+        ok = status == kernels.STABLE
+        names = kernels.STATUS_NAMES
+        gt = np.asarray(sample.stable_poses)[np.asarray(sample.pose_mask, bool)]
+        sl = {"stage1": slice(0, k), "stage1_2": slice(k, 2 * k),
+              "stage1_3": slice(2 * k, 3 * k), "all_stages": slice(3 * k, 4 * k)}  # fmt: skip
+        pick = {"stage1": 0, "stage1_2": 0, "stage1_3": rec["best_stage1_3"],
+                "all_stages": rec["best_all_stages"]}  # fmt: skip
+        for stage, s in sl.items():
+            c = pick[stage]
+            err = pose_errors(poses[s], sample)
+            rec[stage] = {
+                "success": bool(ok[s][c]),
+                "status": names[status[s][c]],
+                "any_of_k": bool(ok[s].any()),
+                "statuses": [names[x] for x in status[s]],
+                "initial_penetration_m": float(pen[s][c]),
+                "pose": poses[s][c].tolist(),
+                **{key: float(v[c]) for key, v in err.items()},
+            }
+        rec["ranker_initial_v_success"] = bool(ok[k : 2 * k][rec["best_initial_v"]])
+        rec["ceiling_stage1"] = bool(within_box(poses[:k], gt, cem.clip_translation,
+                                                cem.clip_rotation).any())  # fmt: skip
+        rec["ceiling_stage2"] = bool(within_box(poses[k : 2 * k], gt, cem.clip_translation,
+                                                cem.clip_rotation).any())  # fmt: skip
+        rec["stable_all"] = ok.tolist()
+    timings = {"pairs": len(records), "network_s": t_net, "simulation_s": t_sim,
+               "wall_s": time.time() - t0}  # fmt: skip
+    return records, timings
+
+
+def _pct(x) -> float:
+    x = np.asarray(x, float)
+    return float(100 * x.mean()) if len(x) else float("nan")
+
+
+def summarize_pipeline(records: Sequence[dict], k: int) -> dict:
+    """The four stages' success (mean over categories, per category), any-of-K, V as a ranker,
+    CEM gain, V's accuracy on all simulated candidates, the box ceiling, status counts."""
+    out = {s: summarize_success(records, s) for s in STAGES}
+    for s in STAGES:
+        out[s]["any_of_k"] = summarize_success(records, s, "any_of_k")["mean"]
+        out[s]["statuses"] = {}
+        for r in records:
+            out[s]["statuses"][r[s]["status"]] = out[s]["statuses"].get(r[s]["status"], 0) + 1
+    by_cat: dict[str, list] = {}
+    for r in records:
+        by_cat.setdefault(r["category"], []).append(r)
+
+    def cat_mean(fn):
+        return float(np.mean([_pct([fn(r) for r in rs]) for rs in by_cat.values()]))
+
+    ok = np.array([r["stable_all"] for r in records], bool)  # [n, 4K]
+    v = np.array([r["v"] for r in records], float)
+    out["ranker"] = {
+        "note": "V picks one of the K unrefined Stage-2 proposals (best initial V) vs the first"
+        " proposal and vs any of K (a perfect ranker)",
+        "best_initial_v": cat_mean(lambda r: r["ranker_initial_v_success"]),
+        "first": out["stage1_2"]["mean"],
+        "any_of_k": out["stage1_2"]["any_of_k"],
+    }
+    out["cem_gain"] = {
+        "note": "success rate over all K proposals of every pair, before and after CEM",
+        "stage1_before": _pct(ok[:, :k]),
+        "stage1_after": _pct(ok[:, 2 * k : 3 * k]),
+        "stage2_before": _pct(ok[:, k : 2 * k]),
+        "stage2_after": _pct(ok[:, 3 * k :]),
+    }
+    out["value_accuracy"] = refine.classification_metrics(v.reshape(-1), ok.reshape(-1))
+    out["ceiling"] = {
+        "note": "a ground-truth stable pose within +-2 cm per axis and 0.5 rad of some proposal",
+        "stage1": cat_mean(lambda r: r["ceiling_stage1"]),
+        "stage2": cat_mean(lambda r: r["ceiling_stage2"]),
+    }
+    out["pairs"] = len(records)
+    out["paper"] = PAPER
+    return out

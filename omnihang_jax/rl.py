@@ -1,0 +1,398 @@
+"""Stage 3 by reinforcement learning with simulated rewards (paper, "Local Refinement").
+
+``train_stage3(config, workdir)``: a resumable job in phases, every phase writing its state
+to ``workdir`` so a killed run loses at most the step in progress:
+
+1. **seed**: the replay buffer starts from what the dataset holds and from simulation:
+   the stable poses of the training pairs (reward 1), perturbations of them inside CEM's box
+   and a tighter one (labelled by ``sim.kernels``), and the Stage-1 and Stage-2 proposals of
+   the committed where-to-hang weights (labelled). ``buffer.npz``.
+2. **pretrain** V on the buffer (50/50 sampling, warm-up + cosine, clipping); validation
+   on pairs whose *object* is in a fixed validation subset of the training objects.
+3. **rounds** of the paper's loop: run the pipeline (Stages 1-2 + CEM on the current V) on
+   random training pairs, simulate the chosen poses (one batched job per pair), add the
+   transitions, train V. Each round logs the success of the chosen poses (on-policy, training
+   pairs) and, every ``val_every`` rounds, on the validation pairs.
+
+``value/`` (config.json + params.msgpack) is the committed artefact the pipeline loads;
+``metrics.jsonl``, ``rounds.jsonl`` and ``curves.png`` record training.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+
+import flax.serialization
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from omnihang_jax import refine, stage3
+from omnihang_jax.refine import Labeller, PairBank, ReplayBuffer
+from omnihang_jax.stage3 import CEMConfig, PairClouds, ValueConfig
+
+__all__ = ["RLConfig", "validation_objects", "train_stage3", "run_pipeline_on_pairs"]
+
+
+@dataclasses.dataclass(frozen=True)
+class RLConfig:
+    """Settings of a Stage-3 training job (presets in experiments/train_stage3.py)."""
+
+    value: ValueConfig = stage3.VALUE_SMALL
+    cem: CEMConfig = CEMConfig()
+    num_proposals: int = 5  # K proposals refined per pair (facts: 5)
+    max_pairs: int = 0  # 0: every derived training pair
+    val_fraction: float = 0.1  # of training OBJECTS held out for validation (fixed by name)
+    perturb_wide: int = 16  # per pair: stable poses moved within CEM's box (+-2 cm, +-0.5 rad)
+    perturb_tight: int = 16  # per pair: within +-5 mm, +-0.1 rad (the boundary that matters)
+    seed_proposals: bool = True  # label the Stage-1/2 proposals of the committed weights
+    pretrain_steps: int = 4000
+    rounds: int = 10
+    round_pairs: int = 256
+    round_steps: int = 500
+    val_every: int = 2  # rounds between validation-pair success checks
+    val_pairs: int = 128
+    eval_every: int = 500  # steps between validation-accuracy checks
+    workers: int = 0  # labelling processes (0: in this process)
+    seed: int = 0
+    time_budget: float = 0.0  # s; 0 = no limit (phases stop cleanly when it runs out)
+
+
+def validation_objects(names, fraction: float) -> set[str]:
+    """A fixed subset of object names (by a hash of the name, independent of order)."""
+
+    def h(n):
+        return int(hashlib.sha1(n.encode()).hexdigest()[:8], 16) / 0xFFFFFFFF
+
+    return {n for n in names if h(n) < fraction}
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def _load_where(weights: str | os.PathLike):
+    from omnihang_jax.predict import load_predictor
+
+    return load_predictor(weights)
+
+
+def run_pipeline_on_pairs(
+    predictor, refine_fn, value_params, bank: PairBank, slots, key, num_proposals: int,
+    batch: int = 32, start: str = "stage2", starts_override=None,
+):  # fmt: skip
+    """Stages 1-2 (full clouds from the pair files) + CEM on V for ``bank`` pairs ``slots``.
+
+    Returns dict of numpy: stage1 [n, K, 7], stage2 [n, K, 7], refined [n, K, 7], scores
+    [n, K], initial [n, K], best [n]; ``refine_fn`` None: Stages 1-2 only (refined = the
+    starts). ``starts_override`` [n, K, 7] replaces the Stage-1/2
+    start (the learning-curve experiment's uniform start). Batches are padded (one
+    compilation per batch size)."""
+    from omnihang_jax import dataset_bridge
+
+    slots = np.asarray(slots)
+    out = {k: [] for k in ("stage1", "stage2", "refined", "scores", "initial", "best")}
+    for i in range(0, len(slots), batch):
+        chunk = slots[i : i + batch]
+        m = len(chunk)
+        pad = np.concatenate([chunk, np.repeat(chunk[:1], batch - m)])
+        if starts_override is None:
+            samples = [dataset_bridge.load_pair_file(bank.meta[s]["file"])[0] for s in pad]
+            obj = np.stack([np.asarray(s.object_points, np.float32) for s in samples])
+            sup = np.stack([np.asarray(s.support_points, np.float32) for s in samples])
+            pred = predictor(obj, sup, key=jax.random.fold_in(key, i), num_proposals=num_proposals)
+            s1, s2 = pred.stage1_poses, pred.stage2_poses
+            starts = s2 if start == "stage2" else s1
+        else:
+            st = np.asarray(starts_override)[i : i + batch]
+            starts = np.concatenate([st, np.repeat(st[:1], batch - m, axis=0)])
+            s1 = s2 = starts
+        if refine_fn is None:  # Stages 1-2 only
+            b, k = np.shape(starts)[:2]
+            res = stage3.Refined(starts, np.zeros((b, k)), np.zeros((b, k)), np.zeros(b, int))
+        else:
+            clouds = PairClouds(*(jnp.asarray(x[pad]) for x in bank.clouds))
+            res = refine_fn(value_params, jax.random.fold_in(key, 10_000 + i), clouds,
+                            jnp.asarray(starts, jnp.float32))  # fmt: skip
+        for k, v in (("stage1", s1), ("stage2", s2), ("refined", res.poses),
+                     ("scores", res.scores), ("initial", res.initial_scores),
+                     ("best", res.best)):  # fmt: skip
+            out[k].append(np.asarray(v)[:m])
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+class _Job:
+    """Workdir state: phase bookkeeping in ``state.json``, V train state in ``train_state``."""
+
+    def __init__(self, workdir: str | os.PathLike, config: RLConfig):
+        self.dir = Path(workdir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.config = config
+        self.state_path = self.dir / "state.json"
+        self.state = (
+            json.loads(self.state_path.read_text())
+            if self.state_path.exists()
+            else {"seeded": False, "pretrain_step": 0, "round": 0}
+        )
+
+    def save_state(self):
+        refine.write_json(self.state_path, self.state)
+
+    def log(self, name: str, row: dict):
+        with open(self.dir / name, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
+def _total_steps(config: RLConfig) -> int:
+    return config.pretrain_steps + config.rounds * config.round_steps
+
+
+def train_stage3(
+    config: RLConfig, workdir: str | os.PathLike, data: str | os.PathLike, weights: str,
+    progress: bool = True,
+) -> dict:  # fmt: skip
+    """Run (or resume) a Stage-3 job; returns a summary dict (also ``workdir/summary.json``)."""
+    from omnihang_jax import dataset_bridge
+
+    t_start = time.time()
+
+    def time_left() -> float:
+        return (
+            float("inf") if not config.time_budget else config.time_budget - (time.time() - t_start)
+        )
+
+    job = _Job(workdir, config)
+    from omnihang_jax.config import save_config
+
+    save_config(config, job.dir / "config.json", data=os.fspath(data), weights=weights)
+    dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(data)
+    files = dataset_bridge.derived_files(derived_dir, "train")
+    if not files:
+        raise FileNotFoundError(
+            f"no derived training pairs under {derived_dir}/train: derive them first "
+            f"(python -m experiments.derive_dataset --data {dataset_dir} --split train)"
+        )
+    files = sorted(files)
+    if config.max_pairs:
+        # a fixed random subset (seeded), so every category and family is represented
+        pick = np.random.default_rng(config.seed).permutation(len(files))[: config.max_pairs]
+        files = [files[i] for i in sorted(pick)]
+    bank = PairBank.from_files(files, config.value, progress=progress)
+    names = sorted({m["object_name"] for m in bank.meta})
+    val_objects = validation_objects(names, config.val_fraction)
+    is_val = np.array([m["object_name"] in val_objects for m in bank.meta])
+    fit_slots, val_slots = np.flatnonzero(~is_val), np.flatnonzero(is_val)
+    refine.write_json(job.dir / "split.json", {
+        "pairs": len(bank), "fit_pairs": len(fit_slots), "val_pairs": len(val_slots),
+        "val_objects": sorted(val_objects), "files": [os.path.basename(f) for f in files],
+    })  # fmt: skip
+    rng = np.random.default_rng(config.seed + 1000 * job.state["round"])
+    key = jax.random.key(config.seed)
+    predictor = _load_where(weights)
+    buffer_path = job.dir / "buffer.npz"
+    buffer = ReplayBuffer.load(buffer_path) if buffer_path.exists() else ReplayBuffer()
+
+    labeller = Labeller(dataset_dir, config.workers)
+    try:
+        # 1. seed ------------------------------------------------------------------------------
+        if not job.state["seeded"]:
+            t0 = time.time()
+            slots_all = np.arange(len(bank))
+            for s in slots_all:
+                sp = bank.stable_poses[s]
+                buffer.add(np.full(len(sp), s), sp, np.ones(len(sp)), "stable")
+            cand_slots, cand_poses, cand_src = [], [], []
+            for s in slots_all:
+                sp = bank.stable_poses[s]
+                for n, tr, rot in ((config.perturb_wide, config.cem.clip_translation,
+                                    config.cem.clip_rotation),
+                                   (config.perturb_tight, 0.005, 0.1)):  # fmt: skip
+                    if n:
+                        cand_poses.append(refine.perturb_poses(sp, rng, n, tr, rot))
+                        cand_slots.append(np.full(n, s))
+                        cand_src.append(np.full(n, "perturbed"))
+            if config.seed_proposals:
+                pred = run_pipeline_on_pairs(
+                    predictor, None, None, bank, slots_all, key, config.num_proposals
+                )
+                for name in ("stage1", "stage2"):
+                    cand_poses.append(pred[name].reshape(-1, 7))
+                    cand_slots.append(np.repeat(slots_all, config.num_proposals))
+                    cand_src.append(np.full(len(slots_all) * config.num_proposals, name))
+            slots = np.concatenate(cand_slots)
+            poses = np.concatenate(cand_poses)
+            src = np.concatenate(cand_src)
+            rewards, _ = _label_chunked(labeller, bank, slots, poses, progress)
+            for name in np.unique(src):
+                m = src == name
+                buffer.add(slots[m], poses[m], rewards[m], str(name))
+            buffer.save(buffer_path)
+            job.state["seeded"] = True
+            job.state["seed_s"] = time.time() - t0
+            job.save_state()
+            job.log("rounds.jsonl", {"phase": "seed", "s": job.state["seed_s"],
+                                     **buffer.stats()})  # fmt: skip
+
+        # 2. V ---------------------------------------------------------------------------------
+        trainer = refine.make_value_trainer(config.value, _total_steps(config))
+        state = trainer.init(jax.random.key(config.seed))
+        ckpt = job.dir / "train_state.msgpack"
+        if ckpt.exists():
+            state = flax.serialization.from_bytes(state, ckpt.read_bytes())
+        bank_dev = PairClouds(*(jnp.asarray(x) for x in bank.clouds))
+        refine_fn = jax.jit(stage3.make_refiner(config.value, config.cem))
+
+        def save(state):
+            blob = flax.serialization.to_bytes(state)
+            from sim import atomic
+
+            atomic.write_atomic(ckpt, lambda f: f.write(blob))
+            refine.save_value(job.dir / "value", config.value, state.params,
+                              step=int(state.step))  # fmt: skip
+            buffer.save(buffer_path)
+
+        def validate(state) -> dict:
+            d = buffer.data
+            m = np.isin(d["slot"], val_slots)
+            if not m.any():
+                return {}
+            idx = np.flatnonzero(m)
+            if len(idx) > 4096:
+                idx = np.random.default_rng(0).choice(idx, 4096, replace=False)
+            prob = refine.predict_in_batches(trainer, state.params, bank_dev, d["slot"][idx],
+                                             d["pose"][idx])  # fmt: skip
+            return {f"val_{k}": v for k, v in
+                    refine.classification_metrics(prob, d["reward"][idx]).items()}  # fmt: skip
+
+        def train(state, steps: int, tag: str):
+            fit = buffer.select(np.isin(buffer.data["slot"], fit_slots))
+            bar = tqdm(range(steps), desc=f"train V ({tag})", disable=not progress)
+            t0 = time.time()
+            for i in bar:
+                if time_left() < 30:
+                    break
+                idx = fit.sample(rng, config.value.batch_size)
+                d = fit.data
+                state, metrics = trainer.step(
+                    state, bank_dev, d["slot"][idx], d["pose"][idx], d["reward"][idx],
+                    jax.random.fold_in(key, int(state.step)),
+                )  # fmt: skip
+                if (i + 1) % 50 == 0 or i == steps - 1:
+                    row = {"step": int(state.step), "tag": tag,
+                           **{k: float(v) for k, v in metrics.items()},
+                           "samples_per_s": (i + 1) * config.value.batch_size / (time.time() - t0)}  # fmt: skip
+                    if (int(state.step) % config.eval_every) < 50 or i == steps - 1:
+                        row.update(validate(state))
+                    job.log("metrics.jsonl", row)
+                    bar.set_postfix(loss=f"{row['cross_entropy']:.3f}",
+                                    acc=f"{row['accuracy']:.2f}")  # fmt: skip
+            return state
+
+        if job.state["pretrain_step"] < config.pretrain_steps:
+            state = train(state, config.pretrain_steps - job.state["pretrain_step"], "pretrain")
+            job.state["pretrain_step"] = int(state.step)
+            save(state)
+            job.save_state()
+
+        # 3. RL rounds -------------------------------------------------------------------------
+        while job.state["round"] < config.rounds and time_left() > 60:
+            r = job.state["round"] + 1
+            t0 = time.time()
+            slots = rng.choice(fit_slots, min(config.round_pairs, len(fit_slots)), replace=False)
+            out = run_pipeline_on_pairs(predictor, refine_fn, state.params, bank, slots,
+                                        jax.random.fold_in(key, 7 * r), config.num_proposals)  # fmt: skip
+            k = config.num_proposals
+            poses = out["refined"].reshape(-1, 7)
+            explore = refine.perturb_poses(poses, rng, len(poses), 0.004, 0.05)
+            all_slots = np.concatenate([np.repeat(slots, k), np.repeat(slots, k)])
+            all_poses = np.concatenate([poses, explore])
+            rewards, _ = _label_chunked(labeller, bank, all_slots, all_poses, False)
+            buffer.add(all_slots[: len(poses)], poses, rewards[: len(poses)], "cem", r)
+            buffer.add(all_slots[len(poses):], explore, rewards[len(poses):], "cem_explore", r)  # fmt: skip
+            chosen = rewards[: len(poses)].reshape(-1, k)[np.arange(len(slots)), out["best"]]
+            row = {"round": r, "pairs": len(slots), "chosen_success": float(chosen.mean()),
+                   "any_refined_success": float(rewards[: len(poses)].reshape(-1, k).any(1).mean()),
+                   "transitions": len(buffer)}  # fmt: skip
+            state = train(state, config.round_steps, f"round {r}")
+            if config.val_every and r % config.val_every == 0 and len(val_slots):
+                vs = val_slots[: config.val_pairs]
+                vo = run_pipeline_on_pairs(predictor, refine_fn, state.params, bank, vs,
+                                           jax.random.fold_in(key, 99), config.num_proposals)  # fmt: skip
+                best = vo["refined"][np.arange(len(vs)), vo["best"]]
+                vr, _ = _label_chunked(labeller, bank, vs, best, False)
+                s2 = vo["stage2"][:, 0]
+                vr2, _ = _label_chunked(labeller, bank, vs, s2, False)
+                row.update(
+                    val_pairs=len(vs),
+                    val_all_stages_success=float(vr.mean()),
+                    val_stage1_2_success=float(vr2.mean()),
+                )
+            row["s"] = time.time() - t0
+            row.update(validate(state))
+            job.log("rounds.jsonl", row)
+            job.state["round"] = r
+            save(state)
+            job.save_state()
+            if progress:
+                print(json.dumps(row))
+    finally:
+        labeller.close()
+    summary = {"state": job.state, "buffer": buffer.stats(), "wall_s": time.time() - t_start}
+    refine.write_json(job.dir / "summary.json", summary)
+    plot_curves(job.dir)
+    return summary
+
+
+def _label_chunked(labeller, bank, slots, poses, progress: bool, chunk: int = 20_000):
+    rewards = np.zeros(len(slots), np.uint8)
+    status = np.zeros(len(slots), np.int8)
+    bar = tqdm(range(0, len(slots), chunk), desc="simulate", disable=not progress)
+    for i in bar:
+        r, s = refine.label_poses(labeller, bank, slots[i : i + chunk], poses[i : i + chunk])
+        rewards[i : i + chunk], status[i : i + chunk] = r, s
+    return rewards, status
+
+
+def plot_curves(workdir: str | os.PathLike) -> None:
+    """``curves.png``: training loss/accuracy, validation accuracy, round success."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = Path(workdir)
+    rows = [json.loads(x) for x in (d / "metrics.jsonl").read_text().splitlines()] if (
+        d / "metrics.jsonl").exists() else []  # fmt: skip
+    rounds = [json.loads(x) for x in (d / "rounds.jsonl").read_text().splitlines()] if (
+        d / "rounds.jsonl").exists() else []  # fmt: skip
+    rounds = [r for r in rounds if "round" in r]
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4))
+    if rows:
+        st = [r["step"] for r in rows]
+        ax[0].plot(st, [r["cross_entropy"] for r in rows], label="train CE")
+        ax[0].set_xlabel("step")
+        ax[0].legend()
+        ax[1].plot(st, [r["accuracy"] for r in rows], label="train acc (50/50 batches)")
+        v = [r for r in rows if "val_balanced_accuracy" in r]
+        ax[1].plot([r["step"] for r in v], [r["val_balanced_accuracy"] for r in v], "o-",
+                   label="val balanced acc (held-out objects)")  # fmt: skip
+        ax[1].set_xlabel("step")
+        ax[1].legend()
+    if rounds:
+        ax[2].plot([r["round"] for r in rounds], [r["chosen_success"] for r in rounds], "o-",
+                   label="chosen pose hangs (training pairs)")  # fmt: skip
+        v = [r for r in rounds if "val_all_stages_success" in r]
+        ax[2].plot([r["round"] for r in v], [r["val_all_stages_success"] for r in v], "s-",
+                   label="all stages (val pairs)")  # fmt: skip
+        ax[2].plot([r["round"] for r in v], [r["val_stage1_2_success"] for r in v], "x--",
+                   label="stages 1+2 (val pairs)")  # fmt: skip
+        ax[2].set_xlabel("RL round")
+        ax[2].legend()
+    fig.tight_layout()
+    fig.savefig(d / "curves.png", dpi=90)
+    plt.close(fig)
