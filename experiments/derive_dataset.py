@@ -31,8 +31,19 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--workers", type=int, default=1, help="processes (0 = one per core); same files either way"
     )
+    parser.add_argument(
+        "--pairs-from",
+        metavar="PAIRS_JSONL",
+        default=None,
+        help="derive only the pairs of an evaluation's per-pair JSONL (pair_index per line), "
+        "e.g. results/hanging_success.pairs.jsonl",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
+    pair_indices = None
+    if args.pairs_from:
+        with open(args.pairs_from) as f:
+            pair_indices = {int(json.loads(line)["pair_index"]) for line in f if line.strip()}
     splits = ("train", "test") if args.split == "all" else (args.split,)
     summary = dataset_bridge.derive_dataset(
         args.data,
@@ -41,6 +52,7 @@ def main(argv=None) -> dict:
         limit=args.limit,
         progress=not args.no_progress,
         workers=args.workers or len(os.sched_getaffinity(0)),
+        pair_indices=pair_indices,
     )
     print(json.dumps(summary, indent=1))
     return summary

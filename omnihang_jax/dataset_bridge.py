@@ -152,8 +152,11 @@ def derive_dataset(
     limit: int | None = None,
     progress: bool = True,
     workers: int = 1,
+    pair_indices: set[int] | None = None,
 ) -> dict:
     """Write one HangSample ``.npz`` per pair with stable poses (see module docstring).
+
+    ``pair_indices``: derive only these pairs (e.g. the pairs of an earlier evaluation).
 
     ``workers`` > 1 derives pairs in that many processes (ray casting and contact maps are
     single-threaded NumPy/MuJoCo; the files are identical either way).
@@ -183,7 +186,7 @@ def derive_dataset(
             recipe["supports"][int(record["support_id"])] != sup_name
         ):
             raise ValueError(f"shard record {index} does not match the recipe's pair list")
-        if split not in splits:
+        if split not in splits or (pair_indices is not None and index not in pair_indices):
             continue
         if len(record["stable_poses"]) == 0:
             no_stable.append(index)
