@@ -246,7 +246,16 @@ class Labeller:
         if workers > 0:
             from sim import workers as workers_mod
 
-            self.pool = workers_mod.spawn_pool(workers, _labeller_init, (self.dataset_dir,))
+            # the workers only simulate: keep JAX (imported with the package) off the GPU
+            saved = os.environ.get("JAX_PLATFORMS")
+            os.environ["JAX_PLATFORMS"] = "cpu"
+            try:
+                self.pool = workers_mod.spawn_pool(workers, _labeller_init, (self.dataset_dir,))
+            finally:
+                if saved is None:
+                    os.environ.pop("JAX_PLATFORMS", None)
+                else:
+                    os.environ["JAX_PLATFORMS"] = saved
         else:
             _labeller_init(self.dataset_dir)
 

@@ -63,6 +63,8 @@ __all__ = [
     "PipelineConfig",
     "HangOutput",
     "make_hang_pipeline",
+    "Refined",
+    "make_refiner",
 ]
 
 
@@ -74,9 +76,11 @@ __all__ = [
 class ValueConfig:
     """Value-network architecture and training settings."""
 
-    pointnet: PointNet2Config = dataclasses.replace(pointnet2.SMALL, num_points=2048)
-    num_object_points: int = 1024  # object points in the state (subsampled from the cloud)
-    num_support_points: int = 1024  # support points in the state
+    pointnet: PointNet2Config = dataclasses.replace(pointnet2.SMALL, num_points=1024)
+    # points in the state, subsampled from the 4096-point clouds: 512 + 512 keeps CEM's
+    # population (B x K x 32 states per iteration) and its [512, 512] distance maps in memory
+    num_object_points: int = 512
+    num_support_points: int = 512
     head: tuple[int, ...] = (1024, 512, 256)  # facts: encoder -> 1024 -> 512 -> 256 -> 2
     contact_features: bool = True  # ours: signed/unsigned distance to the other cloud
     feature_scale: float = 0.01  # m: distances are divided by 1 cm (hangs fail at 3 mm)...
@@ -413,6 +417,37 @@ class HangOutput(NamedTuple):
     pose: Any
 
 
+class Refined(NamedTuple):
+    """CEM from K starts per pair: poses [B, K, 7], scores [B, K] (final log V),
+    initial_scores [B, K], best [B] (index of the best final score)."""
+
+    poses: Any
+    scores: Any
+    initial_scores: Any
+    best: Any
+
+
+def make_refiner(value_config: ValueConfig, cem_config: CEMConfig = CEMConfig()) -> Callable:
+    """``refine(value_params, key, clouds [B, ...] subsampled, starts [B, K, 7]) -> Refined``:
+    CEM on V from every start, vmapped over starts and pairs. Pure, un-jitted."""
+    value = make_value(value_config)
+    cem = make_cem(lambda poses, p, c: value.score(p, c, poses), cem_config)
+
+    def refine_one(key, pose, clouds, value_params):
+        return cem(key, pose, contact_pivot(clouds, pose), value_params, clouds)
+
+    per_pair = jax.vmap(refine_one, in_axes=(0, 0, None, None))
+    batched = jax.vmap(per_pair, in_axes=(0, 0, 0, None))
+
+    def refine(value_params, key, clouds: PairClouds, starts) -> Refined:
+        b, k = starts.shape[:2]
+        keys = jax.random.split(key, b * k).reshape(b, k)
+        res = batched(keys, starts, clouds, value_params)
+        return Refined(res.pose, res.score, res.initial_score, jnp.argmax(res.score, axis=1))
+
+    return refine
+
+
 def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
                        config: PipelineConfig = PipelineConfig()) -> Callable:  # fmt: skip
     """``hang(params, key, clouds: PairClouds [B, ...]) -> HangOutput``; params =
@@ -421,14 +456,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
     from omnihang_jax.predict import make_predict
 
     predict = make_predict(stage1_config, stage2_config)
-    value = make_value(value_config)
-    cem = make_cem(lambda poses, p, c: value.score(p, c, poses), config.cem)
-
-    def refine_one(key, pose, clouds, value_params):
-        return cem(key, pose, contact_pivot(clouds, pose), value_params, clouds)
-
-    # over K proposals, then over B pairs
-    refine = jax.vmap(jax.vmap(refine_one, in_axes=(0, 0, None, None)), in_axes=(0, 0, 0, None))
+    refine = make_refiner(value_config, config.cem)
 
     def hang(params, key, clouds: PairClouds) -> HangOutput:
         k1, k3 = jax.random.split(key)
@@ -437,14 +465,12 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
             k1, config.num_proposals,
         )  # fmt: skip
         small = subsample_clouds(clouds, value_config)
-        b, k = pred.stage1_poses.shape[:2]
         starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
         refined, scores, initial, best = {}, {}, {}, {}
         for i, name in enumerate(config.starts):
-            keys = jax.random.split(jax.random.fold_in(k3, i), b * k).reshape(b, k)
-            res = refine(keys, starts[name], small, params["value"])
-            refined[name], scores[name], initial[name] = res.pose, res.score, res.initial_score
-            best[name] = jnp.argmax(res.score, axis=1)
+            res = refine(params["value"], jax.random.fold_in(k3, i), small, starts[name])
+            refined[name], scores[name] = res.poses, res.scores
+            initial[name], best[name] = res.initial_scores, res.best
         first = config.starts[0]
         pose = jnp.take_along_axis(refined[first], best[first][:, None, None], axis=1)[:, 0]
         return HangOutput(
