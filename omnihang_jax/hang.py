@@ -1,0 +1,1207 @@
+"""``hang``: a user's object and supporting item in, a hanging pose (checked in MuJoCo) out.
+
+The front door of the project: one call from inputs to an answer, callable from a notebook
+(``omnihang_jax.hang.hang``) and from the terminal (``python -m experiments.hang``).
+
+Inputs (each of the object and the support, independently):
+
+* a mesh file (OBJ, STL, PLY with faces, GLB/GLTF), read and checked by
+  :func:`sim.meshio.load_user_mesh`, decomposed by CoACD (:mod:`sim.decompose`, cached in
+  ``HangConfig.cache_dir``); its partial cloud is rendered the way the dataset renders one:
+  one depth view (:func:`sim.camera.default_eyes`: any side of the object, the front side of
+  a wall-mounted support), optional depth noise, resampled to the networks' 4,096 points;
+* a point cloud file (``.npy`` / ``.npz`` / ``.ply`` without faces): ``[N, 3]`` points or
+  ``[N, 6]`` points + normals, used as it is (resampled to 4,096 points);
+* the name of a library asset (``mug_0016``, ``single_rod_hook_0001``: ``sim.library``);
+* nothing: the built-in default (:data:`DEFAULT_OBJECT` on :data:`DEFAULT_SUPPORT`, a
+  held-out mug on a held-out hook: neither was seen in training).
+
+Frames (docs/architecture.md): lengths in metres (``scale`` converts, a millimetre file is
+detected from its extent and refused with a hint). The object's cloud or mesh is in the
+OBJECT frame, origin at its bounding-box centre (meshes are centred on loading); the
+support's in the SUPPORT frame = world: z up; a wall-mounted support has its back on the
+wall at its lowest y and reaches towards +y; a free-standing one stands on its lowest z.
+The answer is the object frame in the support frame: ``p_support = R p_object + t``, given as
+a 4x4 matrix and as xyz + quaternion wxyz (MuJoCo's order).
+
+Steps (each pluggable: ``where`` and ``how`` arguments):
+
+1. *where to hang*: :func:`stages_where` runs the committed Stage 1 + 2 networks
+   (``weights/where_small_paper``), K proposals refined by Stage 2 = 2K candidates, ranked by
+   the Stage-3 value function when ``omnihang_jax.stage3`` provides one, else by the
+   observed-cloud clearance (:mod:`omnihang_jax.heuristics`: the share of the object cloud that
+   does not sink into the observed support cloud).
+2. *check* (meshes only): every candidate is simulated with the evaluation protocol
+   (``omnihang_jax.evaluate.protocol_stability``: 1 s from rest, > 3 mm initial penetration
+   fails); the answer is the best-ranked candidate that stays hanging. From clouds alone there
+   is nothing to simulate: the answer is the best-ranked candidate, marked "unverified".
+3. *how to hang* (a collision-free path from a start pose above and in front of the support
+   to the answer): the OMPL planner of ``omnihang_jax.planner`` when it is there.
+4. *search* (``HangConfig.search``, meshes only): the data engine's sampler finds
+   simulated stable poses directly (hang-feature threading when both assets know their hang
+   features, else uniform poses around the support), the reference the learned answer is
+   compared with.
+
+:func:`write_outputs` writes ``result.json``, ``scene.xml`` (+ meshes), ``hang.png`` and
+``viewer.html`` into a temporary folder beside ``out`` and renames it: the output folder is
+complete or absent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import shutil
+import tempfile
+import time
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+__all__ = [
+    "DEFAULT_OBJECT",
+    "DEFAULT_SUPPORT",
+    "DEFAULT_MODEL",
+    "HangInputError",
+    "HangConfig",
+    "Body",
+    "Candidates",
+    "PathPlan",
+    "HangResult",
+    "load_body",
+    "stages_where",
+    "available_steps",
+    "search_stable_poses",
+    "hang",
+    "write_outputs",
+]
+
+DEFAULT_OBJECT = "mug_0016"  # held-out mug (15 % of objects are never trained on)
+DEFAULT_SUPPORT = "single_rod_hook_0001"  # held-out wall hook
+DEFAULT_MODEL = "weights/where_small_paper"
+MESH_FORMATS = (".obj", ".stl", ".glb", ".gltf")  # .ply is a mesh when it has faces
+CLOUD_FORMATS = (".npy", ".npz")
+MIN_EXTENT = 0.005  # m; as sim.meshio: smaller is surely in the wrong units
+MAX_EXTENT = 5.0  # m; as sim.meshio: larger is millimetres or centimetres
+# Library sizes (largest extent) the networks were trained on: objects 0.08-0.73 m,
+# supports 0.07-0.58 m. Outside these (with a margin) the answer is a guess: warned.
+TRAINED_EXTENT = {"object": (0.04, 1.1), "support": (0.035, 0.9)}
+FAR_FROM_ORIGIN = 0.05  # m beyond the cloud's own extent: the cloud is not in its frame
+WALL_CONTACT_AREA = 5e-4  # m^2 (5 cm^2); library wall supports have >= 15 cm^2 on the wall
+WALL_TOLERANCE = 1e-3  # m; faces within this of the wall plane lie on it
+# Share of the bounding box's back (x-z) face that lies flat on the wall: library wall
+# supports 0.13-1.0 (towel bars lowest), objects 0-0.39 but for a few plate-like "others"
+# (up to 0.89). An object that is mounted like a hook (>= 0.6) given with a support that is
+# mounted less than any library support (< 0.12) is taken as a swap.
+MOUNTED, UNMOUNTED = 0.6, 0.12
+MIN_PROTRUSION = 0.01  # m; a support reaching less than 1 cm off its wall/floor holds nothing
+SEARCH_ENOUGH = 100  # stable poses after which the search stops (dataset: 2 x max_stable)
+SEARCH_KEEP = 50  # stable poses written to result.json (dataset: max_stable)
+NORMAL_NEIGHBOURS = 16  # points per PCA normal estimate for clouds given without normals
+
+
+class HangInputError(ValueError):
+    """Bad user input; the message names the file (or argument) and the problem."""
+
+
+@dataclasses.dataclass(frozen=True)
+class HangConfig:
+    """Settings of :func:`hang`; every field has a CLI flag of the same name."""
+
+    model: str = DEFAULT_MODEL  # trained Stage 1 + 2 folder (load_predictor)
+    num_proposals: int = 32  # K Stage-1 draws (the paper evaluates 5; 32 cost ~5 s on a CPU)
+    seed: int = 0  # camera views, depth noise, Stage-1 noise and the search's sampler
+    depth_noise: float = 0.0  # m, std along each ray of the rendered depth (dataset: 0)
+    image_width: int = 640  # rendered depth view (the dataset's camera)
+    image_height: int = 480
+    verify: bool = True  # simulate the candidates when meshes are known
+    search: bool = False  # also find stable poses with the data engine's sampler
+    search_candidates: int = 4096  # uniform yield is ~0.8 % (results/proposal_yield.json)
+    plan: bool = True  # run the how-to-hang planner when it exists
+    scale: float | None = None  # multiply both inputs' coordinates (0.001 for millimetres)
+    object_scale: float | None = None  # overrides ``scale`` for the object
+    support_scale: float | None = None  # overrides ``scale`` for the support
+    up: str = "z"  # meshes: "y" rotates a y-up file (glTF, Blender exports) to z-up
+    free_standing: bool = False  # a user support stands on the floor instead of a wall
+    recenter: bool = False  # clouds: move each cloud's bounding-box centre to the origin
+    coacd: str = "default"  # "default" or "fast" (sim.decompose.FAST: previews, tests)
+    cache_dir: str | None = None  # CoACD cache; None: out/cache/coacd in the working directory
+
+    def scale_of(self, kind: str) -> float | None:
+        own = self.object_scale if kind == "object" else self.support_scale
+        return own if own is not None else self.scale
+
+
+class Body(NamedTuple):
+    """One input, object or support, as the pipeline sees it.
+
+    points, normals: [N, 3] float32 partial cloud (object frame / support frame), N = the
+    networks' input size; asset: the ``sim`` Asset when a mesh is known (None for clouds);
+    eye: [3] camera position of the rendered view (None for given clouds); source: "builtin",
+    "library", "mesh" or "cloud"; report: JSON-able record of what was read and checked.
+    """
+
+    kind: str
+    name: str
+    source: str
+    path: str | None
+    points: np.ndarray
+    normals: np.ndarray
+    asset: Any
+    eye: np.ndarray | None
+    report: dict
+
+
+class Candidates(NamedTuple):
+    """C candidate poses of the where-to-hang step, in ranking order (best first).
+
+    poses: [C, 7] object frame in support frame (xyz m + quaternion wxyz); stage: [C] str
+    ("stage1", "stage1_2", "stage3"); proposal: [C] int, the Stage-1 draw each comes from;
+    score: [C] float, higher is better, of kind ``score_name``.
+    """
+
+    poses: np.ndarray
+    stage: np.ndarray
+    proposal: np.ndarray
+    score: np.ndarray
+    score_name: str
+
+
+class PathPlan(NamedTuple):
+    """A how-to-hang path: poses [T, 7] from the start pose to the hanging pose."""
+
+    poses: np.ndarray
+    planner: str
+    info: dict
+
+
+class HangResult(NamedTuple):
+    """What :func:`hang` found. ``pose``: [7] the answer (object frame in support frame);
+    ``matrix``: [4, 4] the same; ``verdict``: "stable", a failure status of
+    ``sim.kernels.STATUS_NAMES`` (no candidate hung), or "unverified" (clouds only);
+    ``settled_pose``: [7] where the object rests after the simulated second (None unverified);
+    ``chosen``: index into ``candidates``; ``status``: [C] simulated status per candidate
+    (None unverified); ``path``: PathPlan or None; ``search``: dict or None; ``steps``: which
+    step ran with what, or why not; ``timings``: seconds per step."""
+
+    object: Body
+    support: Body
+    candidates: Candidates
+    chosen: int
+    pose: np.ndarray
+    matrix: np.ndarray
+    verdict: str
+    settled_pose: np.ndarray | None
+    status: np.ndarray | None
+    penetration: np.ndarray | None
+    path: PathPlan | None
+    search: dict | None
+    steps: dict
+    timings: dict
+    warnings: list
+
+    @property
+    def verified(self) -> bool:
+        return self.status is not None
+
+    @property
+    def hung(self) -> bool:
+        return self.verdict == "stable"
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def _library_asset(name: str, kind: str):
+    """The library asset called ``name`` (``<category>_<index:04d>`` of the default library),
+    or None when ``name`` does not look like one."""
+    from sim.assets.base import OBJECT_CATEGORIES, SUPPORT_FAMILIES, build_object, build_support
+    from sim.library import LibraryConfig, asset_seed
+
+    m = re.fullmatch(r"([a-z_]+)_(\d{4})", name)
+    if not m:
+        return None
+    group, index = m.group(1), int(m.group(2))
+    config = LibraryConfig()
+    registry = OBJECT_CATEGORIES if kind == "object" else SUPPORT_FAMILIES
+    if group not in registry:
+        other = SUPPORT_FAMILIES if kind == "object" else OBJECT_CATEGORIES
+        if group in other:
+            raise HangInputError(
+                f"{name}: is a library {'support' if kind == 'object' else 'object'}, given as "
+                f"the {kind}: object and support given in the wrong order? (--object is what "
+                f"hangs, --support what it hangs on)"
+            )
+        return None
+    counts = config.objects_per_category() if kind == "object" else config.supports_per_family()
+    if index >= counts[group]:
+        raise HangInputError(
+            f"{name}: the library has {counts[group]} {group} assets (indices 0000-"
+            f"{counts[group] - 1:04d})"
+        )
+    build = build_object if kind == "object" else build_support
+    return build(group, asset_seed(config.seed, kind, group, index), index)
+
+
+def _read_cloud(path: Path) -> np.ndarray:
+    """[N, 3 or 6] float64 array of a cloud file (points, optionally normals)."""
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            arr = np.load(path, allow_pickle=False)
+        elif suffix == ".npz":
+            with np.load(path, allow_pickle=False) as data:
+                keys = list(data.files)
+                if not keys:
+                    raise HangInputError(f"{path}: the .npz holds no arrays")
+                key = next((k for k in ("points", "xyz", "cloud") if k in keys), keys[0])
+                arr = data[key]
+                if arr.ndim == 2 and arr.shape[-1] == 3 and "normals" in keys:
+                    arr = np.concatenate([arr, data["normals"]], axis=-1)
+        else:  # .ply without faces
+            import trimesh
+
+            cloud = trimesh.load(str(path), process=False)
+            arr = np.asarray(cloud.vertices, np.float64)
+            raw = getattr(cloud, "metadata", {}).get("_ply_raw", {}).get("vertex", {})
+            names = raw.get("data", np.zeros(0)).dtype.names or () if raw else ()
+            if {"nx", "ny", "nz"} <= set(names):
+                data = raw["data"]
+                arr = np.concatenate([arr, np.stack([data[k] for k in ("nx", "ny", "nz")], 1)], 1)
+    except HangInputError:
+        raise
+    except zipfile.BadZipFile as exc:
+        raise HangInputError(
+            f"{path}: unreadable .npz (truncated or not a zip file: {exc})"
+        ) from exc
+    except (ValueError, OSError, EOFError, KeyError) as exc:
+        raise HangInputError(
+            f"{path}: unreadable as a {suffix[1:]} point cloud ({type(exc).__name__}: {exc})"
+        ) from exc
+    arr = np.asarray(arr)
+    if arr.dtype.kind not in "fiu":
+        raise HangInputError(f"{path}: the cloud array has dtype {arr.dtype}, not numbers")
+    if arr.ndim != 2 or arr.shape[1] not in (3, 6):
+        raise HangInputError(
+            f"{path}: a cloud must be [N, 3] points or [N, 6] points + normals, got shape "
+            f"{list(arr.shape)}"
+        )
+    return arr.astype(np.float64)
+
+
+def _estimate_normals(points: np.ndarray) -> np.ndarray:
+    """[N, 3] unit normals by PCA over each point's nearest neighbours, turned away from
+    the cloud's centroid (a one-view cloud's visible side mostly faces outwards)."""
+    from scipy.spatial import cKDTree
+
+    k = min(NORMAL_NEIGHBOURS, len(points))
+    _, idx = cKDTree(points).query(points, k=k)
+    nb = points[idx] - points[idx].mean(1, keepdims=True)
+    _, _, vt = np.linalg.svd(nb, full_matrices=False)
+    normals = vt[:, -1, :]
+    flip = np.einsum("ij,ij->i", normals, points - points.mean(0)) < 0
+    normals[flip] *= -1
+    return normals
+
+
+def _check_extent(label: str, largest: float, scale: float | None) -> None:
+    if largest > MAX_EXTENT:
+        if MIN_EXTENT <= largest * 1e-3 <= MAX_EXTENT:
+            raise HangInputError(
+                f"{label}: absurd size, largest extent {largest:.4g} m (> {MAX_EXTENT} m) looks "
+                f"like millimetres; inputs are in metres: pass --scale 0.001 (or for one input "
+                f"--object-scale / --support-scale)"
+            )
+        raise HangInputError(
+            f"{label}: absurd size, largest extent {largest:.4g} m (> {MAX_EXTENT} m); "
+            f"inputs are in metres, pass --scale <factor>"
+        )
+    if largest < MIN_EXTENT:
+        raise HangInputError(
+            f"{label}: absurd size, largest extent {largest:.4g} m (< {MIN_EXTENT * 1000:g} mm); "
+            f"inputs are in metres, pass --scale <factor>"
+        )
+
+
+def cloud_body(
+    points: np.ndarray,
+    kind: str,
+    n_points: int,
+    min_points: int,
+    rng: np.random.Generator,
+    *,
+    label: str,
+    scale: float | None = None,
+    recenter: bool = False,
+    path: str | None = None,
+) -> Body:
+    """A :class:`Body` from a cloud array [N, 3] or [N, 6] (checks, units, frame, resampling)."""
+    arr = np.asarray(points, np.float64)
+    if arr.ndim != 2 or arr.shape[1] not in (3, 6):
+        raise HangInputError(
+            f"{label}: a cloud must be [N, 3] points or [N, 6] points + normals, got shape "
+            f"{list(arr.shape)}"
+        )
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        raise HangInputError(
+            f"{label}: {int(bad.sum())} of {len(arr)} points are NaN or infinite "
+            f"(first at row {int(np.flatnonzero(bad)[0])})"
+        )
+    if len(arr) < min_points:
+        raise HangInputError(
+            f"{label}: {len(arr)} points, the networks need at least {min_points} "
+            f"(their first layer samples {min_points} centres; clouds are resampled to "
+            f"{n_points})"
+        )
+    if scale is not None:
+        if not np.isfinite(scale) or scale <= 0:
+            raise HangInputError(f"{label}: scale must be a positive number, got {scale!r}")
+        arr = arr.copy()
+        arr[:, :3] *= scale
+    pts = arr[:, :3]
+    lo, hi = pts.min(0), pts.max(0)
+    largest = float((hi - lo).max())
+    _check_extent(label, largest, scale)
+    centre = 0.5 * (lo + hi)
+    offset = np.zeros(3)
+    if recenter:
+        offset = centre
+        pts = pts - centre
+    elif float(np.linalg.norm(centre)) > largest + FAR_FROM_ORIGIN:
+        frame = (
+            "the object frame (origin at the object's bounding-box centre)"
+            if kind == "object"
+            else "the support frame (origin at the support's bounding-box centre, z up, wall at "
+            "its lowest y)"
+        )
+        raise HangInputError(
+            f"{label}: the cloud's centre is {np.linalg.norm(centre):.3g} m from the origin "
+            f"(its extent is {largest:.3g} m): clouds are expected in {frame}; pass --recenter "
+            f"to move it there"
+        )
+    if arr.shape[1] == 6:
+        normals = arr[:, 3:]
+        norm = np.linalg.norm(normals, axis=1, keepdims=True)
+        if (norm < 1e-9).any():
+            raise HangInputError(f"{label}: {int((norm < 1e-9).sum())} normals are zero")
+        normals = normals / norm
+        normals_from = "file"
+    else:
+        normals = _estimate_normals(pts)
+        normals_from = f"estimated (PCA over {NORMAL_NEIGHBOURS} neighbours)"
+    idx = rng.choice(len(pts), n_points, replace=len(pts) < n_points)
+    report = dict(
+        points_read=len(arr),
+        points_used=n_points,
+        resampled_with_replacement=bool(len(pts) < n_points),
+        normals=normals_from,
+        extents=[float(e) for e in hi - lo],
+        scale=1.0 if scale is None else float(scale),
+        recentered_by=[float(c) for c in offset],
+    )
+    name = Path(path).stem if path else f"{kind}_cloud"
+    return Body(
+        kind,
+        name,
+        "cloud",
+        path,
+        pts[idx].astype(np.float32),
+        normals[idx].astype(np.float32),
+        None,
+        None,
+        report,
+    )
+
+
+def _face_area_on_plane(mesh, axis: int, tol: float = WALL_TOLERANCE) -> float:
+    """Area (m^2) of the faces lying on the mesh's lowest plane along ``axis``, facing down
+    that axis: what rests on a wall (axis 1) or on the floor (axis 2)."""
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    lowest = v[:, axis].min()
+    on = (v[f][:, :, axis] < lowest + tol).all(1) & (np.asarray(mesh.face_normals)[:, axis] < -0.9)
+    return float(np.asarray(mesh.area_faces)[on].sum())
+
+
+def _mount_ratio(mesh) -> float:
+    """Area flat on the wall plane / area of the bounding box's back face (x-z)."""
+    e = np.ptp(np.asarray(mesh.vertices), axis=0)
+    return _face_area_on_plane(mesh, 1) / max(float(e[0] * e[2]), 1e-12)
+
+
+def check_support_mesh(mesh, wall: bool, object_mesh=None, path: str = "support") -> dict:
+    """Geometric sanity of a user support mesh (centred, metres; frames in the module
+    docstring): something of it lies on its wall plane (or floor), and it reaches at least
+    MIN_PROTRUSION off it. Returns the measured figures; raises HangInputError naming the
+    problem (and a likely swap of object and support)."""
+    axis = 1 if wall else 2
+    area = _face_area_on_plane(mesh, axis)
+    depth = float(np.ptp(np.asarray(mesh.vertices)[:, axis]))
+    where = "wall plane (its lowest y)" if wall else "floor (its lowest z)"
+    if area < WALL_CONTACT_AREA:
+        swap = ""
+        if object_mesh is not None and _face_area_on_plane(object_mesh, axis) >= WALL_CONTACT_AREA:
+            swap = (
+                "; the object has a flat back that would: object and support given in the "
+                "wrong order? (--object is what hangs, --support what it hangs on)"
+            )
+        hint = " or pass --free-standing" if wall else ""
+        raise HangInputError(
+            f"{path}: nothing of this support rests on the {where}: "
+            f"{area * 1e4:.2f} cm^2 < {WALL_CONTACT_AREA * 1e4:g} cm^2{swap}; supports are z up"
+            f"{', mounted on a wall at their lowest y and reaching towards +y' if wall else ''}"
+            f"{hint}"
+        )
+    if wall and object_mesh is not None:
+        mount = _mount_ratio(mesh)
+        if mount < UNMOUNTED and _mount_ratio(object_mesh) >= MOUNTED:
+            raise HangInputError(
+                f"{path}: object and support given in the wrong order? this support barely sits "
+                f"on the wall ({100 * mount:.0f} % of its back is flat, library supports "
+                f">= 13 %) while the object has a flat back like a hook's (--object is what "
+                f"hangs, --support what it hangs on)"
+            )
+    if depth < MIN_PROTRUSION:
+        raise HangInputError(
+            f"{path}: support has no hangable feature: it reaches only {depth * 1000:.1f} mm off "
+            f"the {'wall' if wall else 'floor'} (< {MIN_PROTRUSION * 1000:g} mm), nothing can "
+            f"hang on it"
+        )
+    return dict(rest_area_m2=area, protrusion_m=depth)
+
+
+def _mesh_kind(spec) -> bool:
+    """Whether an input spec names a mesh file (as opposed to a cloud, a name or None)."""
+    if not isinstance(spec, str | os.PathLike):
+        return False
+    path = Path(spec)
+    suffix = path.suffix.lower()
+    if suffix in MESH_FORMATS:
+        return path.is_file()
+    return suffix == ".ply" and path.is_file() and path.stat().st_size > 0 and _ply_has_faces(path)
+
+
+def _check_stl(path: Path) -> None:
+    """An STL is ASCII ("solid ...") or binary (80-byte header, uint32 N, 50 bytes per
+    triangle); anything else is refused before trimesh guesses at it."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(84)
+    if head.lstrip().lower().startswith(b"solid"):
+        return
+    n = int(np.frombuffer(head[80:84], "<u4")[0]) if len(head) == 84 else -1
+    if size != 84 + 50 * n:
+        raise HangInputError(
+            f"{path}: not an STL file (not ASCII 'solid ...', and {size} bytes is not a binary "
+            f"STL's 84 + 50 x {n} triangles)"
+        )
+
+
+def read_mesh(spec, kind: str, config: HangConfig):
+    """(mesh, report) of a mesh file: read, checked, repaired, centred (sim.meshio)."""
+    from sim.meshio import MeshError, load_user_mesh
+
+    if Path(spec).suffix.lower() == ".stl":
+        _check_stl(Path(spec))
+    try:
+        return load_user_mesh(spec, scale=config.scale_of(kind), up=config.up)
+    except MeshError as exc:
+        raise HangInputError(_cli_hint(str(exc))) from exc
+
+
+def _cli_hint(message: str) -> str:
+    """sim.meshio's hints in the words of this command's flags."""
+    for python, flag in (
+        ("pass scale=0.001", "pass --scale 0.001"),
+        ("scale=<factor>", "--scale <factor>"),
+        (" or target_size=<metres>", ""),
+    ):
+        message = message.replace(python, flag)
+    return message
+
+
+def load_body(
+    spec,
+    kind: str,
+    config: HangConfig,
+    n_points: int,
+    min_points: int,
+    rng: np.random.Generator,
+) -> Body | tuple:
+    """Resolve one input: None (built-in default), a library name, a mesh or cloud path, or a
+    cloud array. Returns a Body for clouds, or ``("asset", asset, report)`` for meshes whose
+    clouds are rendered later in the pair's scene."""
+    if spec is None:
+        name = DEFAULT_OBJECT if kind == "object" else DEFAULT_SUPPORT
+        return ("asset", _library_asset(name, kind), dict(source="builtin", name=name))
+    if isinstance(spec, np.ndarray):
+        return cloud_body(
+            spec, kind, n_points, min_points, rng, label=f"{kind} array",
+            scale=config.scale_of(kind), recenter=config.recenter,
+        )  # fmt: skip
+    spec = os.fspath(spec)
+    path = Path(spec)
+    suffix = path.suffix.lower()
+    if not path.exists():
+        asset = _library_asset(spec, kind) if not suffix else None
+        if asset is not None:
+            return ("asset", asset, dict(source="library", name=spec))
+        raise HangInputError(
+            f"{spec}: file not found"
+            + ("" if suffix else " (and not a library asset name such as mug_0016)")
+        )
+    if path.is_dir():
+        raise HangInputError(f"{spec}: is a folder, not a mesh or cloud file")
+    if not os.access(path, os.R_OK):
+        raise HangInputError(f"{spec}: unreadable (permission denied)")
+    if suffix not in MESH_FORMATS + CLOUD_FORMATS + (".ply",):
+        raise HangInputError(
+            f"{spec}: unsupported format {suffix or '(none)'!r}; meshes: "
+            f"{', '.join(MESH_FORMATS + ('.ply',))}; clouds: {', '.join(CLOUD_FORMATS + ('.ply',))}"
+        )
+    if path.stat().st_size == 0:
+        raise HangInputError(f"{spec}: file is empty (0 bytes)")
+    if not _mesh_kind(spec):
+        return cloud_body(
+            _read_cloud(path), kind, n_points, min_points, rng, label=spec,
+            scale=config.scale_of(kind), recenter=config.recenter, path=spec,
+        )  # fmt: skip
+    return ("mesh", spec, read_mesh(spec, kind, config))
+
+
+def decompose_mesh(spec: str, kind: str, config: HangConfig, report: dict):
+    """The Asset of a checked mesh file: CoACD hulls (cached in :func:`cache_dir`)."""
+    from sim import decompose
+    from sim.meshio import MeshError
+
+    settings = decompose.FAST if config.coacd == "fast" else decompose.CoacdSettings()
+    try:
+        asset = decompose.asset_from_user_mesh(
+            spec,
+            "user",
+            kind,
+            name=f"{kind}_{Path(spec).stem}",
+            wall=not config.free_standing,
+            scale=config.scale_of(kind),
+            up=config.up,
+            settings=settings,
+            cache_dir=cache_dir(config),
+        )
+    except MeshError as exc:
+        raise HangInputError(_cli_hint(str(exc))) from exc
+    report = dict(source="mesh", name=asset.name, **report)
+    report["decomposition"] = {
+        k: asset.params["decomposition"][k]
+        for k in ("n_hulls", "cache_hit", "cache_file", "seconds", "volume_kept")
+    }
+    return asset, report
+
+
+def _ply_has_faces(path: Path) -> bool:
+    """Whether a PLY header declares faces (a mesh) or only vertices (a cloud)."""
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    if not head.startswith(b"ply"):
+        raise HangInputError(f"{path}: not a PLY file (no 'ply' header)")
+    m = re.search(rb"element face (\d+)", head)
+    return bool(m and int(m.group(1)) > 0)
+
+
+def cache_dir(config: HangConfig) -> Path:
+    """The CoACD cache used for user meshes: ``config.cache_dir`` or ``out/cache/coacd``
+    under the working directory (never the home folder unannounced)."""
+    return Path(config.cache_dir) if config.cache_dir else Path("out") / "cache" / "coacd"
+
+
+def _check_training_domain(body_or_asset, kind: str, label: str) -> list[str]:
+    extents = (
+        np.asarray(body_or_asset.extents)
+        if hasattr(body_or_asset, "extents")
+        else np.ptp(body_or_asset.points, axis=0)
+    )
+    lo, hi = TRAINED_EXTENT[kind]
+    largest = float(np.max(extents))
+    if not lo <= largest <= hi:
+        return [
+            f"{label}: largest extent {largest:.3g} m is outside the {kind} sizes the networks "
+            f"were trained on ({lo}-{hi} m): expect a poor answer (is the scale right?)"
+        ]
+    return []
+
+
+def render_body(scene, kind: str, eye, rng, config: HangConfig, n_points: int):
+    """The partial cloud of one body of ``scene`` seen from ``eye`` (sim.camera)."""
+    from sim import camera
+
+    cam = camera.CameraConfig(
+        width=config.image_width,
+        height=config.image_height,
+        n_points=n_points,
+        depth_noise=config.depth_noise,
+    )
+    return camera.partial_cloud(scene, kind, eye, rng, cam)
+
+
+# ----------------------------------------------------------------------------- steps
+
+
+WhereFn = Callable[[Body, Body, int], Candidates]
+HowFn = Callable[[Any, Body, Body, np.ndarray], "PathPlan | None"]
+
+
+def _clearance_scores(obj: Body, sup: Body, poses: np.ndarray) -> np.ndarray:
+    """[C] 1 - share of the object cloud inside the observed support cloud at each pose."""
+    from omnihang_jax.heuristics import rank_by_penetration
+
+    _, pen = rank_by_penetration(
+        obj.points[::4], sup.points, sup.normals, np.asarray(poses, np.float32)
+    )
+    return 1.0 - np.asarray(pen, np.float64)
+
+
+def stage3_scorer():
+    """The Stage-3 value function when ``omnihang_jax.stage3`` provides a loadable one,
+    else None (with the reason). Looked up at call time: Stage 3 lands separately."""
+    try:
+        from omnihang_jax import stage3
+    except Exception as exc:  # absent or broken module: say so, do not fail the call
+        return None, f"omnihang_jax.stage3 not importable ({type(exc).__name__})"
+    loader = getattr(stage3, "load_value_scorer", None)
+    if loader is None:
+        return None, "omnihang_jax.stage3 has no load_value_scorer(folder) yet"
+    try:
+        return loader(DEFAULT_MODEL), "omnihang_jax.stage3.load_value_scorer"
+    except Exception as exc:
+        return None, f"Stage-3 weights not loadable ({type(exc).__name__}: {exc})"
+
+
+def stages_where(predictor, num_proposals: int, scorer=None) -> WhereFn:
+    """The where-to-hang step on the committed networks: K Stage-1 proposals and their
+    Stage-2 refinements (2K candidates), ranked best first by ``scorer(obj, sup, poses)``
+    ([C] higher better: the Stage-3 value) or, without one, by the observed-cloud clearance."""
+    import jax
+
+    def where(obj: Body, sup: Body, seed: int) -> Candidates:
+        out = predictor(
+            obj.points[None], sup.points[None], key=jax.random.key(seed),
+            num_proposals=num_proposals,
+        )  # fmt: skip
+        poses = np.concatenate([out.stage1_poses[0], out.stage2_poses[0]]).astype(np.float64)
+        poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+        k = num_proposals
+        stage = np.array(["stage1"] * k + ["stage1_2"] * k)
+        proposal = np.concatenate([np.arange(k), np.arange(k)])
+        if scorer is not None:
+            score, name = np.asarray(scorer(obj, sup, poses), np.float64), "stage3_value"
+        else:
+            score, name = _clearance_scores(obj, sup, poses), "observed_clearance"
+        order = np.argsort(-score, kind="stable")
+        return Candidates(poses[order], stage[order], proposal[order], score[order], name)
+
+    return where
+
+
+def default_how():
+    """The how-to-hang planner when ``omnihang_jax.planner`` provides ``plan_hang``, else
+    (None, reason)."""
+    try:
+        from omnihang_jax import planner
+    except Exception as exc:
+        return None, f"omnihang_jax.planner not importable ({type(exc).__name__})"
+    fn = getattr(planner, "plan_hang", None)
+    if fn is None:
+        return None, "omnihang_jax.planner has no plan_hang(...) yet"
+    return fn, "omnihang_jax.planner.plan_hang"
+
+
+def available_steps() -> dict:
+    """Which steps exist in this checkout: {"stage3": reason, "planner": reason}."""
+    _, s3 = stage3_scorer()
+    _, how = default_how()
+    return {"stage3": s3, "planner": how}
+
+
+def search_stable_poses(obj_asset, sup_asset, n: int, rng, scene=None, progress=None) -> dict:
+    """Simulated stable poses found directly (at most ``n`` candidates in batches of 512,
+    stopping once SEARCH_ENOUGH are stable) (the data engine's sampler and stability
+    protocol, :func:`sim.dataset.draw_candidates` / ``sim.kernels.StabilityConfig``): hang-
+    feature threading for 75 % of the candidates when both assets know their features,
+    else uniform poses around the support. Returns poses [S, 7] (settled), counts, the
+    sampler used and seconds."""
+    from sim import kernels
+    from sim.dataset import DatasetConfig, draw_candidates
+    from sim.scene import build_scene
+
+    t0 = time.perf_counter()
+    scene = scene if scene is not None else build_scene(obj_asset, sup_asset)
+    config = DatasetConfig()
+    featured = bool(obj_asset.features) and bool(sup_asset.features)
+    stable, statuses, done = [], np.zeros(4, int), 0
+    batch = 512
+    while done < n and len(stable) < SEARCH_ENOUGH:
+        size = min(batch, n - done)
+        cand = draw_candidates(obj_asset, sup_asset, rng, size, config)
+        res = kernels.stability(scene, cand, config.stability)
+        stable.extend(res.settled_pose[res.stable])
+        statuses += np.bincount(res.status, minlength=4)
+        done += size
+        if progress is not None:
+            progress(size)
+    poses = np.asarray(stable, np.float64).reshape(-1, 7)
+    return dict(
+        sampler="hang features (75 %) + uniform" if featured else "uniform (no known features)",
+        candidates=done,
+        stable=len(poses),
+        status_counts={k: int(v) for k, v in zip(kernels.STATUS_NAMES, statuses)},
+        poses=poses,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def pose_matrix(pose: np.ndarray) -> np.ndarray:
+    """[4, 4] homogeneous matrix of a pose [7] (xyz + quaternion wxyz)."""
+    from scipy.spatial.transform import Rotation
+
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_quat(np.roll(np.asarray(pose[3:7], float), -1)).as_matrix()
+    m[:3, 3] = pose[:3]
+    return m
+
+
+def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Translation (m) and rotation (deg) between pose ``a`` [7] and each of ``b`` [S, 7]."""
+    qa = np.asarray(a[3:7], float)
+    qb = np.asarray(b, float)[:, 3:7]
+    dot = np.abs(qb @ qa) / (np.linalg.norm(qb, axis=1) * np.linalg.norm(qa))
+    angle = np.degrees(2 * np.arccos(np.clip(dot, -1.0, 1.0)))
+    return np.linalg.norm(np.asarray(b)[:, :3] - a[:3], axis=1), angle
+
+
+# ----------------------------------------------------------------------------- the pipeline
+
+
+def _say(log, msg: str) -> None:
+    if log is not None:
+        log(msg)
+
+
+def hang(
+    object=None,
+    support=None,
+    out: str | os.PathLike | None = None,
+    config: HangConfig = HangConfig(),
+    *,
+    where: WhereFn | None = None,
+    how: HowFn | None = None,
+    predictor=None,
+    log: Callable[[str], None] | None = print,
+) -> HangResult:
+    """Where (and how) to hang ``object`` on ``support``; see the module docstring.
+
+    Args:
+      object, support: None (the built-in default), a library asset name, a mesh or cloud
+        file path, or a cloud array [N, 3] / [N, 6] (metres, object / support frame).
+      out: folder for result.json, scene.xml, hang.png, viewer.html (None: nothing written).
+      config: :class:`HangConfig`.
+      where: replaces the where-to-hang step (``where(object_body, support_body, seed) ->
+        Candidates``); default :func:`stages_where` on ``config.model``.
+      how: replaces the planner (``how(scene, object_body, support_body, pose) -> PathPlan``).
+      predictor: an already loaded ``omnihang_jax.predict.Predictor`` (saves ~3 s per call).
+      log: progress messages (None: silent).
+
+    Raises:
+      HangInputError: bad input, with a one-line message naming the file and the problem.
+    """
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+    steps: dict[str, str] = {}
+    t = time.perf_counter()
+    rng = np.random.default_rng([config.seed, 11])
+    if config.num_proposals < 1:
+        raise HangInputError(f"--num-proposals must be >= 1, got {config.num_proposals}")
+    if config.coacd not in ("default", "fast"):
+        raise HangInputError(f"--coacd must be 'default' or 'fast', got {config.coacd!r}")
+    if config.up not in ("z", "y"):
+        raise HangInputError(f"--up must be 'z' or 'y', got {config.up!r}")
+    for name in ("scale", "object_scale", "support_scale"):
+        value = getattr(config, name)
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise HangInputError(
+                f"--{name.replace('_', '-')} must be a positive number, got {value}"
+            )
+    if out is not None:
+        _check_out(Path(out))
+    if predictor is not None:
+        n_points, min_points = _predictor_sizes(predictor)
+    elif where is None:
+        n_points, min_points = network_sizes(config.model)
+    else:  # a user where-step: the dataset's cloud size, the small encoder's first level
+        n_points, min_points = 4096, 128
+
+    # ---- inputs: every check before anything slow (CoACD, the networks)
+    t = time.perf_counter()
+    _say(log, "reading the inputs")
+    loaded = {
+        kind: load_body(spec, kind, config, n_points, min_points, rng)
+        for kind, spec in (("object", object), ("support", support))
+    }
+    meshes = {k: v[2][0] for k, v in loaded.items() if not isinstance(v, Body) and v[0] == "mesh"}
+    if "support" in meshes:
+        check = check_support_mesh(
+            meshes["support"], not config.free_standing, meshes.get("object"), str(support)
+        )
+        loaded["support"][2][1]["checks"] = check
+    if meshes:
+        _say(log, f"CoACD decompositions are cached in {cache_dir(config)} (--cache to move)")
+    for kind in meshes:
+        _, spec, (_, report) = loaded[kind]
+        _say(log, f"decomposing the {kind} mesh {spec} (CoACD)")
+        asset, report = decompose_mesh(spec, kind, config, report)
+        loaded[kind] = ("asset", asset, report)
+    timings["read_inputs"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    if predictor is None and where is None:
+        from omnihang_jax.predict import load_predictor
+
+        _say(log, f"loading the where-to-hang networks from {config.model}")
+        predictor = load_predictor(config.model, seed=config.seed)
+    timings["load_model"] = time.perf_counter() - t
+    obj_asset, sup_asset = (
+        None if isinstance(loaded[k], Body) else loaded[k][1] for k in ("object", "support")
+    )
+    scene = None
+    t = time.perf_counter()
+    bodies: dict[str, Body] = {}
+    if obj_asset is not None or sup_asset is not None:
+        from sim import camera
+        from sim.scene import build_scene
+
+        # A body without a mesh is rendered in a scene only to give the other one its
+        # camera; with both meshes known the scene is also the one simulated below.
+        if obj_asset is not None and sup_asset is not None:
+            scene = build_scene(obj_asset, sup_asset)
+        for kind, asset in (("object", obj_asset), ("support", sup_asset)):
+            if asset is None:
+                continue
+            partner = _partner(kind, obj_asset, sup_asset)
+            sc = scene or build_scene(*((asset, partner) if kind == "object" else (partner, asset)))
+            eyes = camera.default_eyes(sc, rng, camera.CameraConfig())
+            eye = eyes[0] if kind == "object" else eyes[1]
+            cloud = render_body(sc, kind, eye, rng, config, n_points)
+            report = dict(loaded[kind][2])
+            report.update(
+                rendered=dict(
+                    eye=[float(x) for x in eye],
+                    pixels_visible=int(cloud.n_visible),
+                    image=[config.image_width, config.image_height],
+                    depth_noise_m=config.depth_noise,
+                )
+            )
+            label = report.get("path") or asset.name
+            warnings += _check_training_domain(asset, kind, label)
+            bodies[kind] = Body(
+                kind,
+                asset.name,
+                report["source"],
+                report.get("path"),
+                cloud.points,
+                cloud.normals,
+                asset,
+                np.asarray(eye),
+                report,
+            )
+    for kind in ("object", "support"):
+        if kind not in bodies:
+            body = loaded[kind]
+            warnings += _check_training_domain(body, kind, body.path or body.name)
+            bodies[kind] = body
+    obj, sup = bodies["object"], bodies["support"]
+    timings["clouds"] = time.perf_counter() - t
+    for w in warnings:
+        _say(log, f"warning: {w}")
+
+    # ---- where
+    t = time.perf_counter()
+    if where is None:
+        scorer, steps["stage3"] = stage3_scorer()
+        where = stages_where(predictor, config.num_proposals, scorer)
+        steps["where"] = (
+            f"Stages 1-2 ({config.model}), {config.num_proposals} proposals + their Stage-2 "
+            f"refinements, ranked by {'the Stage-3 value' if scorer else 'observed-cloud clearance'}"
+        )
+        if scorer is None:
+            steps["stage3"] = f"not available yet: {steps['stage3']}"
+    else:
+        steps["where"] = f"user function {getattr(where, '__name__', repr(where))}"
+    _say(log, f"where to hang: {steps['where']}")
+    cands = where(obj, sup, config.seed)
+    timings["where"] = time.perf_counter() - t
+
+    # ---- check in MuJoCo
+    t = time.perf_counter()
+    status = settled = penetration = None
+    chosen = 0
+    verdict = "unverified"
+    if scene is not None and config.verify:
+        from omnihang_jax.evaluate import protocol_stability
+        from sim import kernels
+
+        _say(log, f"checking {len(cands.poses)} candidates in MuJoCo (1 s each, from rest)")
+        res = kernels.stability(scene, cands.poses, protocol_stability())
+        status, settled, penetration = res.status, res.settled_pose, res.initial_penetration
+        stable = np.flatnonzero(res.stable)
+        chosen = int(stable[0]) if len(stable) else 0
+        verdict = kernels.STATUS_NAMES[int(status[chosen])]
+        steps["check"] = (
+            f"MuJoCo, evaluation protocol (omnihang_jax.evaluate.protocol_stability): "
+            f"{len(stable)} of {len(cands.poses)} candidates stay hanging"
+        )
+    elif scene is None:
+        steps["check"] = (
+            "not possible: only clouds were given for "
+            + " and ".join(
+                k for k, a in (("the object", obj_asset), ("the support", sup_asset)) if a is None
+            )
+            + "; the answer is the best-ranked candidate, unverified"
+        )
+    else:
+        steps["check"] = "skipped (verify=False)"
+    timings["check"] = time.perf_counter() - t
+    pose = cands.poses[chosen]
+
+    # ---- how
+    t = time.perf_counter()
+    path = None
+    if config.plan:
+        if how is None:
+            how, reason = default_how()
+        else:
+            reason = f"user function {getattr(how, '__name__', repr(how))}"
+        if how is None:
+            steps["how"] = f"not available yet: {reason}"
+        elif verdict not in ("stable", "unverified"):
+            steps["how"] = "not run: no candidate hangs"
+        else:
+            _say(log, f"how to hang: {reason}")
+            path = how(scene, obj, sup, pose)
+            steps["how"] = reason if path is not None else f"{reason}: no path found"
+    else:
+        steps["how"] = "skipped (plan=False)"
+    timings["how"] = time.perf_counter() - t
+
+    # ---- search
+    search = None
+    t = time.perf_counter()
+    if config.search:
+        if scene is None:
+            steps["search"] = "not possible: needs the meshes of both object and support"
+        else:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(
+                total=config.search_candidates, desc="search", unit="pose", disable=log is None
+            )
+            search = search_stable_poses(
+                obj_asset, sup_asset, config.search_candidates,
+                np.random.default_rng([config.seed, 13]), scene, bar.update,
+            )  # fmt: skip
+            bar.close()
+            if len(search["poses"]):
+                dt, dr = pose_distance(pose, search["poses"])
+                j = int(np.argmin(dt))
+                search["nearest_to_answer"] = dict(
+                    index=j, translation_m=float(dt[j]), rotation_deg=float(dr[j])
+                )
+            steps["search"] = f"{search['sampler']}: {search['stable']} of {search['candidates']}"
+    else:
+        steps["search"] = "not requested (--search)"
+    timings["search"] = time.perf_counter() - t
+
+    result = HangResult(
+        obj,
+        sup,
+        cands,
+        chosen,
+        pose,
+        pose_matrix(pose),
+        verdict,
+        None if settled is None else settled[chosen],
+        status,
+        penetration,
+        path,
+        search,
+        steps,
+        timings,
+        warnings,
+    )
+    if out is not None:
+        t = time.perf_counter()
+        write_outputs(result, out, config, scene, log=log)
+        timings["write"] = time.perf_counter() - t
+    return result
+
+
+def network_sizes(model: str | os.PathLike) -> tuple[int, int]:
+    """(points per cloud, fewest points allowed) of a trained model folder, read from its
+    Stage-1 config.json without loading the networks: the encoder's ``num_points`` and its
+    first set-abstraction level's ``npoint`` (the centres it samples)."""
+    path = Path(model) / "stage1" / "config.json"
+    if not path.exists() or not (Path(model) / "stage2b" / "config.json").exists():
+        raise HangInputError(
+            f"{model}: no trained model there (expected stage1/ and stage2b/ with config.json, "
+            f"e.g. {DEFAULT_MODEL})"
+        )
+    try:
+        encoder = json.loads(path.read_text())["config"]["stage1"]["encoder"]
+        first = int(encoder["sa_levels"][0]["npoint"])
+        return int(max(encoder["num_points"], first)), first
+    except (ValueError, KeyError, IndexError, TypeError) as exc:
+        raise HangInputError(f"{path}: not a Stage-1 config ({type(exc).__name__}: {exc})") from exc
+
+
+def _predictor_sizes(predictor) -> tuple[int, int]:
+    encoder = predictor.stage1_config.encoder
+    first = int(encoder.sa_levels[0].npoint)
+    return int(max(encoder.num_points, first)), first
+
+
+def _partner(kind: str, obj_asset, sup_asset):
+    """The other body of a render scene when only one mesh is known: a library stand-in that
+    is never drawn in the cloud (clouds are cast per body)."""
+    if kind == "object":
+        return sup_asset if sup_asset is not None else _library_asset(DEFAULT_SUPPORT, "support")
+    return obj_asset if obj_asset is not None else _library_asset(DEFAULT_OBJECT, "object")
+
+
+# ----------------------------------------------------------------------------- outputs
+
+
+def _check_out(out: Path) -> None:
+    """The output folder may be new, empty, or a previous hang output (replaced whole)."""
+    if out.exists() and not out.is_dir():
+        raise HangInputError(f"{out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not (out / "result.json").exists():
+        raise HangInputError(
+            f"{out}: folder exists and is not a previous hang output (no result.json); "
+            f"choose a new --out"
+        )
+    parent = out.resolve().parent
+    if parent.exists() and not os.access(parent, os.W_OK):
+        raise HangInputError(f"{out}: cannot write into {parent} (permission denied)")
+
+
+def result_json(result: HangResult, config: HangConfig) -> dict:
+    """The JSON record of a result (the layout of result.json; docs/hang.md)."""
+    from sim import kernels
+
+    c = result.candidates
+
+    def body(b: Body) -> dict:
+        return dict(kind=b.kind, name=b.name, source=b.source, path=b.path, report=b.report)
+
+    candidates = []
+    for i in range(len(c.poses)):
+        row = dict(
+            rank=i,
+            stage=str(c.stage[i]),
+            proposal=int(c.proposal[i]),
+            score=float(c.score[i]),
+            pose_xyz_wxyz=[float(x) for x in c.poses[i]],
+        )
+        if result.status is not None:
+            row["status"] = kernels.STATUS_NAMES[int(result.status[i])]
+            row["initial_penetration_m"] = float(result.penetration[i])
+        candidates.append(row)
+    search = None
+    if result.search is not None:
+        search = {k: v for k, v in result.search.items() if k != "poses"}
+        search["poses_xyz_wxyz"] = [
+            [float(x) for x in p] for p in result.search["poses"][:SEARCH_KEEP]
+        ]
+    return dict(
+        convention=(
+            "pose of the object frame (origin at the object's bounding-box centre) in the "
+            "support frame (z up; wall-mounted supports: wall at the lowest y, reaching "
+            "towards +y): p_support = R p_object + t; metres; quaternion w, x, y, z"
+        ),
+        object=body(result.object),
+        support=body(result.support),
+        verdict=result.verdict,
+        verified=result.verified,
+        hung=result.hung,
+        pose=dict(
+            xyz=[float(x) for x in result.pose[:3]],
+            quat_wxyz=[float(x) for x in result.pose[3:]],
+            matrix=[[float(x) for x in row] for row in result.matrix],
+            stage=str(c.stage[result.chosen]),
+            proposal=int(c.proposal[result.chosen]),
+            rank=int(result.chosen),
+            score=float(c.score[result.chosen]),
+        ),
+        settled_pose_xyz_wxyz=(
+            None if result.settled_pose is None else [float(x) for x in result.settled_pose]
+        ),
+        score_name=c.score_name,
+        candidates=candidates,
+        path=(
+            None
+            if result.path is None
+            else dict(
+                planner=result.path.planner,
+                info=result.path.info,
+                poses_xyz_wxyz=[[float(x) for x in p] for p in result.path.poses],
+            )
+        ),
+        search=search,
+        steps=result.steps,
+        timings_s={k: round(v, 3) for k, v in result.timings.items()},
+        warnings=result.warnings,
+        config=dataclasses.asdict(config),
+    )
+
+
+def write_outputs(
+    result: HangResult, out, config: HangConfig = HangConfig(), scene=None, log=print
+) -> Path:
+    """Write result.json, scene.xml (+ meshes; meshes known only), hang.png and viewer.html
+    into a temporary folder beside ``out``, then rename it to ``out`` (replacing a previous
+    hang output): the folder is complete or absent."""
+    from omnihang_jax import hang_views
+
+    out = Path(out)
+    _check_out(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
+    tmp.chmod(0o755)  # mkdtemp makes it private; the result is an ordinary folder
+    try:
+        record = result_json(result, config)
+        files = ["result.json", "hang.png", "viewer.html"]
+        if scene is not None:
+            _say(log, "writing scene.xml")
+            hang_views.write_scene_xml(result, scene, tmp)
+            files.append("scene.xml")
+        else:
+            record["scene"] = "not written: MuJoCo needs the meshes of both bodies"
+        _say(log, "drawing hang.png")
+        hang_views.draw_png(result, scene, tmp / "hang.png")
+        _say(log, "writing viewer.html")
+        hang_views.write_viewer(result, tmp / "viewer.html")
+        record["files"] = files
+        (tmp / "result.json").write_text(json.dumps(record, indent=1))
+        if out.exists():
+            old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
+            os.replace(out, old / "previous")
+            os.replace(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
