@@ -56,6 +56,13 @@ def main(argv=None) -> dict:
         "normal before it is scored (omnihang_jax.heuristics.separate; before --select)",
     )
     parser.add_argument("--backend", choices=["cpu", "mjx"], default="cpu")
+    parser.add_argument(
+        "--judge",
+        choices=["mujoco", "pybullet", "both"],
+        default="mujoco",
+        help="who judges success (sim.judges): MuJoCo, PyBullet with MuJoCo's physics, or "
+        "both (success only if both say it hangs; per-judge rates in 'by_judge')",
+    )
     parser.add_argument("--seed", type=int, default=0, help="Stage-1 noise seed")
     parser.add_argument("--label", default="", help="free text stored in the results")
     parser.add_argument("--limit", type=int, default=None, help="first N pairs only (smoke runs)")
@@ -120,6 +127,7 @@ def main(argv=None) -> dict:
         select=args.select,
         separate=args.separate,
         backend=args.backend,
+        judge=args.judge,
         seed=args.seed,
         split=args.split,
     )
@@ -137,6 +145,11 @@ def main(argv=None) -> dict:
         progress=not args.no_progress,
     )
     brief = {k: results[k] for k in ("stage1", "stage1_2", "pairs")}
+    if "by_judge" in results:
+        brief["by_judge"] = {
+            e: {st: v[st]["mean"] for st in ("stage1", "stage1_2")}
+            for e, v in results["by_judge"].items()
+        }
     if "ground_truth_reference" in results:
         brief["ground_truth_reference"] = results["ground_truth_reference"]["mean"]
     if args.figure is not None:

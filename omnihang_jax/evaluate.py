@@ -95,6 +95,9 @@ class EvalConfig:
     # (omnihang_jax.heuristics.separate); applied before ``select``
     separate: bool = False
     backend: str = "cpu"  # physics backend of sim.kernels.stability
+    # who judges "it hangs" (sim.judges): "mujoco", "pybullet" (original engine, set-up matched
+    # to MuJoCo's physics) or "both" (success only if both agree); docs/judges.md
+    judge: str = "mujoco"
     seed: int = 0  # Stage-1 noise: key = fold_in(key(seed), pair_index)
     split: str = "test"
 
@@ -274,10 +277,19 @@ def evaluate_pairs(
         finite = np.isfinite(both).all(1) & (np.linalg.norm(both[:, 3:], axis=1) > 1e-6)
         status = np.full(len(both), kernels.DIVERGED, np.int8)
         penetration = np.full(len(both), np.nan)
+        judged = {}  # engine -> [2K] bool success, with --judge both
         if finite.any():
-            res = kernels.stability(scene, both[finite], stability, backend=config.backend)
+            from sim import judges
+
+            res = judges.judge_stability(
+                scene, both[finite], stability, config.judge, backend=config.backend
+            )
             status[finite] = res.status
             penetration[finite] = res.initial_penetration
+            if config.judge == "both":
+                for engine, r in res.by_judge.items():
+                    judged[engine] = np.zeros(len(both), bool)
+                    judged[engine][finite] = r.stable
         ok = status == kernels.STABLE
         record = {
             "pair_index": meta["pair_index"],
@@ -305,6 +317,9 @@ def evaluate_pairs(
                 **{key: float(v[c]) for key, v in err.items()},
                 **{f"{key}_all": v.tolist() for key, v in err.items()},
             }
+            for engine, v in judged.items():  # success / any_of_k under each judge alone
+                record[name][f"success_{engine}"] = bool(v[sl][c])
+                record[name][f"any_of_k_{engine}"] = bool(v[sl].any())
             n_ok[name] += record[name]["success"]
         records.append(record)
         bar.set_postfix(s1=n_ok["stage1"], s12=n_ok["stage1_2"], n=len(records))
@@ -560,6 +575,7 @@ def evaluate_where(
         "protocol": {
             "stability": dataclasses.asdict(stability),
             "backend": config.backend,
+            "judge": config.judge,
             "num_proposals": records[0]["num_proposals"] if records else None,
             "candidate": (
                 f"proposal {config.candidate} of K (no Stage 3 to rank them)"
@@ -580,6 +596,14 @@ def evaluate_where(
         "paper": PAPER_SUCCESS,
         "evaluate_s": round(eval_s, 1),
     }
+    if config.judge == "both" and records:
+        results["by_judge"] = {
+            engine: {
+                stage: summarize_success(records, stage, f"success_{engine}")
+                for stage in ("stage1", "stage1_2")
+            }
+            for engine in ("mujoco", "pybullet")
+        }
     if diagnostics:
         results["stage2_from_ground_truth"] = diagnostics
     if reference and model_dir is not None:
