@@ -280,6 +280,32 @@ def _read_obj_groups(path: Path) -> list[ConvexMesh]:
 # ----------------------------------------------------------------------------- the world
 
 
+def set_materials(client: int, body: int, env: list[int], config: BulletConfig) -> None:
+    """Friction and damping of the object ``body`` and its static ``env`` bodies (module
+    docstring): the combined Coulomb coefficient is ``config.friction`` (Bullet multiplies
+    the two lateral frictions) and the combined torsional one ``spinning_friction``."""
+    f_env = 1.0 if config.friction_combine == "matched" else config.friction
+    pb.changeDynamics(
+        body,
+        -1,
+        lateralFriction=config.friction,
+        spinningFriction=config.spinning_friction,
+        physicsClientId=client,
+    )
+    for e in env:
+        pb.changeDynamics(
+            e, -1, lateralFriction=f_env, spinningFriction=0.0, physicsClientId=client
+        )
+    if config.damping is not None:
+        pb.changeDynamics(
+            body,
+            -1,
+            linearDamping=config.damping,
+            angularDamping=config.damping,
+            physicsClientId=client,
+        )
+
+
 class PairWorld:
     """One PyBullet world holding a pair: support (+ wall, floor, stand base) and the object.
 
@@ -352,25 +378,7 @@ class PairWorld:
             raise RuntimeError(
                 f"PyBullet loaded {n_shapes} of the {len(parts)} parts of {obj.name}"
             )
-        env = [self.support, *self.ground]
-        f_env = 1.0 if config.friction_combine == "matched" else config.friction
-        pb.changeDynamics(
-            self.body,
-            -1,
-            lateralFriction=config.friction,
-            spinningFriction=config.spinning_friction,
-            physicsClientId=c,
-        )
-        for e in env:
-            pb.changeDynamics(e, -1, lateralFriction=f_env, spinningFriction=0.0, physicsClientId=c)
-        if config.damping is not None:
-            pb.changeDynamics(
-                self.body,
-                -1,
-                linearDamping=config.damping,
-                angularDamping=config.damping,
-                physicsClientId=c,
-            )
+        set_materials(c, self.body, [self.support, *self.ground], config)
 
     def _static(self, parts, tag) -> int:
         path = os.path.join(self._tmp.name, f"{tag}.urdf")

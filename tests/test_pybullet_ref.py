@@ -1,0 +1,190 @@
+"""PyBullet, the second judge: its world is MuJoCo's (geometry, mass, inertia, friction), and
+it judges hangs the same way (a hang stays, a pose beside the hook falls)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+import pytest
+
+pb = pytest.importorskip("pybullet")
+
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from sim import judges, kernels, proposals, pybullet_ref  # noqa: E402
+from sim.assets import objects, supports  # noqa: E402, F401
+from sim.assets.base import build_object, build_support  # noqa: E402
+from sim.geometry import Box, ConvexMesh  # noqa: E402
+from sim.scene import build_scene  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def hang():
+    """A mug hanging on a single-rod hook: MuJoCo's stable settled poses (found here, not
+    hard-coded) and the scene."""
+    scene = build_scene(build_object("mug", 7), build_support("single_rod_hook", 3))
+    cand = proposals.hang_poses(scene.obj, scene.support, 16, np.random.default_rng(0))
+    res = kernels.stability(scene, cand, nthread=1)
+    assert res.stable.sum() >= 2, "the test pair should hang in MuJoCo"
+    return scene, res.settled_pose[res.stable][:2]
+
+
+def test_known_hang_stays_and_pose_beside_the_hook_falls(hang):
+    scene, poses = hang
+    beside = poses.copy()
+    beside[:, 0] += 0.08  # 8 cm along the wall: nothing under the object
+    both = np.concatenate([poses, beside])
+    bullet = pybullet_ref.stability(scene, both)
+    assert bullet.status.tolist() == [kernels.STABLE] * 2 + [kernels.FALLEN] * 2
+    # it comes to rest within a few millimetres of MuJoCo's rest pose
+    assert np.abs(bullet.settled_pose[:2, :3] - poses[:, :3]).max() < 3e-3
+    mj = kernels.stability(scene, both, nthread=1)
+    assert (mj.stable == bullet.stable).all()
+
+
+def test_judge_both_is_the_conjunction(hang):
+    scene, poses = hang
+    beside = poses[:1] + np.array([0.08, 0, 0, 0, 0, 0, 0])
+    out = judges.judge_stability(scene, np.concatenate([poses[:1], beside]), judge="both")
+    assert set(out.by_judge) == {"mujoco", "pybullet"}
+    assert out.stable.tolist() == [True, False]
+    assert out.status[1] == kernels.FALLEN
+    with pytest.raises(ValueError, match="judge must be one of"):
+        judges.judge_stability(scene, poses, judge="bullet")
+
+
+@pytest.mark.parametrize("category,family", [("racquet", "towel_bar"), ("cap", "mug_tree")])
+def test_world_geometry_inertia_and_frames_are_mujocos(category, family):
+    """All parts load (a racquet has > 16, PyBullet's shape-array limit), distances to the
+    support, wall and stand equal MuJoCo's within the 1 mm rounding of eroded hull edges,
+    and mass, principal inertia and the pose round trip are MuJoCo's."""
+    scene = build_scene(build_object(category, 11), build_support(family, 5))
+    model, data = scene.model, mujoco.MjData(scene.model)
+    world = pybullet_ref.PairWorld(scene)
+    try:
+        c = world.client
+        assert len(pb.getCollisionShapeData(world.body, -1, physicsClientId=c)) == len(
+            scene.obj.parts
+        )
+        info = pb.getDynamicsInfo(world.body, -1, physicsClientId=c)
+        assert info[0] == pytest.approx(model.body_mass[scene.object_body])
+        np.testing.assert_allclose(info[2], model.body_inertia[scene.object_body], rtol=1e-6)
+        env = [g for g in range(model.ngeom) if g not in scene.object_geoms and g != 0]
+        lo, hi = scene.support.bounds()
+        rng = np.random.default_rng(0)
+        errors = []
+        for t in range(80):
+            pose = np.concatenate(
+                [rng.uniform(lo - 0.03, hi + 0.03), np.roll(Rotation.random(rng=t).as_quat(), 1)]
+            )
+            if scene.support.wall_y is not None:
+                pose[1] = max(pose[1], scene.support.wall_y + 0.12)
+            data.qpos[:7] = pose
+            mujoco.mj_forward(model, data)
+            d_mj = min(
+                mujoco.mj_geomDistance(model, data, int(a), int(b), 0.03, None)
+                for a in scene.object_geoms
+                for b in env
+            )
+            world.set_pose(pose)
+            np.testing.assert_allclose(world.pose()[:3], pose[:3], atol=1e-9)
+            d_pb = min(
+                [
+                    p[8]
+                    for body in [world.support, *world.ground[1:]]
+                    for p in pb.getClosestPoints(world.body, body, 0.03, physicsClientId=c)
+                ],
+                default=0.03,
+            )
+            if min(d_mj, d_pb) > -0.002:  # deep overlaps have no unique depth
+                errors.append(abs(d_mj - d_pb))
+        assert len(errors) >= 5
+        assert max(errors) < 1e-3 and np.median(errors) < 5e-4
+    finally:
+        world.close()
+
+
+def _incline(config: pybullet_ref.BulletConfig, degrees: float) -> tuple[float, float]:
+    """A 10 cm hull cube resting on a static box tilted by ``degrees``, with the judge's
+    materials and hulls: (distance (m) it slides in 1 s, its initial contact distance (m))."""
+    erosion = pybullet_ref.BULLET_HULL_MARGIN if config.hulls == "exact" else 0.0
+    c = pb.connect(pb.DIRECT)
+    try:
+        pb.setGravity(0, 0, -9.81, physicsClientId=c)
+        pb.setPhysicsEngineParameter(
+            fixedTimeStep=config.time_step,
+            numSubSteps=config.sub_steps,
+            numSolverIterations=config.solver_iterations,
+            physicsClientId=c,
+        )
+        tilt = Rotation.from_euler("x", degrees, degrees=True)
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            ramp = pb.loadURDF(
+                pybullet_ref.write_urdf(
+                    f"{tmp}/ramp.urdf", [Box(np.zeros(3), np.eye(3), np.array([1, 1, 0.05]))]
+                ),
+                tilt.apply([0, 0, -0.05]).tolist(),
+                tilt.as_quat().tolist(),
+                useFixedBase=True,
+                physicsClientId=c,
+            )
+            cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+            body = pb.loadURDF(
+                pybullet_ref.write_urdf(
+                    f"{tmp}/cube.urdf",
+                    [ConvexMesh(0.05 * cube)],
+                    0.5,
+                    (1e-3,) * 3,
+                    tag="cube",
+                    hull_erosion=erosion,
+                ),
+                tilt.apply([0, 0, 0.05]).tolist(),
+                tilt.as_quat().tolist(),
+                physicsClientId=c,
+            )
+        pybullet_ref.set_materials(c, body, [ramp], config)
+        pb.performCollisionDetection(physicsClientId=c)
+        depth = min(p[8] for p in pb.getContactPoints(body, ramp, physicsClientId=c))
+        start = np.array(pb.getBasePositionAndOrientation(body, physicsClientId=c)[0])
+        for _ in range(100):
+            pb.stepSimulation(physicsClientId=c)
+        end = np.array(pb.getBasePositionAndOrientation(body, physicsClientId=c)[0])
+        return float(np.linalg.norm(end - start)), depth
+    finally:
+        pb.disconnect(c)
+
+
+def test_friction_is_the_combined_coefficient_and_hulls_are_exact():
+    """Bullet multiplies the two bodies' frictions: the original's 0.5 x 0.5 = 0.25 slides
+    on a 20 degree incline (tan = 0.36), and its 1 mm hull margin starts a resting cube 1 mm
+    deep; the matched set-up starts it touching and holds it (0.5 x 1.0) and, like Coulomb
+    friction 0.5, lets it slide at 30 degrees (tan = 0.58) or with friction 0.3."""
+    matched, original = pybullet_ref.MATCHED, pybullet_ref.ORIGINAL
+    slide, depth = _incline(original, 20)
+    assert slide > 0.1 and depth == pytest.approx(-0.001, abs=1e-5)
+    slide, depth = _incline(matched, 20)
+    assert slide < 1e-3 and abs(depth) < 1e-6
+    assert _incline(matched, 30)[0] > 0.1
+    assert _incline(dataclasses.replace(matched, friction=0.3), 20)[0] > 0.1
+
+
+def test_erode_hull_moves_faces_inwards():
+    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * 0.05
+    eroded = pybullet_ref.erode_hull(cube, 0.001)
+    np.testing.assert_allclose(np.abs(eroded), 0.049, atol=1e-9)
+    plate = cube * np.array([1, 1, 0.01])  # 1 mm thick: eroded by 90 % of its 0.5 mm inradius
+    thin = pybullet_ref.erode_hull(plate, 0.001)
+    np.testing.assert_allclose(np.abs(thin[:, 2]).max(), 0.0005 * 0.1, atol=1e-9)
+
+
+def test_bad_settings_fail_clearly(hang):
+    scene, _ = hang
+    for field, value in (("friction_combine", "max"), ("inertia", "x"), ("hulls", "y")):
+        with pytest.raises(ValueError, match=field):
+            pybullet_ref.PairWorld(
+                scene, dataclasses.replace(pybullet_ref.MATCHED, **{field: value})
+            )
