@@ -38,6 +38,8 @@ from pathlib import Path
 
 import matplotlib
 
+from experiments import _cli
+
 matplotlib.use("Agg")  # headless: never look for a display
 
 import matplotlib.pyplot as plt  # noqa: E402
@@ -577,4 +579,4 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import _cli
 from sim import kernels, proposals
 from sim.assets import objects, supports  # noqa: F401  (registers the generators)
 from sim.assets.base import OBJECT_CATEGORIES, SUPPORT_FAMILIES, build_object, build_support
@@ -338,4 +339,4 @@ def _version(dist: str) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

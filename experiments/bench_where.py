@@ -21,6 +21,7 @@ import time
 import jax
 import numpy as np
 
+from experiments import _cli
 from omnihang_jax import train
 from omnihang_jax.predict import Predictor, load_predictor
 
@@ -98,4 +99,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import _cli
+
 COUNTS = ("n_candidates", "n_stable_raw", "n_takeoff_rejected", "n_fallen", "n_penetrating")
 
 
@@ -82,4 +84,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

@@ -15,6 +15,7 @@ import argparse
 import json
 import os
 
+from experiments import _cli
 from omnihang_jax import dataset_bridge
 
 
@@ -59,4 +60,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from experiments import _cli
 from omnihang_jax import dataset_bridge
 from sim import dataset
 
@@ -64,4 +65,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

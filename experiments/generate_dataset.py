@@ -18,6 +18,7 @@ import signal
 import sys
 from concurrent.futures.process import BrokenProcessPool
 
+from experiments import _cli
 from sim import dataset
 
 
@@ -170,4 +171,4 @@ def _report(args, card: dict) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

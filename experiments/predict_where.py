@@ -1,10 +1,11 @@
 """Predict hanging poses with trained Stage 1 + Stage 2 networks.
 
-    python -m experiments.predict_where --model runs/where_tiny --data synthetic --pairs 4
-    python -m experiments.predict_where --model runs/where --data data/paper --split test
+    python -m experiments.predict_where --model weights/where_small_paper --data synthetic --pairs 4
+    python -m experiments.predict_where --model weights/where_small_paper --data datasets/paper/derived --split test
 
 Loads MODEL/stage1 and MODEL/stage2b (config.json + latest checkpoint), predicts
---proposals poses per pair, and writes OUT (default MODEL/predictions.json): per pair the
+--proposals poses per pair, and writes OUT (default out/predict_where/predictions.json;
+never into the model folder unless asked): per pair the
 Stage-1 and Stage-2 poses (xyz metres + quaternion wxyz, object frame in support frame), the
 chosen contact correspondences and, where ground truth is known, the distance from each
 predicted position to the nearest stable pose.
@@ -19,6 +20,7 @@ import os
 import jax
 import numpy as np
 
+from experiments import _cli
 from omnihang_jax import data, predict, train
 
 
@@ -40,7 +42,11 @@ def main(argv=None) -> dict:
         "--proposals", type=int, default=None, help="poses per pair (default: Stage-1 eval Z)"
     )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default=None, help="output JSON (default MODEL/predictions.json)")
+    parser.add_argument(
+        "--out",
+        default="out/predict_where/predictions.json",
+        help="output JSON (default out/predict_where/predictions.json)",
+    )
     args = parser.parse_args(argv)
 
     predictor = predict.load_predictor(args.model, seed=args.seed)
@@ -80,12 +86,14 @@ def main(argv=None) -> dict:
             np.mean([r["stage2_position_error_m"] for r in records])
         ),
     }
-    path = args.out or os.path.join(args.model, "predictions.json")
+    path = args.out
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w") as f:
         json.dump({"summary": summary, "pairs": records}, f, indent=1)
     print(json.dumps(summary, indent=1))
+    print(f"wrote {path}")
     return summary
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

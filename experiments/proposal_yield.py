@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from experiments import _cli
 from sim import kernels, proposals
 from sim.library import LibraryConfig, build_library
 from sim.scene import build_scene
@@ -85,4 +86,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

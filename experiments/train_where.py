@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
+from experiments import _cli
 from omnihang_jax import train
 
 STAGE_CHOICES = {"1": ("1",), "2a": ("2a",), "2b": ("2b",), "all": train.STAGES}
@@ -140,4 +141,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import matplotlib
 
+from experiments import _cli
+
 matplotlib.use("Agg")  # headless
 
 import matplotlib.pyplot as plt  # noqa: E402
@@ -370,4 +372,4 @@ def main(argv: Iterable[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

@@ -86,7 +86,10 @@ def trained_dir(tmp_path_factory):
 def test_cli_train_and_predict(trained_dir):
     for stage in ("stage1", "stage2a", "stage2b"):
         assert os.path.exists(os.path.join(trained_dir, stage, "config.json"))
-    summary = predict_where.main(["--model", trained_dir, "--pairs", "2", "--proposals", "3"])
+    out = os.path.join(trained_dir, "predictions.json")  # the default is out/predict_where/
+    summary = predict_where.main(
+        ["--model", trained_dir, "--pairs", "2", "--proposals", "3", "--out", out]
+    )
     assert summary["pairs"] == 2
     assert np.isfinite(summary["mean_stage1_position_error_m"])
     with open(os.path.join(trained_dir, "predictions.json")) as f:
