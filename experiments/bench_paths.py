@@ -1,0 +1,183 @@
+"""Benchmark of the path-planning side: collision queries per second of the batched estimators
+(NCE, HCE) on this machine's JAX device, the mesh checker's on its CPU, and planning time per
+pair from an ``eval_paths`` run.
+
+    python -m experiments.bench_paths --weights weights/collision_fast --out results/bench_paths.json
+    python -m experiments.bench_paths --weights ... --paths results/paths.json --out ...
+
+Queries: one jitted ``collides`` per estimator, clouds of a real held-out pair (or random
+clouds with ``--synthetic``), batches of 1 to 4,096 poses, best of ``--repeats`` timed calls
+after a warm-up (compilation excluded). Writes JSON with device and versions; merges into an
+existing file, keyed by device, so CPU and GPU runs sit side by side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from omnihang_jax import collision
+
+
+def _time(fn, repeats: int) -> float:
+    jax.block_until_ready(fn())
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def estimator_throughput(
+    weights: str | None,
+    batches=(1, 16, 64, 256, 1024, 4096),
+    repeats: int = 3,
+    preset="fast",
+    on_row=None,
+) -> dict:
+    """Queries per second of NCE and HCE at each batch size (random clouds of the configured
+    sizes, random poses: the cost does not depend on the values). ``on_row(result)`` is
+    called after each batch size (so that a run cut short keeps what it measured)."""
+    if weights:
+        nce_cfg, nce_params, _ = collision.load_estimator(Path(weights, "nce"))
+        normal_cfg, normal_params, _ = collision.load_estimator(Path(weights, "hce_normals"))
+    else:
+        nce_cfg, normal_cfg = collision.NCE_PRESETS[preset], collision.NORMAL_PRESETS[preset]
+        nce_params = collision.make_nce(nce_cfg).init(jax.random.key(0))
+        normal_params = collision.make_normal_net(normal_cfg).init(jax.random.key(1))
+    rng = np.random.default_rng(0)
+    oc = rng.uniform(-0.1, 0.1, (nce_cfg.object_points, 3)).astype(np.float32)
+    sc = rng.uniform(-0.15, 0.15, (nce_cfg.support_points, 3)).astype(np.float32)
+    sc_h = rng.uniform(-0.15, 0.15, (normal_cfg.points, 3)).astype(np.float32)
+    nce = jax.jit(collision.nce_collides(nce_cfg))
+    hce = jax.jit(collision.hce_collides(normal_cfg))
+    normals = collision.make_normal_net(normal_cfg).apply(normal_params, sc_h[None])[0]
+    heuristic = jax.jit(collision.hce_true_normals_collides(normal_cfg.threshold))
+    out = {"nce_config": nce_cfg.__dict__, "normal_config": normal_cfg.__dict__, "rows": []}
+    for b in batches:
+        poses = np.concatenate(
+            [rng.uniform(-0.1, 0.1, (b, 3)), rng.normal(size=(b, 4))], axis=1
+        ).astype(np.float32)
+        row = {"batch": b}
+        for name, fn in (
+            ("nce", lambda poses=poses: nce(nce_params, oc, sc, poses)),
+            ("hce", lambda poses=poses: hce(normal_params, oc, sc_h, poses)),
+            ("hce_normals_cached", lambda poses=poses: heuristic(normals, oc, sc_h, poses)),
+        ):
+            s = _time(fn, repeats)
+            row[f"{name}_ms"] = round(1e3 * s, 3)
+            row[f"{name}_queries_per_s"] = round(b / s, 1)
+        out["rows"].append(row)
+        print(json.dumps(row), flush=True)
+        if on_row is not None:
+            on_row(out)
+    return out
+
+
+def mesh_throughput(data: str, n_poses: int = 2000) -> dict:
+    """States per second of the planner's mesh checker (MuJoCo C, this CPU) on one pair."""
+    from experiments.eval_paths import load_pairs
+    from omnihang_jax import planner
+
+    pairs = load_pairs(data, 1)
+    scene = pairs[0].scene
+    rng = np.random.default_rng(0)
+    lo, hi = planner.default_bounds(scene)
+    poses = np.concatenate(
+        [rng.uniform(lo, hi, (n_poses, 3)), rng.normal(size=(n_poses, 4))], axis=1
+    )
+    poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+    checker = planner.MeshChecker(scene)
+    checker(poses[:10])
+    t0 = time.perf_counter()
+    checker(poses)
+    s = time.perf_counter() - t0
+    return {"pair": pairs[0].name, "states": n_poses, "states_per_s": round(n_poses / s, 1)}
+
+
+def planning_times(paths_json: str) -> dict:
+    """Median / p90 planning time per pair and method from an eval_paths run."""
+    res = json.loads(Path(paths_json).read_text())
+    out = {}
+    for name, entry in res["methods"].items() if "methods" in res else res.items():
+        if not isinstance(entry, dict) or "planning_s" not in entry:
+            continue
+        t = np.asarray(entry["planning_s"], float)
+        out[name] = {
+            "pairs": len(t),
+            "median_s": round(float(np.median(t)), 3),
+            "p90_s": round(float(np.quantile(t, 0.9)), 3),
+        }
+    return out
+
+
+def versions() -> dict:
+    import flax
+    import mujoco
+
+    v = {
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "flax": flax.__version__,
+        "mujoco": mujoco.__version__,
+    }
+    try:
+        from importlib.metadata import version
+
+        v["ompl"] = version("ompl")
+    except Exception:  # ompl is not installed on the GPU image
+        v["ompl"] = None
+    return v
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--weights", default=None, help="train_collision output (default: fresh)")
+    parser.add_argument("--preset", default="fast", help="preset when no --weights")
+    parser.add_argument("--paths", default=None, help="an eval_paths JSON: planning times")
+    parser.add_argument("--data", default=None, help="dataset: also time the mesh checker")
+    parser.add_argument("--batches", default="1,16,64,256,1024,4096")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args(argv)
+    device = jax.devices()[0]
+    key = f"{device.platform}:{getattr(device, 'device_kind', device.platform)}"
+    out = Path(args.out)
+    entry = {
+        "device": key,
+        "host_cores": os.cpu_count(),
+        "versions": versions(),
+        "weights": args.weights,
+    }
+
+    def save(queries=None):
+        if queries is not None:
+            entry["queries"] = queries
+        merged = json.loads(out.read_text()) if out.exists() else {}
+        merged[key] = entry
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(merged, indent=1))
+
+    if args.paths:
+        entry["planning"] = planning_times(args.paths)
+    if args.data:
+        entry["mesh_checker_cpu"] = mesh_throughput(args.data)
+    batches = tuple(int(b) for b in args.batches.split(",")) if args.batches else ()
+    if batches:
+        estimator_throughput(args.weights, batches, args.repeats, args.preset, on_row=save)
+    save()
+    return entry
+
+
+if __name__ == "__main__":
+    main()

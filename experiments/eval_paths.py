@@ -1,0 +1,398 @@
+"""How to hang, evaluated: plan from a start pose in front of the support to a held-out pair's
+hanging pose with four collision checkers, and check every returned path with the full meshes.
+
+    python -m experiments.eval_paths --weights weights/collision_fast --pairs 40 \\
+        --out out/paths --results results/paths.json --figure docs/img/paths.png
+
+Per held-out pair (``DATA/derived/collision/test``, derived on demand, round robin over the
+object categories) and its first stable pose (the paper's protocol: the dataset's stable
+poses as goals), OMPL's RRT-Connect plans with (``omnihang_jax.planner``):
+
+- ``nce``: the neural collision estimator on the partial clouds;
+- ``hce``: the heuristic with normals predicted by the HCE normal net;
+- ``hce_true_normals``: the same heuristic with the ray-cast normals;
+- ``mesh``: MuJoCo on the full meshes (the paper's "ground truth" planner).
+
+Every returned path is interpolated every 2 mm (weighted SE(3) metric) and checked with the
+full meshes; a path is collision-free if no state penetrates deeper than 1 mm. Precision =
+collision-free paths / paths returned, recall = pairs with a collision-free path / all pairs,
+F1; per object category and the mean over categories. Diagnostics: why paths are missing
+(time-outs, estimator calls the start invalid) and where returned paths collide.
+
+Writes ``--results`` (keys ``nce``, ``hce``, ``hce_true_normals``, ``mesh``: precision,
+recall, f1, per_category, median_planning_s, ...), ``OUT/pairs.jsonl`` (one line per pair and
+method, resumable: pairs already there are not planned again), ``OUT/scenes/<pair>/<method>.xml``
+(the pair's MJCF with the path as keyframes: ``python -m mujoco.viewer --mjcf=...``) and
+with ``--figure`` a strip of frames of a few paths.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from experiments.train_collision import (
+    SUBSET_SEED_OBJECT,
+    SUBSET_SEED_SUPPORT,
+    derive_collision_pairs,
+)
+from omnihang_jax import collision, planner
+
+METHODS = ("nce", "hce", "hce_true_normals", "mesh")
+
+
+class PairCase(NamedTuple):
+    name: str
+    meta: dict
+    scene: object  # sim.scene.Scene
+    object_points: np.ndarray  # [N, 3] object frame (full partial cloud)
+    support_points: np.ndarray  # [M, 3]
+    support_normals: np.ndarray  # [M, 3]
+    goal: np.ndarray  # [7]
+
+
+def load_pairs(data: str, n: int, workers: int = 1, progress: bool = False) -> list[PairCase]:
+    """The first ``n`` held-out pairs (derived on demand) with their scenes."""
+    from omnihang_jax import dataset_bridge
+    from sim.library import build_library
+    from sim.scene import build_scene
+
+    files = derive_collision_pairs(data, {"test": n}, workers, progress)["test"]
+    config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(data))
+    library = build_library(config.library, progress=False)
+    cases = []
+    for path in files:
+        with np.load(path) as f:
+            meta = {k: f[k].item() for k in ("pair_index", "object_name", "support_name")}
+            meta |= {k: f[k].item() for k in ("object_category", "support_family", "split")}
+            if meta["split"] != "test":
+                raise RuntimeError(f"{path} is not a held-out pair")
+            obj = library.objects[meta["object_name"]]
+            sup = library.supports[meta["support_name"]]
+            cases.append(
+                PairCase(
+                    name=path.stem,
+                    meta=meta,
+                    scene=build_scene(obj, sup),
+                    object_points=f["object_points"],
+                    support_points=f["support_points"],
+                    support_normals=f["support_normals"],
+                    goal=f["stable_poses"][0].astype(float),
+                )
+            )
+    return cases
+
+
+class Estimators(NamedTuple):
+    """Jitted ``collides`` functions and their parameters, loaded from a weights folder."""
+
+    nce_config: collision.NCEConfig
+    nce_params: dict
+    normal_config: collision.NormalNetConfig
+    normal_params: dict
+    true_threshold: float
+    nce: object
+    heuristic: object
+    normals: object
+
+
+def load_estimators(weights: str) -> Estimators:
+    nce_cfg, nce_params, _ = collision.load_estimator(Path(weights, "nce"))
+    normal_cfg, normal_params, _ = collision.load_estimator(Path(weights, "hce_normals"))
+    true_json = Path(weights, "hce_true_normals.json")
+    if not true_json.exists():
+        raise FileNotFoundError(f"{true_json} not found: train with experiments.train_collision")
+    true_threshold = float(json.loads(true_json.read_text())["threshold"])
+    net = collision.make_normal_net(normal_cfg)
+    return Estimators(
+        nce_cfg,
+        nce_params,
+        normal_cfg,
+        normal_params,
+        true_threshold,
+        jax.jit(collision.nce_collides(nce_cfg)),
+        jax.jit(collision.heuristic_score),
+        jax.jit(lambda params, pts: net.apply(params, pts[None])[0]),
+    )
+
+
+def checkers_for(case: PairCase, est: Estimators, tolerance: float) -> dict:
+    """The four checkers of one pair. The HCEs' support normals do not depend on the pose:
+    predicted once per pair (``collision.hce_collides`` computes the same per call)."""
+    sub = collision.subsample_cloud
+    n_obj, n_sup = est.nce_config.object_points, est.nce_config.support_points
+    nce = planner.EstimatorChecker(
+        est.nce,
+        est.nce_params,
+        sub(case.object_points, n_obj, SUBSET_SEED_OBJECT),
+        sub(case.support_points, n_sup, SUBSET_SEED_SUPPORT),
+    )
+    h_sup = est.normal_config.points
+    oc = sub(case.object_points, n_obj, SUBSET_SEED_OBJECT)
+    sc = sub(case.support_points, h_sup, SUBSET_SEED_SUPPORT)
+    predicted = np.asarray(est.normals(est.normal_params, sc))
+    true = sub(case.support_normals, h_sup, SUBSET_SEED_SUPPORT)
+
+    def heuristic(normals, threshold):
+        def collides(params, object_cloud, support_cloud, poses):
+            return est.heuristic(object_cloud, support_cloud, params, poses) > threshold
+
+        return planner.EstimatorChecker(collides, normals, oc, sc)
+
+    checkers = {
+        "nce": nce,
+        "hce": heuristic(predicted, est.normal_config.threshold),
+        "hce_true_normals": heuristic(true, est.true_threshold),
+        "mesh": planner.MeshChecker(case.scene, tolerance),
+    }
+    for name in ("nce", "hce", "hce_true_normals"):  # compile outside the planning clock
+        checkers[name].warm_up()
+    return checkers
+
+
+def evaluate_pair(case: PairCase, est: Estimators, config: planner.PlannerConfig, methods):
+    """Plan with each method and densely check what comes back. Returns (rows, paths)."""
+    scene = case.scene
+    weight = planner.object_radius(scene)
+    bounds = planner.default_bounds(scene)
+    goal = case.goal
+    start = planner.start_pose(scene, goal)
+    mesh = planner.MeshChecker(scene, config.penetration_tolerance)
+    checkers = checkers_for(case, est, config.penetration_tolerance)
+    base = dict(
+        pair=case.name,
+        **case.meta,
+        start=start.round(5).tolist(),
+        goal=goal.round(5).tolist(),
+        start_penetration=float(mesh.penetration(start[None])[0]),
+        goal_penetration=float(mesh.penetration(goal[None])[0]),
+    )
+    rows, paths = [], {}
+    for name in methods:
+        check = checkers[name]
+        res = planner.plan(check, start, goal, bounds, weight, config)
+        row = dict(
+            base,
+            method=name,
+            status=res.status,
+            planning_s=round(res.planning_s, 3),
+            states_checked=res.states_checked,
+            checker_calls=res.checker_calls,
+            start_called_colliding=bool(check(start[None])[0]),
+            goal_called_colliding=bool(check(goal[None])[0]),
+            returned=res.path is not None,
+        )
+        if res.path is not None:
+            free, deepest, n = planner.dense_check(mesh, res.path, config.dense_resolution, weight)
+            row |= dict(
+                collision_free=free, deepest_m=round(deepest, 5), dense_states=n,
+                waypoints=len(res.path),
+            )  # fmt: skip
+            paths[name] = res.path
+        else:
+            row |= dict(collision_free=False)
+        rows.append(row)
+    return rows, paths
+
+
+def summarise(rows: list[dict], methods=METHODS) -> dict:
+    """precision / recall / F1 per method, per object category and their mean."""
+    out = {}
+    pairs = sorted({r["pair"] for r in rows})
+    for m in methods:
+        mine = [r for r in rows if r["method"] == m]
+        if not mine:
+            continue
+
+        def prf(sel):
+            returned = sum(r["returned"] for r in sel)
+            free = sum(r["collision_free"] for r in sel)
+            precision = free / returned if returned else 0.0
+            recall = free / len(sel) if sel else 0.0
+            f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+            return dict(
+                pairs=len(sel), returned=returned, collision_free=free,
+                precision=round(100 * precision, 1), recall=round(100 * recall, 1),
+                f1=round(100 * f1, 1),
+            )  # fmt: skip
+
+        per_cat = {
+            c: prf([r for r in mine if r["object_category"] == c])
+            for c in sorted({r["object_category"] for r in mine})
+        }
+        entry = prf(mine)
+        entry["mean_over_categories"] = {
+            k: round(float(np.mean([v[k] for v in per_cat.values()])), 1)
+            for k in ("precision", "recall", "f1")
+        }
+        times = np.array([r["planning_s"] for r in mine])
+        entry |= dict(
+            per_category=per_cat,
+            median_planning_s=round(float(np.median(times)), 3),
+            p90_planning_s=round(float(np.quantile(times, 0.9)), 3),
+            planning_s=[r["planning_s"] for r in mine],
+            # OMPL reports a time-out with a partial tree as "Approximate solution"
+            timeouts=sum(r["status"] in ("Timeout", "Approximate solution") for r in mine),
+            invalid_start_or_goal=sum(
+                r["status"] in ("Invalid start", "Invalid goal") for r in mine
+            ),
+            start_called_colliding=sum(r["start_called_colliding"] for r in mine),
+            goal_called_colliding=sum(r["goal_called_colliding"] for r in mine),
+            deepest_penetration_of_colliding_paths_m=sorted(
+                r["deepest_m"] for r in mine if r["returned"] and not r["collision_free"]
+            ),
+            median_states_checked=float(np.median([r["states_checked"] for r in mine])),
+        )
+        out[m] = entry
+    out["pairs"] = len(pairs)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Figure and scenes
+
+
+def strip_figure(cases_paths: list[tuple[PairCase, str, np.ndarray]], path: str, frames=6):
+    """One row per (pair, method, path): the support cloud and the object cloud at ``frames``
+    states along the path (start ... goal), seen from the side (x-z) and from above (x-y)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = len(cases_paths)
+    fig, axes = plt.subplots(rows, frames, figsize=(2.2 * frames, 2.4 * rows), squeeze=False)
+    for r, (case, method, waypoints) in enumerate(cases_paths):
+        weight = planner.object_radius(case.scene)
+        dense = planner.interpolate_path(waypoints, 0.005, weight)
+        idx = np.linspace(0, len(dense) - 1, frames).round().astype(int)
+        sup = collision.subsample_cloud(case.support_points, 1500, 1)
+        obj = collision.subsample_cloud(case.object_points, 800, 0)
+        posed_all = [np.asarray(collision.transform_points(dense[i : i + 1], obj))[0] for i in idx]
+        allpts = np.concatenate([sup, *posed_all])
+        lo, hi = allpts.min(0), allpts.max(0)
+        for c, (i, posed) in enumerate(zip(idx, posed_all)):
+            ax = axes[r, c]
+            # side view from the front (+y looks at the support): x right, z up
+            ax.scatter(sup[:, 0], sup[:, 2], s=0.5, c="0.5")
+            ax.scatter(posed[:, 0], posed[:, 2], s=0.5, c="tab:orange")
+            ax.plot(dense[:, 0], dense[:, 2], lw=0.6, c="tab:blue")
+            ax.set_xlim(lo[0] - 0.02, hi[0] + 0.02)
+            ax.set_ylim(lo[2] - 0.02, hi[2] + 0.02)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            frac = i / max(len(dense) - 1, 1)
+            ax.set_title(f"{frac:.0%}", fontsize=7)
+        axes[r, 0].set_ylabel(
+            f"{case.meta['object_name']}\n{case.meta['support_name']}\n{method}", fontsize=6
+        )
+    fig.suptitle(
+        "Planned paths (front view, x-z): support cloud grey, object cloud orange, path blue",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--data", default="datasets/paper")
+    parser.add_argument("--weights", required=True, help="train_collision output folder")
+    parser.add_argument("--pairs", type=int, default=20, help="held-out pairs")
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--time-limit", type=float, default=20.0, help="s per plan")
+    parser.add_argument("--out", default="out/paths")
+    parser.add_argument("--results", default=None, help="summary JSON (default OUT/paths.json)")
+    parser.add_argument("--figure", default=None, help="strip-of-frames PNG")
+    parser.add_argument("--figure-paths", type=int, default=4)
+    parser.add_argument("--workers", type=int, default=1, help="derive processes")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    methods = tuple(m for m in args.methods.split(",") if m)
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise SystemExit(f"unknown methods {bad}; choose from {METHODS}")
+    config = planner.PlannerConfig(time_limit=args.time_limit)
+    out = Path(args.out)
+    (out / "scenes").mkdir(parents=True, exist_ok=True)
+    est = load_estimators(args.weights)
+    cases = load_pairs(args.data, args.pairs, args.workers, not args.no_progress)
+    jsonl = out / "pairs.jsonl"
+    rows = [json.loads(x) for x in jsonl.read_text().splitlines()] if jsonl.exists() else []
+    done = {(r["pair"], r["method"]) for r in rows}
+    figure_items = []
+    t0 = time.time()
+    for case in tqdm(cases, desc="plan", unit="pair", disable=args.no_progress):
+        todo = [m for m in methods if (case.name, m) not in done]
+        if not todo:
+            continue
+        new_rows, paths = evaluate_pair(case, est, config, todo)
+        with open(jsonl, "a") as f:
+            for row in new_rows:
+                f.write(json.dumps(row) + "\n")
+        rows += new_rows
+        for method, path in paths.items():
+            xml = planner.path_scene_xml(case.scene, path)
+            (out / "scenes" / case.name).mkdir(exist_ok=True)
+            (out / "scenes" / case.name / f"{method}.xml").write_text(xml)
+            np.save(out / "scenes" / case.name / f"{method}_path.npy", path)
+    rows = [r for r in rows if r["pair"] in {c.name for c in cases} and r["method"] in methods]
+    summary = summarise(rows, methods)
+    summary["settings"] = dict(
+        planner=dataclasses.asdict(config),
+        weights=args.weights,
+        nce_config=est.nce_config.__dict__,
+        normal_config=est.normal_config.__dict__,
+        hce_true_normals_threshold=est.true_threshold,
+        goal="first stable pose of each held-out pair",
+        device=str(jax.devices()[0]),
+        host_cores=os.cpu_count(),
+        wall_s_this_run=round(time.time() - t0, 1),
+        command="python -m experiments.eval_paths " + " ".join(argv or []),
+    )
+    results = Path(args.results) if args.results else out / "paths.json"
+    results.parent.mkdir(parents=True, exist_ok=True)
+    results.write_text(json.dumps(summary, indent=1))
+    if args.figure:
+        by_name = {c.name: c for c in cases}
+        for r in rows:
+            if len(figure_items) >= args.figure_paths:
+                break
+            p = out / "scenes" / r["pair"] / f"{r['method']}_path.npy"
+            if r["method"] == "nce" and r["returned"] and p.exists():
+                figure_items.append((by_name[r["pair"]], r["method"], np.load(p)))
+        for r in rows:  # fill up with other methods' paths
+            if len(figure_items) >= args.figure_paths:
+                break
+            p = out / "scenes" / r["pair"] / f"{r['method']}_path.npy"
+            if r["method"] != "nce" and r["returned"] and p.exists():
+                figure_items.append((by_name[r["pair"]], r["method"], np.load(p)))
+        if figure_items:
+            strip_figure(figure_items, args.figure)
+    for m in methods:
+        if m in summary:
+            s = summary[m]
+            print(
+                f"{m}: precision {s['precision']} recall {s['recall']} F1 {s['f1']} "
+                f"({s['returned']} returned, {s['collision_free']} free of {s['pairs']}); "
+                f"median {s['median_planning_s']} s, {s['timeouts']} time-outs"
+            )
+    return summary
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,559 @@
+"""Train the collision estimators (NCE and the HCE normal net) on the dataset's collision labels.
+
+    python -m experiments.train_collision --data datasets/paper --out runs/collision \\
+        --preset fast --train-pairs 200 --test-pairs 60 --time-budget nce=600,normals=120
+
+1. Derives what the estimators need for the chosen pairs (resumable, cached in
+   ``DATA/derived/collision/<split>/``): the partial clouds with normals (the same arrays as
+   ``experiments.derive_dataset``, which are reused when present: same ray casts, same seed),
+   the pair's collision poses regenerated from its seed (``sim.dataset.collision_poses``) with
+   their labels (kept poses only: colliding, or free within 2 cm), and its stable poses.
+   Training pairs come from the training split, evaluation pairs from the held-out split
+   (a pair is held out when its object or its support is): no held-out pair is trained on.
+2. Trains the NCE with cross entropy (random point subsets each step) and the HCE normal net
+   with the paper's ``-sum(n_hat . n)`` on object and support clouds, each under a time budget.
+3. Chooses the HCE thresholds (predicted and true normals) on training labels (best balanced
+   accuracy), then reports accuracy / precision / recall (positive = colliding) of all three
+   estimators on held-out labels, with the clouds subsampled exactly as the planner does.
+
+Writes ``OUT/nce/`` and ``OUT/hce_normals/`` (``config.json`` + ``params.msgpack``),
+``OUT/hce_true_normals.json`` (its threshold) and ``OUT/metrics.json``; prints the metrics.
+``--resume`` starts from the weights already in OUT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm.auto import tqdm
+
+from omnihang_jax import collision, dataset_bridge
+
+DERIVED = os.path.join(dataset_bridge.DERIVED_DIRNAME, "collision")  # ignored by git
+SUBSET_SEED_OBJECT, SUBSET_SEED_SUPPORT = 0, 1  # the planner's fixed cloud subsets
+
+
+# ----------------------------------------------------------------------------------------------
+# Data: clouds + collision labels per pair
+
+
+_WORKER: dict = {}
+
+
+def _worker_init(recipe: dict, data_dir: str) -> None:
+    from sim.library import build_library
+
+    config = dataset_bridge.dataset_config_from_recipe(recipe)
+    _WORKER.update(
+        config=config,
+        library=build_library(config.library, progress=False),
+        pairs=recipe["pairs"],
+        data_dir=data_dir,
+    )
+
+
+def _derive_one(job: tuple[dict, str]) -> str:
+    from sim import atomic, camera, dataset
+    from sim.scene import build_scene
+
+    record, path = job
+    w = _WORKER
+    index = int(record["pair_index"])
+    obj_name, sup_name, split = w["pairs"][index]
+    obj, sup = w["library"].objects[obj_name], w["library"].supports[sup_name]
+    seed = int(record["pair_seed"])
+    full = Path(w["data_dir"], dataset_bridge.DERIVED_DIRNAME, split)
+    full = full / dataset_bridge.pair_file_name(index, obj_name, sup_name)
+    if full.exists():  # derive_dataset's file: the same clouds
+        with np.load(full) as f:
+            clouds = {k: f[k] for k in ("object_points", "object_normals")}
+            clouds |= {k: f[k] for k in ("support_points", "support_normals")}
+    else:  # the first two draws of derive_pair's generator (sim.dataset.derive_pair)
+        scene = build_scene(obj, sup)
+        rng = np.random.default_rng([seed, 5])
+        cam = w["config"].camera
+        oc = camera.partial_cloud(
+            scene, "object", np.asarray(record["object_eye"], float), rng, cam
+        )
+        sc = camera.partial_cloud(
+            scene, "support", np.asarray(record["support_eye"], float), rng, cam
+        )
+        clouds = dict(
+            object_points=oc.points,
+            object_normals=oc.normals,
+            support_points=sc.points,
+            support_normals=sc.normals,
+        )
+    kept = np.asarray(record["collision_kept"], bool)
+    poses = dataset.collision_poses(obj, sup, seed, w["config"])[kept]
+    atomic.savez(
+        path,
+        **{k: np.asarray(v, np.float32) for k, v in clouds.items()},
+        collision_poses=poses.astype(np.float32),
+        collision_labels=np.asarray(record["collision_label"], bool)[kept],
+        stable_poses=np.asarray(record["stable_poses"], np.float32),
+        pair_index=np.int64(index),
+        object_name=np.str_(obj_name),
+        support_name=np.str_(sup_name),
+        object_category=np.str_(obj.category),
+        support_family=np.str_(sup.category),
+        split=np.str_(split),
+    )
+    return path
+
+
+def derive_collision_pairs(
+    data_dir: str | os.PathLike,
+    limits: dict[str, int],
+    workers: int = 1,
+    progress: bool = True,
+    out_dir: str | os.PathLike | None = None,
+    existing_only: bool = False,
+) -> dict[str, list[Path]]:
+    """Per split in ``limits`` ("test" / "train" -> n): its first n pairs with stable poses
+    (round robin over object categories), derived to ``DATA/derived/collision/<split>/`` if
+    not there yet (resumable; the splits in the order given, in one worker pool). Returns the
+    files per split; ``existing_only``: derive nothing, return those already there."""
+    from sim import dataset
+
+    for split in limits:
+        if split not in ("train", "test"):
+            raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    data_dir = Path(data_dir)
+    recipe = dataset_bridge.read_recipe(data_dir)
+    out = Path(out_dir) if out_dir else data_dir / DERIVED
+    pairs = recipe["pairs"]
+    jobs: dict[str, list] = {split: [] for split in limits}
+    for record in dataset.load_records(data_dir):
+        index = int(record["pair_index"])
+        obj_name, sup_name, split = pairs[index]
+        if split not in jobs or len(record["stable_poses"]) == 0:
+            continue
+        if not np.asarray(record["collision_kept"]).any():
+            continue
+        path = out / split / dataset_bridge.pair_file_name(index, obj_name, sup_name)
+        jobs[split].append((record, os.fspath(path)))
+    files = {}
+    todo = []
+    for split, n in limits.items():
+        chosen = dataset_bridge.interleave_by_category(jobs[split], pairs)[:n]
+        files[split] = [Path(j[1]) for j in chosen]
+        todo += [j for j in chosen if not os.path.exists(j[1])]
+    if existing_only:
+        return {split: [p for p in paths if p.exists()] for split, paths in files.items()}
+    bar = tqdm(total=len(todo), desc="derive", unit="pair", disable=not progress)
+    if todo and workers <= 1:
+        _worker_init(recipe, os.fspath(data_dir))
+        for job in todo:
+            _derive_one(job)
+            bar.update(1)
+    elif todo:
+        from sim.workers import spawn_pool
+
+        with spawn_pool(workers, _worker_init, (recipe, os.fspath(data_dir))) as pool:
+            for _ in pool.imap_unordered(_derive_one, todo, chunksize=1):
+                bar.update(1)
+    bar.close()
+    return files
+
+
+@dataclasses.dataclass
+class CollisionData:
+    """Clouds of P pairs and their L labelled poses (host numpy)."""
+
+    object_points: np.ndarray  # [P, N, 3] object frame
+    object_normals: np.ndarray  # [P, N, 3]
+    support_points: np.ndarray  # [P, M, 3] support frame
+    support_normals: np.ndarray  # [P, M, 3]
+    pair: np.ndarray  # [L] int32 index into the P pairs
+    poses: np.ndarray  # [L, 7]
+    labels: np.ndarray  # [L] bool, True = colliding
+    meta: list[dict]  # per pair: names, category, family, split, pair_index
+
+
+def load_collision_data(files: list[Path]) -> CollisionData:
+    if not files:
+        raise ValueError("no pair files to load")
+    keys = ("object_points", "object_normals", "support_points", "support_normals")
+    clouds: dict[str, list] = {k: [] for k in keys}
+    pair, poses, labels, meta = [], [], [], []
+    for i, path in enumerate(files):
+        with np.load(path) as f:
+            for k in keys:
+                clouds[k].append(f[k])
+            poses.append(f["collision_poses"])
+            labels.append(f["collision_labels"])
+            pair.append(np.full(len(f["collision_labels"]), i, np.int32))
+            meta.append(
+                {
+                    k: f[k].item()
+                    for k in (
+                        "pair_index",
+                        "object_name",
+                        "support_name",
+                        "object_category",
+                        "support_family",
+                        "split",
+                    )
+                }
+            )
+    return CollisionData(
+        *(np.stack(clouds[k]) for k in keys),
+        pair=np.concatenate(pair),
+        poses=np.concatenate(poses).astype(np.float32),
+        labels=np.concatenate(labels),
+        meta=meta,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Training
+
+
+def _sample_points(key, clouds, n):
+    """clouds [B, K, 3] -> [B, n, 3] random rows (with replacement) of each cloud."""
+    idx = jax.random.randint(key, (clouds.shape[0], n), 0, clouds.shape[1])
+    return jnp.take_along_axis(clouds, idx[..., None], axis=1)
+
+
+def train_nce(
+    data: CollisionData,
+    config: collision.NCEConfig,
+    steps: int,
+    time_budget: float,
+    batch: int = 64,
+    learning_rate: float = 1e-3,
+    seed: int = 0,
+    params=None,
+    progress: bool = True,
+) -> tuple[dict, dict]:
+    """Cross entropy on (pair, pose, label) triples. Returns (params, log)."""
+    nets = collision.make_nce(config)
+    key = jax.random.key(seed)
+    key, init_key = jax.random.split(key)
+    params = nets.init(init_key) if params is None else params
+    opt = optax.adam(learning_rate)
+    opt_state = opt.init(params)
+    obj_clouds = jnp.asarray(data.object_points)
+    sup_clouds = jnp.asarray(data.support_points)
+    pair, poses = jnp.asarray(data.pair), jnp.asarray(data.poses)
+    labels = jnp.asarray(data.labels, jnp.float32)
+
+    @jax.jit
+    def step(params, opt_state, key):
+        k_pick, k_obj, k_sup = jax.random.split(key, 3)
+        pick = jax.random.randint(k_pick, (batch,), 0, labels.shape[0])
+        p = pair[pick]
+        obj = _sample_points(k_obj, obj_clouds[p], config.object_points)
+        sup = _sample_points(k_sup, sup_clouds[p], config.support_points)
+
+        def loss_fn(params):
+            logits = nets.apply(params, obj, sup, poses[pick])
+            loss = optax.sigmoid_binary_cross_entropy(logits, labels[pick]).mean()
+            return loss, jnp.mean((logits > 0) == (labels[pick] > 0.5))
+
+        (loss, acc), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
+        updates, opt_state = opt.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss, acc
+
+    return _loop(step, params, opt_state, key, steps, time_budget, batch, "nce", progress)
+
+
+def train_normals(
+    data: CollisionData,
+    config: collision.NormalNetConfig,
+    steps: int,
+    time_budget: float,
+    batch: int = 16,
+    learning_rate: float = 1e-3,
+    seed: int = 1,
+    params=None,
+    progress: bool = True,
+) -> tuple[dict, dict]:
+    """The paper's normal loss on object and support clouds alike. Returns (params, log)."""
+    nets = collision.make_normal_net(config)
+    key = jax.random.key(seed)
+    key, init_key = jax.random.split(key)
+    params = nets.init(init_key) if params is None else params
+    opt = optax.adam(learning_rate)
+    opt_state = opt.init(params)
+    points = jnp.asarray(np.concatenate([data.object_points, data.support_points]))
+    normals = jnp.asarray(np.concatenate([data.object_normals, data.support_normals]))
+
+    @jax.jit
+    def step(params, opt_state, key):
+        k_pick, k_pts = jax.random.split(key)
+        pick = jax.random.randint(k_pick, (batch,), 0, points.shape[0])
+        idx = jax.random.randint(k_pts, (batch, config.points), 0, points.shape[1])
+        pts = jnp.take_along_axis(points[pick], idx[..., None], axis=1)
+        nrm = jnp.take_along_axis(normals[pick], idx[..., None], axis=1)
+
+        def loss_fn(params):
+            pred = nets.apply(params, pts)
+            return collision.normal_loss(pred, nrm), jnp.mean(jnp.sum(pred * nrm, -1))
+
+        (loss, cos), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
+        updates, opt_state = opt.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss, cos
+
+    return _loop(step, params, opt_state, key, steps, time_budget, batch, "normals", progress)
+
+
+def _loop(step, params, opt_state, key, steps, time_budget, batch, name, progress):
+    t_compile = time.perf_counter()
+    key, k = jax.random.split(key)
+    params, opt_state, loss, metric = step(params, opt_state, k)
+    jax.block_until_ready(loss)
+    compile_s = time.perf_counter() - t_compile
+    t0 = time.perf_counter()
+    history = []
+    done = 1
+    bar = tqdm(total=steps, desc=f"train {name}", disable=not progress)
+    bar.update(1)
+    losses, metrics = [], []
+    while done < steps and time.perf_counter() - t0 < time_budget:
+        key, k = jax.random.split(key)
+        params, opt_state, loss, metric = step(params, opt_state, k)
+        losses.append(loss)
+        metrics.append(metric)
+        done += 1
+        bar.update(1)
+        if done % 50 == 0:
+            mean_loss = float(jnp.mean(jnp.stack(losses)))
+            mean_metric = float(jnp.mean(jnp.stack(metrics)))
+            history.append((done, mean_loss, mean_metric))
+            bar.set_postfix(loss=f"{mean_loss:.3f}", metric=f"{mean_metric:.3f}")
+            losses, metrics = [], []
+    jax.block_until_ready(params)
+    bar.close()
+    seconds = time.perf_counter() - t0
+    log = dict(
+        steps=done,
+        batch=batch,
+        train_s=round(seconds, 1),
+        compile_s=round(compile_s, 1),
+        samples_per_s=round((done - 1) * batch / max(seconds, 1e-9), 1),
+        history=history,
+    )
+    return params, log
+
+
+# ----------------------------------------------------------------------------------------------
+# Evaluation on labels
+
+
+def planner_clouds(object_points, support_points, n_object: int, n_support: int):
+    """The fixed cloud subsets every estimator sees at planning time."""
+    return (
+        collision.subsample_cloud(object_points, n_object, SUBSET_SEED_OBJECT),
+        collision.subsample_cloud(support_points, n_support, SUBSET_SEED_SUPPORT),
+    )
+
+
+def estimator_scores(data: CollisionData, score_fn, n_object, n_support, max_labels=None, seed=0):
+    """Scores of (a random subset of at most ``max_labels``) labelled poses, pair by pair.
+    score_fn(pair_index, object_cloud, support_cloud, poses) -> [B]. Returns (scores, labels)."""
+    chosen = np.arange(len(data.labels))
+    if max_labels is not None and max_labels < len(chosen):
+        chosen = np.sort(np.random.default_rng(seed).choice(len(chosen), max_labels, False))
+    scores = np.zeros(len(chosen))
+    for p in np.unique(data.pair[chosen]):
+        rows = np.flatnonzero(data.pair[chosen] == p)
+        oc, sc = planner_clouds(data.object_points[p], data.support_points[p], n_object, n_support)
+        for a in range(0, len(rows), 512):  # chunks padded to 512: one compilation
+            r = rows[a : a + 512]
+            poses = data.poses[chosen[r]]
+            padded = np.concatenate([poses, np.repeat(poses[:1], 512 - len(r), 0)])
+            scores[r] = np.asarray(score_fn(p, oc, sc, padded))[: len(r)]
+    return scores, data.labels[chosen]
+
+
+def nce_score_fn(config, params):
+    prob = jax.jit(collision.nce_probability(config))
+    return lambda p, oc, sc, poses: prob(params, oc, sc, poses)
+
+
+def hce_score_fn(config, params):
+    """Predicted-normal heuristic: the normal net sees the planner's support subset."""
+    normals_fn = jax.jit(
+        lambda prm, pts: collision.make_normal_net(config).apply(prm, pts[None])[0]
+    )
+    score = jax.jit(collision.heuristic_score)
+    cache = {}
+
+    def fn(p, oc, sc, poses):
+        if p not in cache:
+            cache[p] = normals_fn(params, sc)
+        return score(oc, sc, cache[p], poses)
+
+    return fn
+
+
+def true_normals_score_fn(data: CollisionData, n_support):
+    score = jax.jit(collision.heuristic_score)
+
+    def fn(p, oc, sc, poses):
+        normals = collision.subsample_cloud(data.support_normals[p], n_support, SUBSET_SEED_SUPPORT)
+        return score(oc, sc, normals, poses)
+
+    return fn
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def _budgets(text: str) -> dict[str, float]:
+    out = {"nce": 300.0, "normals": 60.0}
+    for item in filter(None, text.split(",")):
+        name, _, value = item.partition("=")
+        if name not in out:
+            raise ValueError(f"--time-budget: unknown part {name!r} (nce, normals)")
+        out[name] = float(value)
+    return out
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--data", default="datasets/paper", help="dataset (recipe.json + shards/)")
+    parser.add_argument("--out", required=True, help="output folder for the weights")
+    parser.add_argument("--preset", default="fast", choices=sorted(collision.NCE_PRESETS))
+    parser.add_argument("--normal-preset", default=None, help="default: --preset")
+    parser.add_argument("--train-pairs", type=int, default=200)
+    parser.add_argument("--test-pairs", type=int, default=60)
+    parser.add_argument("--steps", type=int, default=1_000_000, help="cap on steps per network")
+    parser.add_argument("--time-budget", default="nce=300,normals=60", help="seconds per network")
+    parser.add_argument("--batch", type=int, default=64, help="NCE batch (poses)")
+    parser.add_argument("--normal-batch", type=int, default=16, help="normal-net batch (clouds)")
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--eval-labels", type=int, default=20000, help="held-out labels scored")
+    parser.add_argument("--threshold-labels", type=int, default=20000, help="training labels")
+    parser.add_argument("--workers", type=int, default=1, help="derive processes (0 = all cores)")
+    parser.add_argument("--resume", action="store_true", help="start from the weights in OUT")
+    parser.add_argument("--derive-only", action="store_true", help="derive the pairs, then stop")
+    parser.add_argument(
+        "--existing-only", action="store_true", help="use only pairs already derived"
+    )
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    progress = not args.no_progress
+    budgets = _budgets(args.time_budget)
+    workers = args.workers or len(os.sched_getaffinity(0))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    nce_cfg = collision.NCE_PRESETS[args.preset]
+    normal_name = args.normal_preset or args.preset
+    if normal_name not in collision.NORMAL_PRESETS:
+        raise SystemExit(f"--normal-preset must be one of {sorted(collision.NORMAL_PRESETS)}")
+    normal_cfg = collision.NORMAL_PRESETS[normal_name]
+
+    t0 = time.time()
+    files = derive_collision_pairs(
+        args.data,
+        {"test": args.test_pairs, "train": args.train_pairs},  # held-out first: a cut-short
+        workers,  # derive still has them all
+        progress,
+        existing_only=args.existing_only,
+    )
+    train_files, test_files = files["train"], files["test"]
+    derive_s = time.time() - t0
+    if args.derive_only:
+        print(
+            f"derived: {len(train_files)} train, {len(test_files)} test pairs in {derive_s:.0f} s"
+        )
+        return {"train_files": len(train_files), "test_files": len(test_files)}
+    train, test = load_collision_data(train_files), load_collision_data(test_files)
+    held_out = {m["pair_index"] for m in test.meta}
+    if held_out & {m["pair_index"] for m in train.meta} or any(
+        m["split"] != "train" for m in train.meta
+    ):
+        raise RuntimeError("a held-out pair reached the training set")
+    print(
+        f"pairs: {len(train.meta)} train ({len(train.labels)} labels, "
+        f"{train.labels.mean():.1%} colliding), {len(test.meta)} held out "
+        f"({len(test.labels)} labels); derived in {derive_s:.0f} s; device {jax.devices()[0]}"
+    )
+
+    nce_params = normal_params = None
+    if args.resume and (out / "nce" / "config.json").exists():
+        nce_cfg, nce_params, _ = collision.load_estimator(out / "nce")
+    if args.resume and (out / "hce_normals" / "config.json").exists():
+        normal_cfg, normal_params, _ = collision.load_estimator(out / "hce_normals")
+
+    nce_params, nce_log = train_nce(
+        train, nce_cfg, args.steps, budgets["nce"], args.batch, args.lr, params=nce_params,
+        progress=progress,
+    )  # fmt: skip
+    normal_params, normal_log = train_normals(
+        train, normal_cfg, args.steps, budgets["normals"], args.normal_batch, args.lr,
+        params=normal_params, progress=progress,
+    )  # fmt: skip
+
+    # thresholds on training labels, metrics on held-out labels
+    n_obj, n_sup = nce_cfg.object_points, nce_cfg.support_points
+    h_obj, h_sup = nce_cfg.object_points, normal_cfg.points
+    hce_train, y_train = estimator_scores(
+        train, hce_score_fn(normal_cfg, normal_params), h_obj, h_sup,
+        args.threshold_labels,
+    )  # fmt: skip
+    hce_threshold = collision.balanced_threshold(hce_train, y_train)
+    true_train, y_true_train = estimator_scores(
+        train, true_normals_score_fn(train, h_sup), h_obj, h_sup, args.threshold_labels
+    )
+    true_threshold = collision.balanced_threshold(true_train, y_true_train)
+    normal_cfg = dataclasses.replace(normal_cfg, threshold=hce_threshold)
+
+    metrics = {}
+    s, y = estimator_scores(test, nce_score_fn(nce_cfg, nce_params), n_obj, n_sup, args.eval_labels)
+    metrics["nce"] = collision.binary_metrics(s > nce_cfg.threshold, y)
+    s, y = estimator_scores(
+        test, hce_score_fn(normal_cfg, normal_params), h_obj, h_sup, args.eval_labels
+    )
+    metrics["hce"] = collision.binary_metrics(s > hce_threshold, y)
+    s, y = estimator_scores(
+        test, true_normals_score_fn(test, h_sup), h_obj, h_sup, args.eval_labels
+    )
+    metrics["hce_true_normals"] = collision.binary_metrics(s > true_threshold, y)
+
+    summary = dict(
+        device=str(jax.devices()[0]),
+        train_pairs=len(train.meta),
+        train_labels=int(len(train.labels)),
+        test_pairs=len(test.meta),
+        test_labels=int(len(test.labels)),
+        derive_s=round(derive_s, 1),
+        nce=nce_log,
+        normals=normal_log,
+        hce_threshold=hce_threshold,
+        hce_true_normals_threshold=true_threshold,
+        held_out=metrics,
+    )
+    extra = dict(train_pairs=len(train.meta), held_out=metrics)
+    collision.save_estimator(out / "nce", nce_cfg, nce_params, train=nce_log, **extra)
+    collision.save_estimator(
+        out / "hce_normals", normal_cfg, normal_params, train=normal_log, **extra
+    )
+    with open(out / "hce_true_normals.json", "w") as f:
+        json.dump(dict(threshold=true_threshold, points=h_sup, held_out=metrics), f, indent=2)
+    with open(out / "metrics.json", "w") as f:
+        json.dump(summary, f, indent=2)
+    for name, m in metrics.items():
+        print(
+            f"held-out {name}: accuracy {m['accuracy']:.3f} precision {m['precision']:.3f} "
+            f"recall {m['recall']:.3f} balanced {m['balanced_accuracy']:.3f} (n={m['n']})"
+        )
+    return summary
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,398 @@
+"""Collision estimators on partial point clouds: how the planner decides a pose is free.
+
+Three estimators share one signature, so that OMPL's planner (``omnihang_jax.planner``, host
+side) sees them as interchangeable state-validity checkers::
+
+    collides(params, object_cloud [N, 3], support_cloud [M, 3], poses [B, 7]) -> [B] bool
+
+``object_cloud`` is in the OBJECT frame, ``support_cloud`` in the SUPPORT frame, ``poses`` are
+object-in-support poses (xyz metres + quaternion wxyz, the dataset's convention). The functions
+are pure and un-jitted; the caller wraps them in ``jax.jit`` once and then checks many states
+(every interpolated state of an edge) per call.
+
+- **NCE** (the paper's neural collision estimator): PointNet++ on ONE cloud, the object cloud
+  moved by the pose plus the support cloud, with a flag feature (1 object, 0 support: the
+  Stage 2a form, ``stage2.combine_clouds``), then an MLP to one logit; trained with cross
+  entropy on the dataset's collision labels. ``params`` = its Flax parameters.
+- **HCE** (the paper's heuristic baseline): a PointNet++ predicts outward normals of a partial
+  cloud (trained with ``L = -sum(n_hat . n)``); the collision score of a pose is minus the
+  mean, over object points, of the cosine between (object point - nearest support point) and
+  that support point's normal (points inside the support lie behind the normal: cosine < 0).
+  Colliding when the score is above a threshold chosen on training pairs. ``params`` = the
+  normal net's parameters.
+- **HCE with true normals**: the same score with the support cloud's ray-cast normals, a
+  reference for how much the normal net loses. ``params`` = those normals ``[M, 3]``.
+
+Factories (:func:`make_nce`, :func:`make_normal_net`) hide the Flax modules and return plain
+init / apply functions; :func:`nce_collides`, :func:`hce_collides`,
+:func:`hce_true_normals_collides` return the ``collides`` functions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Callable
+from typing import NamedTuple
+
+import flax
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from omnihang_jax.pointnet2 import (
+    PRESETS,
+    PointNet2Config,
+    PointNet2Encoder,
+    PointNet2Segmentation,
+    SALevel,
+)
+from omnihang_jax.stage2 import combine_clouds
+
+__all__ = [
+    "NCEConfig",
+    "NormalNetConfig",
+    "EstimatorNets",
+    "NCE_PRESETS",
+    "NORMAL_PRESETS",
+    "quaternion_matrix",
+    "transform_points",
+    "make_nce",
+    "make_normal_net",
+    "normal_loss",
+    "heuristic_score",
+    "nce_collides",
+    "nce_probability",
+    "hce_collides",
+    "hce_true_normals_collides",
+    "subsample_cloud",
+    "save_estimator",
+    "load_estimator",
+    "binary_metrics",
+    "balanced_threshold",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class NCEConfig:
+    """Neural collision estimator.
+
+    pointnet: PointNet++ preset name (``pointnet2.PRESETS`` or ``"fast"``, below) of the
+      combined-cloud encoder.
+    object_points / support_points: points of each cloud the network sees (subsampled from
+      the 4,096-point partial clouds: the paper used the full clouds; 512 + 512 keeps a
+      planner's check at CPU speed and PointNet++'s first level still sees ~1 cm patches).
+    head: widths of the MLP between the global feature and the collision logit.
+    threshold: probability above which a pose counts as colliding.
+    """
+
+    pointnet: str = "small"
+    object_points: int = 512
+    support_points: int = 512
+    head: tuple[int, ...] = (128, 64)
+    threshold: float = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class NormalNetConfig:
+    """HCE normal network: PointNet++ segmentation net -> per-point unit normal.
+
+    pointnet: preset name. points: points per cloud it sees. threshold: heuristic score
+    above which a pose collides (chosen on training pairs by ``train_collision``).
+    """
+
+    pointnet: str = "small"
+    points: int = 1024
+    threshold: float = 0.0
+
+
+# A PointNet++ for CPU-speed collision checks on 256 + 256 points (a planner makes thousands
+# of checks per pair): 2.5 / 6 / 15 cm balls (a rod's cross-section, a hook, a handle), then a
+# group-all level with absolute xyz (scale 0.3 m, a support's size) that keeps where things are.
+FAST = PointNet2Config(
+    sa_levels=(
+        SALevel(64, 0.025, 16, (32, 32, 64)),
+        SALevel(16, 0.06, 16, (64, 64, 128)),
+        SALevel(4, 0.15, 8, (128, 128)),
+        SALevel(1, 0.3, 0, (128, 256), group_all=True),
+    ),
+    fp_mlps=((128,), (128, 64), (64, 64), (64, 64)),
+    num_points=512,
+)
+POINTNETS = {**PRESETS, "fast": FAST}
+
+NCE_PRESETS = {
+    "tiny": NCEConfig(pointnet="tiny", object_points=64, support_points=64, head=(32,)),
+    "fast": NCEConfig(pointnet="fast", object_points=256, support_points=256, head=(128, 64)),
+    "small": NCEConfig(),
+}
+NORMAL_PRESETS = {
+    "tiny": NormalNetConfig(pointnet="tiny", points=128),
+    "fast": NormalNetConfig(pointnet="fast", points=512),
+    "small": NormalNetConfig(),
+}
+
+
+class EstimatorNets(NamedTuple):
+    """Plain functions of a network: ``init(key) -> params``, ``apply(params, ...)``."""
+
+    init: Callable
+    apply: Callable
+
+
+# ----------------------------------------------------------------------------------------------
+# Poses
+
+
+def quaternion_matrix(quaternion: jax.Array) -> jax.Array:
+    """[..., 4] quaternion (w, x, y, z), normalised here -> [..., 3, 3] rotation matrix."""
+    q = quaternion / jnp.linalg.norm(quaternion, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def transform_points(poses: jax.Array, points: jax.Array) -> jax.Array:
+    """poses [B, 7], points [B, N, 3] or [N, 3] (object frame) -> [B, N, 3] support frame."""
+    rot = quaternion_matrix(poses[:, 3:])
+    if points.ndim == 2:
+        return jnp.einsum("bij,nj->bni", rot, points) + poses[:, None, :3]
+    return jnp.einsum("bij,bnj->bni", rot, points) + poses[:, None, :3]
+
+
+# ----------------------------------------------------------------------------------------------
+# NCE
+
+
+class _NCENet(nn.Module):
+    config: NCEConfig
+
+    @nn.compact
+    def __call__(self, object_posed: jax.Array, support_points: jax.Array) -> jax.Array:
+        """object_posed [B, N, 3] (support frame), support_points [B, M, 3] -> logits [B]."""
+        points, flags = combine_clouds(object_posed, support_points)
+        feature, _ = PointNet2Encoder(POINTNETS[self.config.pointnet], name="encoder")(
+            points, flags
+        )
+        x = feature
+        for width in self.config.head:
+            x = nn.relu(nn.Dense(width)(x))
+        return nn.Dense(1)(x)[:, 0]
+
+
+def make_nce(config: NCEConfig) -> EstimatorNets:
+    """NCE as plain functions.
+
+    init(key) -> params. apply(params, object_points [B, N, 3] object frame, support_points
+    [B, M, 3], poses [B, 7]) -> collision logits [B] (positive: colliding).
+    """
+    net = _NCENet(config)
+
+    def init(key):
+        obj = jnp.zeros((1, config.object_points, 3))
+        sup = jnp.zeros((1, config.support_points, 3))
+        return net.init(key, obj, sup)["params"]
+
+    def apply(params, object_points, support_points, poses):
+        return net.apply({"params": params}, transform_points(poses, object_points), support_points)
+
+    return EstimatorNets(init, apply)
+
+
+def nce_probability(config: NCEConfig) -> Callable:
+    """``probability(params, object_cloud [N, 3], support_cloud [M, 3], poses [B, 7]) -> [B]``:
+    the NCE's collision probability of every pose (clouds shared by the batch)."""
+    nets = make_nce(config)
+
+    def probability(params, object_cloud, support_cloud, poses):
+        b = poses.shape[0]
+        obj = jnp.broadcast_to(object_cloud, (b, *object_cloud.shape))
+        sup = jnp.broadcast_to(support_cloud, (b, *support_cloud.shape))
+        return jax.nn.sigmoid(nets.apply(params, obj, sup, poses))
+
+    return probability
+
+
+def nce_collides(config: NCEConfig) -> Callable:
+    """``collides(params, object_cloud, support_cloud, poses) -> [B] bool`` (NCE)."""
+    probability = nce_probability(config)
+
+    def collides(params, object_cloud, support_cloud, poses):
+        return probability(params, object_cloud, support_cloud, poses) > config.threshold
+
+    return collides
+
+
+# ----------------------------------------------------------------------------------------------
+# HCE
+
+
+class _NormalNet(nn.Module):
+    config: NormalNetConfig
+
+    @nn.compact
+    def __call__(self, points: jax.Array) -> jax.Array:
+        """points [B, N, 3] -> unit normals [B, N, 3]. The cloud is centred first: normals do
+        not depend on where the cloud sits."""
+        centred = points - jnp.mean(points, axis=1, keepdims=True)
+        features, _ = PointNet2Segmentation(POINTNETS[self.config.pointnet], name="pointnet")(
+            centred
+        )
+        normals = nn.Dense(3)(features)
+        return normals / (jnp.linalg.norm(normals, axis=-1, keepdims=True) + 1e-9)
+
+
+def make_normal_net(config: NormalNetConfig) -> EstimatorNets:
+    """init(key) -> params; apply(params, points [B, N, 3]) -> unit normals [B, N, 3]."""
+    net = _NormalNet(config)
+
+    def init(key):
+        return net.init(key, jnp.zeros((1, config.points, 3)))["params"]
+
+    def apply(params, points):
+        return net.apply({"params": params}, points)
+
+    return EstimatorNets(init, apply)
+
+
+def normal_loss(predicted: jax.Array, true: jax.Array) -> jax.Array:
+    """The paper's HCE normal loss -sum(n_hat . n), averaged over points: [..., 3] -> []."""
+    return -jnp.mean(jnp.sum(predicted * true, axis=-1))
+
+
+def heuristic_score(
+    object_cloud: jax.Array, support_cloud: jax.Array, support_normals: jax.Array, poses
+) -> jax.Array:
+    """HCE score of every pose (paper, Sec. V-D): object_cloud [N, 3] object frame,
+    support_cloud [M, 3], support_normals [M, 3] outward, poses [B, 7] -> [B].
+
+    For each posed object point p_i, nearest support point s_k: cosine between (p_i - s_k)
+    and n_k; the score is minus its mean over the object points (higher: deeper inside)."""
+    posed = transform_points(poses, object_cloud)  # [B, N, 3]
+
+    def one(points):
+        d2 = (
+            jnp.sum(points**2, -1)[:, None]
+            - 2.0 * points @ support_cloud.T
+            + jnp.sum(support_cloud**2, -1)[None, :]
+        )
+        k = jnp.argmin(d2, axis=1)
+        offset = points - support_cloud[k]
+        cosine = jnp.sum(offset * support_normals[k], -1) / (
+            jnp.linalg.norm(offset, axis=-1) + 1e-9
+        )
+        return -jnp.mean(cosine)
+
+    return jax.lax.map(one, posed) if posed.shape[0] > 256 else jax.vmap(one)(posed)
+
+
+def hce_collides(config: NormalNetConfig) -> Callable:
+    """``collides(params, object_cloud, support_cloud, poses) -> [B] bool`` (HCE): the normal
+    net predicts the support cloud's normals (once per call), then the heuristic score."""
+    nets = make_normal_net(config)
+
+    def collides(params, object_cloud, support_cloud, poses):
+        normals = nets.apply(params, support_cloud[None])[0]
+        return heuristic_score(object_cloud, support_cloud, normals, poses) > config.threshold
+
+    return collides
+
+
+def hce_true_normals_collides(threshold: float) -> Callable:
+    """``collides(support_normals [M, 3], object_cloud, support_cloud, poses) -> [B] bool``:
+    the heuristic with the support cloud's true normals in place of parameters."""
+
+    def collides(params, object_cloud, support_cloud, poses):
+        return heuristic_score(object_cloud, support_cloud, params, poses) > threshold
+
+    return collides
+
+
+# ----------------------------------------------------------------------------------------------
+# Host helpers: clouds, weights, metrics
+
+
+def subsample_cloud(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """A fixed random subset of ``n`` rows (with replacement only if there are fewer)."""
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
+        raise ValueError(f"a cloud must be [N>0, 3], got {points.shape}")
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(len(points), n, replace=len(points) < n)
+    return points[np.sort(idx)]
+
+
+WEIGHTS_FILE = "params.msgpack"
+
+
+def save_estimator(folder: str | os.PathLike, config, params, **extra) -> None:
+    """``folder/{config.json, params.msgpack}``; ``extra`` (metrics, steps) goes into the JSON."""
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, WEIGHTS_FILE), "wb") as f:
+        f.write(flax.serialization.to_bytes(jax.device_get(params)))
+    meta = {"kind": type(config).__name__, "config": dataclasses.asdict(config), **extra}
+    with open(os.path.join(folder, "config.json"), "w") as f:
+        json.dump(meta, f, indent=2)
+
+
+def load_estimator(folder: str | os.PathLike):
+    """(config, params, meta) of a folder written by :func:`save_estimator`."""
+    path = os.path.join(folder, "config.json")
+    if not os.path.exists(path):
+        raise FileNotFoundError(
+            f"{path} not found: train it first (`python -m experiments.train_collision`)"
+        )
+    with open(path) as f:
+        meta = json.load(f)
+    kinds = {
+        "NCEConfig": (NCEConfig, make_nce),
+        "NormalNetConfig": (NormalNetConfig, make_normal_net),
+    }
+    if meta.get("kind") not in kinds:
+        raise ValueError(f"{path}: unknown estimator kind {meta.get('kind')!r}")
+    cls, factory = kinds[meta["kind"]]
+    raw = dict(meta["config"])
+    if "head" in raw:
+        raw["head"] = tuple(raw["head"])
+    config = cls(**raw)
+    target = factory(config).init(jax.random.key(0))
+    with open(os.path.join(folder, WEIGHTS_FILE), "rb") as f:
+        params = flax.serialization.from_bytes(target, f.read())
+    return config, params, meta
+
+
+def binary_metrics(predicted: np.ndarray, label: np.ndarray) -> dict:
+    """Accuracy, precision, recall, F1 of the positive class (colliding), balanced accuracy."""
+    p, y = np.asarray(predicted, bool), np.asarray(label, bool)
+    tp, fp = int(np.sum(p & y)), int(np.sum(p & ~y))
+    fn, tn = int(np.sum(~p & y)), int(np.sum(~p & ~y))
+    prec = tp / max(tp + fp, 1)
+    rec = tp / max(tp + fn, 1)
+    return dict(
+        n=len(y),
+        positive_fraction=float(y.mean()) if len(y) else 0.0,
+        accuracy=(tp + tn) / max(len(y), 1),
+        precision=prec,
+        recall=rec,
+        f1=2 * prec * rec / max(prec + rec, 1e-12),
+        balanced_accuracy=0.5 * (rec + tn / max(tn + fp, 1)),
+        free_precision=tn / max(tn + fn, 1),  # of the poses called free, how many are
+    )
+
+
+def balanced_threshold(scores: np.ndarray, label: np.ndarray) -> float:
+    """The score threshold (colliding above) with the best balanced accuracy. The labels are
+    ~80 % colliding, so plain accuracy would favour calling everything colliding."""
+    scores, label = np.asarray(scores, float), np.asarray(label, bool)
+    if label.all() or (~label).all():
+        raise ValueError("a threshold needs both colliding and free examples")
+    cands = np.unique(np.quantile(scores, np.linspace(0.0, 1.0, 401)))
+    tpr = (scores[None, label] > cands[:, None]).mean(1)
+    tnr = (scores[None, ~label] <= cands[:, None]).mean(1)
+    return float(cands[np.argmax(tpr + tnr)])

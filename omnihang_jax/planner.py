@@ -1,0 +1,363 @@
+"""How to hang: OMPL's RRT-Connect in SE(3) around a batched collision checker (host side).
+
+This module is the host/device boundary of path planning. OMPL (C++, through its 2.x Python
+bindings: ``ompl.base`` / ``ompl.geometric``) runs on the host; every collision question goes
+to one ``checker(poses [B, 7]) -> colliding [B] bool``:
+
+- :class:`EstimatorChecker` wraps a jitted ``collides(params, object_cloud, support_cloud,
+  poses)`` from :mod:`omnihang_jax.collision` (NCE, HCE, HCE with true normals), padding each
+  batch to a power of two so that only a handful of shapes is ever compiled;
+- :class:`MeshChecker` asks MuJoCo (C) for contacts between the full object and support
+  meshes (``mj_kinematics`` + ``mj_collision``, as ``sim.kernels.contact_query`` does): the
+  paper's "ground truth" planner and the dense check of every returned path.
+
+State validity is the checker on one state; motion validation (:class:`BatchedMotionValidator`)
+interpolates the edge at the planner's resolution and checks ALL its states in ONE batched
+call. Settings (:class:`PlannerConfig`, the original code was never released, facts file):
+
+- start: the goal's orientation, in front of the support (+y, away from the wall) at the
+  goal's x and height, clear of the support's box by the object's largest extent;
+- bounds: the support's box grown by the object's largest extent on every side (the start
+  included); rotations unbounded;
+- distance: translation + ``r`` x rotation angle, with ``r`` the object's half-extent, so a
+  distance is roughly the largest displacement of an object point, in metres;
+- resolution 5 mm (no 5-16 mm rod can slip between two checked states of a >= 2 mm part),
+  range 10 cm per RRT-Connect extension, time limit per pair (default 20 s);
+- goal tolerance: states within ``goal_radius`` (1 cm, in that metric) of the hanging pose
+  are accepted without asking the checker. A hanging pose rests ON the support: MuJoCo's
+  soft contacts put it slightly inside (sub-millimetre), and the dataset labels any
+  penetration as colliding, so an estimator is right to call it colliding; the last
+  centimetre of the approach is contact by definition. The dense check of the returned path
+  still checks every state, those too (penetration tolerance 1 mm, the dataset's own
+  ``max_penetration`` for a candidate pose).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import mujoco
+import numpy as np
+from ompl import base as ob
+from ompl import geometric as og
+from ompl import util as ou
+
+__all__ = [
+    "PlannerConfig",
+    "PlanResult",
+    "MeshChecker",
+    "EstimatorChecker",
+    "AnalyticChecker",
+    "BatchedMotionValidator",
+    "default_bounds",
+    "start_pose",
+    "interpolate_path",
+    "plan",
+    "dense_check",
+    "path_scene_xml",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannerConfig:
+    time_limit: float = 20.0  # s per plan (OMPL's solve); the CPU NCE makes ~300 checks/s
+    resolution: float = 0.005  # m: states checked along an edge, see module docstring
+    range: float = 0.10  # m: longest RRT-Connect extension (<= 20 states per batched call)
+    goal_radius: float = 0.01  # m: states this near the goal are not checked (docstring)
+    dense_resolution: float = 0.002  # m: the ground-truth check of a returned path
+    penetration_tolerance: float = 1e-3  # m: deeper is colliding (dataset max_penetration)
+    seed: int = 1  # OMPL's random seed (0 is not allowed)
+
+
+class PlanResult(NamedTuple):
+    path: np.ndarray | None  # [K, 7] waypoints (start ... goal), None if no exact solution
+    status: str  # OMPL's status string
+    planning_s: float  # wall time of solve()
+    states_checked: int  # states the checker was asked about
+    checker_calls: int  # batched calls (one per motion, one per single state)
+
+
+# ----------------------------------------------------------------------------------------------
+# Checkers: poses [B, 7] -> colliding [B]
+
+
+class MeshChecker:
+    """Full-mesh collision through MuJoCo: colliding when any object geom penetrates a
+    support (or wall) geom deeper than ``tolerance``. Host CPU, one state at a time."""
+
+    def __init__(self, scene, tolerance: float = 1e-3):
+        self.scene = scene
+        self.model = scene.model
+        self.data = mujoco.MjData(self.model)
+        self.tolerance = tolerance
+        self.object_geoms = set(int(g) for g in scene.object_geoms)
+        others = list(scene.support_geoms) + ([scene.wall_geom] if scene.wall_geom >= 0 else [])
+        self.other_geoms = set(int(g) for g in others)
+
+    def penetration(self, poses: np.ndarray) -> np.ndarray:
+        """[B, 7] -> [B] deepest object-support penetration in metres (0 if none)."""
+        poses = np.asarray(poses, float).reshape(-1, 7)
+        out = np.zeros(len(poses))
+        m, d = self.model, self.data
+        for i, pose in enumerate(poses):
+            d.qpos[:7] = pose
+            mujoco.mj_kinematics(m, d)
+            mujoco.mj_collision(m, d)
+            deepest = 0.0
+            for j in range(d.ncon):
+                con = d.contact[j]
+                g1, g2 = int(con.geom1), int(con.geom2)
+                if (g1 in self.object_geoms and g2 in self.other_geoms) or (
+                    g2 in self.object_geoms and g1 in self.other_geoms
+                ):
+                    deepest = max(deepest, -float(con.dist))
+            out[i] = deepest
+        return out
+
+    def __call__(self, poses: np.ndarray) -> np.ndarray:
+        return self.penetration(poses) > self.tolerance
+
+
+class EstimatorChecker:
+    """A jitted ``collides(params, object_cloud, support_cloud, poses)`` bound to one pair's
+    clouds. Batches are padded to the next power of two (>= 8) so few shapes compile."""
+
+    def __init__(self, collides_jit: Callable, params, object_cloud, support_cloud):
+        self.collides = collides_jit
+        self.params = params
+        self.object_cloud = jax.numpy.asarray(object_cloud, jax.numpy.float32)
+        self.support_cloud = jax.numpy.asarray(support_cloud, jax.numpy.float32)
+
+    def warm_up(self, largest: int = 64) -> None:
+        """Compile every padded size up to ``largest`` (jit caches them for later pairs)."""
+        size = 8
+        while size <= largest:
+            self(np.tile(np.array([0, 0, 10.0, 1, 0, 0, 0], np.float32), (size, 1)))
+            size *= 2
+
+    def __call__(self, poses: np.ndarray) -> np.ndarray:
+        poses = np.asarray(poses, np.float32).reshape(-1, 7)
+        b = len(poses)
+        size = max(8, 1 << int(np.ceil(np.log2(max(b, 1)))))
+        padded = np.concatenate([poses, np.repeat(poses[:1], size - b, 0)])
+        out = self.collides(self.params, self.object_cloud, self.support_cloud, padded)
+        return np.asarray(out)[:b]
+
+
+class AnalyticChecker:
+    """Exact checker for tests: a sphere of ``radius`` at the pose's position against
+    axis-aligned boxes ``[(low [3], high [3]), ...]`` (rotation does not matter)."""
+
+    def __init__(self, boxes, radius: float = 0.0):
+        self.boxes = [(np.asarray(lo, float), np.asarray(hi, float)) for lo, hi in boxes]
+        self.radius = radius
+
+    def __call__(self, poses: np.ndarray) -> np.ndarray:
+        p = np.asarray(poses, float).reshape(-1, 7)[:, :3]
+        hit = np.zeros(len(p), bool)
+        for lo, hi in self.boxes:
+            nearest = np.clip(p, lo, hi)
+            hit |= np.linalg.norm(p - nearest, axis=1) <= self.radius
+        return hit
+
+
+# ----------------------------------------------------------------------------------------------
+# SE(3) helpers (numpy; the same interpolation as OMPL's SE3StateSpace: lerp + slerp)
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Shortest-arc slerp of unit quaternions (w, x, y, z) at fractions t [K] -> [K, 4]."""
+    q0, q1 = q0 / np.linalg.norm(q0), q1 / np.linalg.norm(q1)
+    dot = float(np.dot(q0, q1))
+    if dot < 0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:
+        q = q0[None] + t[:, None] * (q1 - q0)[None]
+        return q / np.linalg.norm(q, axis=1, keepdims=True)
+    theta = np.arccos(np.clip(dot, -1.0, 1.0))
+    s = np.sin(theta)
+    return (np.sin((1 - t) * theta)[:, None] * q0 + np.sin(t * theta)[:, None] * q1) / s
+
+
+def _angle(q0: np.ndarray, q1: np.ndarray) -> float:
+    dot = abs(float(np.dot(q0, q1)) / (np.linalg.norm(q0) * np.linalg.norm(q1)))
+    return 2.0 * np.arccos(min(1.0, dot))
+
+
+def pose_distance(a: np.ndarray, b: np.ndarray, rotation_weight: float) -> float:
+    """The planner's metric: translation + ``rotation_weight`` x rotation angle."""
+    return float(np.linalg.norm(a[:3] - b[:3])) + rotation_weight * _angle(a[3:], b[3:])
+
+
+def interpolate_segment(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """States at fractions 1/n ... 1 of the way from a to b: [n, 7] (a itself excluded)."""
+    t = np.arange(1, n + 1) / n
+    pos = a[None, :3] + t[:, None] * (b[:3] - a[:3])[None]
+    return np.concatenate([pos, _slerp(a[3:], b[3:], t)], axis=1)
+
+
+def interpolate_path(path: np.ndarray, resolution: float, rotation_weight: float) -> np.ndarray:
+    """Every waypoint and states at most ``resolution`` apart between them: [K', 7]."""
+    out = [np.asarray(path[0], float)[None]]
+    for a, b in zip(path[:-1], path[1:]):
+        n = max(1, int(np.ceil(pose_distance(a, b, rotation_weight) / resolution)))
+        out.append(interpolate_segment(np.asarray(a, float), np.asarray(b, float), n))
+    return np.concatenate(out)
+
+
+def object_radius(scene) -> float:
+    """Half the object's largest extent (m): the rotation weight of the planner's metric."""
+    return 0.5 * float(np.max(scene.obj.extents))
+
+
+def default_bounds(scene) -> tuple[np.ndarray, np.ndarray]:
+    """The support's box grown by the object's largest extent on every side."""
+    grow = float(np.max(scene.obj.extents))
+    lo, hi = np.asarray(scene.support_bounds, float)
+    return lo - grow, hi + grow
+
+
+def start_pose(scene, goal: np.ndarray) -> np.ndarray:
+    """In front of the support (+y), clear of its box by the object's largest extent, at the
+    goal's x and height, in the goal's orientation."""
+    size = float(np.max(scene.obj.extents))
+    hi = np.asarray(scene.support_bounds, float)[1]
+    return np.array([goal[0], hi[1] + size, goal[2], *goal[3:]], float)
+
+
+# ----------------------------------------------------------------------------------------------
+# OMPL
+
+
+def _state_pose(state) -> np.ndarray:
+    rot = state.rotation()
+    return np.array([state.getX(), state.getY(), state.getZ(), rot.w, rot.x, rot.y, rot.z])
+
+
+def _set_state(state, pose: np.ndarray) -> None:
+    state.setXYZ(float(pose[0]), float(pose[1]), float(pose[2]))
+    q = np.asarray(pose[3:], float) / np.linalg.norm(pose[3:])
+    rot = state.rotation()
+    rot.w, rot.x, rot.y, rot.z = (float(v) for v in q)
+
+
+class _Counter:
+    """The checker with the goal tolerance and the bookkeeping of a plan."""
+
+    def __init__(self, checker, goal: np.ndarray, goal_radius: float, rotation_weight: float):
+        self.checker = checker
+        self.goal = goal
+        self.goal_radius = goal_radius
+        self.weight = rotation_weight
+        self.states = 0
+        self.calls = 0
+
+    def valid(self, poses: np.ndarray) -> np.ndarray:
+        """[B, 7] -> [B] bool, True = free."""
+        near = np.array([pose_distance(p, self.goal, self.weight) for p in poses])
+        near = near <= self.goal_radius
+        free = np.ones(len(poses), bool)
+        ask = np.flatnonzero(~near)
+        if len(ask):
+            self.states += len(ask)
+            self.calls += 1
+            free[ask] = ~np.asarray(self.checker(poses[ask]), bool)
+        return free
+
+
+class BatchedMotionValidator(ob.MotionValidator):
+    """OMPL motion validator: the edge's interpolated states (OMPL's segment count at the
+    space's resolution), all checked in ONE batched call."""
+
+    def __init__(self, si, counter: _Counter):
+        super().__init__(si)
+        self.si = si
+        self.space = si.getStateSpace()
+        self.counter = counter
+
+    def checkMotion(self, s1, s2):  # noqa: N802 (OMPL's name)
+        n = max(1, int(self.space.validSegmentCount(s1, s2)))
+        states = interpolate_segment(_state_pose(s1), _state_pose(s2), n)
+        return bool(self.counter.valid(states).all())
+
+
+def plan(
+    checker: Callable[[np.ndarray], np.ndarray],
+    start: np.ndarray,
+    goal: np.ndarray,
+    bounds: tuple[np.ndarray, np.ndarray],
+    rotation_weight: float,
+    config: PlannerConfig = PlannerConfig(),
+) -> PlanResult:
+    """RRT-Connect from ``start`` to ``goal`` (poses [7]) within ``bounds`` (low [3], high
+    [3]); ``checker(poses [B, 7]) -> colliding [B]``. Only exact solutions are returned."""
+    start, goal = np.asarray(start, float), np.asarray(goal, float)
+    lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
+    if start.shape != (7,) or goal.shape != (7,):
+        raise ValueError(f"start and goal must be poses [7], got {start.shape}, {goal.shape}")
+    if not (np.all(lo < hi) and np.all(lo <= start[:3]) and np.all(start[:3] <= hi)):
+        raise ValueError(f"start {start[:3]} outside the bounds {lo} .. {hi}")
+    if not (np.all(lo <= goal[:3]) and np.all(goal[:3] <= hi)):
+        raise ValueError(f"goal {goal[:3]} outside the bounds {lo} .. {hi}")
+    ou.setLogLevel(ou.LogLevel.LOG_WARN)
+    ou.RNG.setSeed(config.seed)
+    space = ob.SE3StateSpace()
+    rb = ob.RealVectorBounds(3)
+    for i in range(3):
+        rb.setLow(i, float(lo[i]))
+        rb.setHigh(i, float(hi[i]))
+    space.setBounds(rb)
+    space.setSubspaceWeight(1, float(rotation_weight))
+    si = ob.SpaceInformation(space)
+    counter = _Counter(checker, goal, config.goal_radius, rotation_weight)
+    si.setStateValidityChecker(lambda s: bool(counter.valid(_state_pose(s)[None])[0]))
+    validator = BatchedMotionValidator(si, counter)
+    si.setMotionValidator(validator)
+    si.setup()  # computes the maximum extent; the resolution is a fraction of it
+    si.setStateValidityCheckingResolution(config.resolution / space.getMaximumExtent())
+    ss = og.SimpleSetup(si)
+    s, g = space.allocState(), space.allocState()
+    _set_state(s, start)
+    _set_state(g, goal)
+    ss.setStartAndGoalStates(s, g)
+    planner = og.RRTConnect(si)
+    planner.setRange(config.range)
+    ss.setPlanner(planner)
+    t0 = time.perf_counter()
+    status = ss.solve(config.time_limit)
+    seconds = time.perf_counter() - t0
+    path = None
+    if ss.haveExactSolutionPath():
+        path = np.array([_state_pose(x) for x in ss.getSolutionPath().getStates()])
+    return PlanResult(path, status.asString(), seconds, counter.states, counter.calls)
+
+
+def dense_check(
+    mesh: MeshChecker, path: np.ndarray, resolution: float, rotation_weight: float
+) -> tuple[bool, float, int]:
+    """The ground truth of a returned path: (collision-free, deepest penetration in m,
+    states checked) with the full meshes at ``resolution``."""
+    states = interpolate_path(np.asarray(path, float), resolution, rotation_weight)
+    pen = mesh.penetration(states)
+    return bool(pen.max() <= mesh.tolerance), float(pen.max()), len(states)
+
+
+def path_scene_xml(scene, path: np.ndarray, max_keys: int = 100) -> str:
+    """The pair's MJCF with the path as keyframes (``<key qpos=...>``, at most ``max_keys``,
+    first = start, last = goal): open it in MuJoCo's viewer and step through the keys."""
+    from sim.scene import scene_xml
+
+    xml, _ = scene_xml(scene.obj, scene.support, scene.physics, pose=path[-1])
+    idx = np.unique(np.linspace(0, len(path) - 1, min(max_keys, len(path))).round().astype(int))
+    nq = scene.model.nq
+    keys = []
+    for k, i in enumerate(idx):
+        qpos = np.zeros(nq)
+        qpos[:7] = path[i]
+        keys.append(f'  <key name="path_{k:03d}" qpos="{" ".join(f"{v:.6g}" for v in qpos)}"/>')
+    block = "<keyframe>\n" + "\n".join(keys) + "\n</keyframe>\n"
+    return xml.replace("</mujoco>", block + "</mujoco>")
