@@ -101,6 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
         "and object categories, one folder each + OUT/heldout.json with the measured rates",
     )  # fmt: skip
     p.add_argument(
+        "--summary-only", action="store_true",
+        help="--heldout: write only OUT/heldout.json (no per-pair folders; for many pairs)",
+    )  # fmt: skip
+    p.add_argument(
         "--dataset", default="datasets/paper",
         help="labelled dataset whose test split --heldout draws from (default datasets/paper)",
     )  # fmt: skip
@@ -115,7 +119,9 @@ def heldout_main(args, config, log) -> int:
         raise ValueError(f"--heldout must be >= 1, got {args.heldout}")
     if args.object or args.support:
         raise ValueError("--heldout picks its own pairs: leave out --object and --support")
-    record = run_heldout(args.heldout, args.out, config, args.dataset, log=log)
+    record = run_heldout(
+        args.heldout, args.out, config, args.dataset, log=log, outputs=not args.summary_only
+    )
     s, e = record["summary"], record["expected"]
     print(
         f"held-out pairs hung: {s['hung']} of {s['pairs']} ({100 * s['hung_rate']:.0f} %; "
@@ -127,7 +133,10 @@ def heldout_main(args, config, log) -> int:
             f"top-ranked (measured on {e['pairs']} held-out pairs, {HELDOUT_RESULTS}); a few "
             f"pairs vary a lot around these rates"
         )
-    print(f"wrote {args.out}/heldout.json and one hang folder per pair")
+    print(
+        f"wrote {args.out}/heldout.json"
+        + ("" if args.summary_only else " and one hang folder per pair")
+    )
     return _cli.EXIT_OK
 
 

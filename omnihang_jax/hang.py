@@ -1247,6 +1247,24 @@ def heldout_pairs(n: int, dataset_dir: str | os.PathLike = "datasets/paper", see
     return chosen
 
 
+def heldout_rates(rows: list[dict]) -> dict:
+    """Per support family and per object category: [pairs, hung, top-ranked stable]."""
+    import collections
+
+    out: dict[str, dict] = {"per_support_family": {}, "per_object_category": {}}
+    for key, field in (("per_support_family", "support"), ("per_object_category", "object")):
+        table: dict = collections.defaultdict(lambda: [0, 0, 0])
+        for r in rows:
+            entry = table[r[field].rsplit("_", 1)[0]]
+            entry[0] += 1
+            entry[1] += int(r["hung"])
+            entry[2] += int(r["top_ranked"] == "stable")
+        out[key] = {
+            k: dict(pairs=v[0], hung=v[1], top_ranked_stable=v[2]) for k, v in sorted(table.items())
+        }
+    return out
+
+
 def expected_heldout(path: str | os.PathLike = HELDOUT_RESULTS) -> dict | None:
     """The measured held-out rates (``results/hang_heldout.json``), or None if absent."""
     try:
@@ -1316,6 +1334,7 @@ def run_heldout(
             seconds=round(time.perf_counter() - t0, 1),
             support_families=sorted({s.rsplit("_", 1)[0] for _, s in pairs}),
             object_categories=sorted({o.rsplit("_", 1)[0] for o, _ in pairs}),
+            **heldout_rates(rows),
         )
         record = dict(
             summary=summary,
