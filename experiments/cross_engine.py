@@ -132,6 +132,16 @@ def run(
             for fut in cf.as_completed([pool.submit(_job, job) for job in jobs]):
                 collect(*fut.result())
     bar.close()
+    statuses["behind_wall_m"] = np.array(
+        [
+            judges.behind_wall_depth(
+                library.objects[recipe["pairs"][it.pair_index][0]],
+                np.asarray(it.pose)[None],
+                library.supports[recipe["pairs"][it.pair_index][1]].wall_y,
+            )[0]
+            for it in items
+        ]
+    )
     return items, verdicts, statuses
 
 
@@ -151,6 +161,15 @@ def summarize(items, verdicts, statuses, bullet_names, mujoco_names) -> dict:
     for m in mujoco_names[1:]:
         comps[f"mujoco:{m}_vs_{ref_pb}"] = judges.agreement(items, verdicts, f"mujoco:{m}", ref_pb)
         comps[f"{ref_mj}_vs_mujoco:{m}"] = judges.agreement(items, verdicts, ref_mj, f"mujoco:{m}")
+    behind = statuses["behind_wall_m"] > 0.001
+    kinds = np.array([it.kind for it in items])
+    through_wall = {
+        kind: {
+            "poses_reaching_behind_the_wall_plane_over_1mm": int((behind & (kinds == kind)).sum()),
+            "of": int((kinds == kind).sum()),
+        }
+        for kind in ("stable", "near_miss")
+    }
     status_counts = {
         k: {
             kind: {
@@ -162,8 +181,9 @@ def summarize(items, verdicts, statuses, bullet_names, mujoco_names) -> dict:
             for kind in ("stable", "near_miss")
         }
         for k, v in statuses.items()
+        if k != "behind_wall_m"
     }
-    return {"comparisons": comps, "status_counts": status_counts}
+    return {"comparisons": comps, "status_counts": status_counts, "through_wall": through_wall}
 
 
 def export_disagreements(items, verdicts, a, b, out_dir, per_category: int) -> list[dict]:
@@ -171,6 +191,7 @@ def export_disagreements(items, verdicts, a, b, out_dir, per_category: int) -> l
     ``b`` differ as OBJ + pose folders; returns their descriptions."""
     recipe, library = _STATE["recipe"], _STATE["library"]
     out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     rows, count = [], {}
     for i, it in enumerate(items):
         if verdicts[a][i] == verdicts[b][i]:
@@ -224,7 +245,7 @@ def draw_figure(summary: dict, items, verdicts, comps: list[str], cases, png) ->
                 np.arange(len(cats)) + j * width,
                 [100 * (table[k]["agree"] or 0) for k in cats],
                 width,
-                label=c.split("_vs_")[-1],
+                label=c.replace("_vs_", " vs "),
             )
         ax.axhline(95, color="k", lw=0.8, ls="--")
         ax.set_xticks(np.arange(len(cats)) + 0.4 - width / 2)
@@ -333,24 +354,65 @@ def main(argv=None) -> dict:
             for i, it in enumerate(items):
                 row = dataclasses.asdict(it)
                 row["hangs"] = {k: bool(v[i]) for k, v in verdicts.items()}
-                row["status"] = {k: kernels.STATUS_NAMES[v[i]] for k, v in statuses.items()}
+                row["status"] = {
+                    k: kernels.STATUS_NAMES[v[i]]
+                    for k, v in statuses.items()
+                    if k != "behind_wall_m"
+                }
+                row["behind_wall_m"] = round(float(statuses["behind_wall_m"][i]), 5)
                 f.write(json.dumps(row) + "\n")
-    cases = []
     first, last = f"pybullet:{bullet[0]}", f"pybullet:{bullet[-1]}"
-    ref = f"mujoco:{mujoco[0]}"
+    ref, fixed = f"mujoco:{mujoco[0]}", f"mujoco:{mujoco[-1]}"
+    # before: MuJoCo's scene vs the first PyBullet set-up; after: the last of each
+    stages = {"before": (ref, first), "after": (fixed, last)}
+    result["before_after"] = {
+        stage: {
+            "comparison": f"{a}_vs_{b}",
+            **{
+                kind: {
+                    "overall": summary["comparisons"][f"{a}_vs_{b}"][kind]["overall"]["agree"],
+                    "per_category": {
+                        c: t["agree"]
+                        for c, t in summary["comparisons"][f"{a}_vs_{b}"][kind][
+                            "per_category"
+                        ].items()
+                    },
+                    "per_family": {
+                        f: t["agree"]
+                        for f, t in summary["comparisons"][f"{a}_vs_{b}"][kind][
+                            "per_family"
+                        ].items()
+                    },
+                }
+                for kind in ("stable", "near_miss")
+            },
+        }
+        for stage, (a, b) in stages.items()
+    }
+    cases = {}
     if args.export:
-        cases = export_disagreements(
-            items, verdicts, ref, last, args.export, args.export_per_category
-        )
-        result["exported"] = {"folder": args.export, "against": [ref, last], "cases": len(cases)}
+        for stage, (a, b) in stages.items():
+            cases[stage] = export_disagreements(
+                items, verdicts, a, b, Path(args.export) / stage, args.export_per_category
+            )
+        result["exported"] = {
+            stage: {
+                "folder": str(Path(args.export) / stage),
+                "against": list(stages[stage]),
+                "cases": len(rows),
+            }
+            for stage, rows in cases.items()
+        }
     if args.figure:
-        comps = [f"{ref}_vs_{first}"] + ([f"{ref}_vs_{last}"] if last != first else [])
-        if not cases:
-            cases = [
-                {"item": i, ref: bool(verdicts[ref][i]), last: bool(verdicts[last][i])}
-                for i in np.flatnonzero(verdicts[ref] != verdicts[last])[:8]
-            ]
-        draw_figure(summary, items, verdicts, comps, cases, args.figure)
+        comps = [f"{ref}_vs_pybullet:{b}" for b in bullet] + [
+            f"mujoco:{m}_vs_{last}" for m in mujoco[1:]
+        ]
+        a, b = stages["after"]
+        shown = cases.get("after") or [
+            {"item": int(i), a: bool(verdicts[a][i]), b: bool(verdicts[b][i])}
+            for i in np.flatnonzero(verdicts[a] != verdicts[b])[:8]
+        ]
+        draw_figure(summary, items, verdicts, comps, shown, args.figure)
         result["figure"] = args.figure
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

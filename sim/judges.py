@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 
 from sim import kernels
-from sim.kernels import DIVERGED, FALLEN, STABLE, StabilityConfig, StabilityResult
+from sim.kernels import DIVERGED, FALLEN, PENETRATING, STABLE, StabilityConfig, StabilityResult
 from sim.scene import Scene
 
 JUDGES = ("mujoco", "pybullet", "both")
@@ -85,7 +85,8 @@ def mujoco_variant(scene: Scene, **changes) -> Scene:
     """A copy of ``scene`` whose MuJoCo model differs in one or more contact settings:
     ``condim`` (3: no torsional friction), ``cone`` ("pyramidal" / "elliptic"),
     ``timeconst`` (solref time constant, s), ``timestep`` (s), ``friction`` (sliding
-    coefficient of every geom), ``torsional`` (m)."""
+    coefficient of every geom), ``torsional`` (m), ``thick_wall`` (m: the wall slab
+    becomes a block this thick behind the same wall plane)."""
     model = copy.copy(scene.model)
     for key, value in changes.items():
         if key == "condim":
@@ -103,6 +104,16 @@ def mujoco_variant(scene: Scene, **changes) -> Scene:
             model.geom_friction[:, 0] = value
         elif key == "torsional":
             model.geom_friction[:, 1] = value
+        elif key == "thick_wall":
+            if value and scene.wall_geom >= 0:
+                # the 2 cm wall slab -> a block ``value`` m thick behind the same wall plane:
+                # MuJoCo's capsule-box collision lets a strap pierce the thin slab
+                w = scene.wall_geom
+                half = np.array([model.geom_size[w][0], 0.5 * value, model.geom_size[w][2]])
+                model.geom_size[w] = half
+                model.geom_pos[w] = [0.0, scene.support.wall_y - half[1], 0.0]
+                model.geom_rbound[w] = float(np.linalg.norm(half))
+                model.geom_aabb[w] = np.concatenate([np.zeros(3), half])
         else:
             raise ValueError(f"unknown MuJoCo setting {key!r}")
     return dataclasses.replace(scene, model=model)
@@ -135,6 +146,7 @@ MUJOCO_VARIANTS = {
     "solref0.02": {"timeconst": 0.02},
     "dt0.5ms": {"timestep": 0.0005, "timeconst": 0.004},
     "friction0.25": {"friction": 0.25},
+    "thick_wall": {"thick_wall": 0.5},
 }
 
 
@@ -186,7 +198,8 @@ def sample_dataset(
     """A seeded sample of ``n_stable`` stable poses and ``n_near_miss`` near misses of a
     dataset (``sim.dataset.load_records`` + recipe), balanced over (object category,
     support family) cells: each cell gets an equal share (cells without poses give theirs to
-    the others), each pose drawn from a random pair of the cell. Near misses are
+    the others; the remainder goes to randomly chosen cells), each pose drawn from a random
+    pair of the cell. Near misses are
     regenerated from the pair seed (``sim.dataset.negative_candidates``) and the stored
     ``negative_kept`` bits."""
     from sim import dataset
@@ -207,7 +220,7 @@ def sample_dataset(
         }
         live = [k for k in keys if eligible[k]]
         share = np.full(len(live), total // max(1, len(live)))
-        share[: total - share.sum()] += 1
+        share[rng.choice(len(live), total - share.sum(), replace=False)] += 1
         for k, n in zip(live, share):
             rs = eligible[k]
             for _ in range(int(n)):
@@ -237,14 +250,41 @@ def near_miss_config(stability: StabilityConfig, dataset_config) -> StabilityCon
 def hangs(kind: str, poses: np.ndarray, res: StabilityResult, dataset_config) -> np.ndarray:
     """[B] bool, the verdict "it hangs" in the dataset's terms: a stable pose hangs if it is
     labelled STABLE; a near-miss candidate hangs unless it falls, diverges or moves more
-    than ``negative_moved`` (0.3 m) in its short rollout (``sim.dataset.near_miss_kept``)."""
+    than ``negative_moved`` (0.3 m) in its short rollout (``sim.dataset.near_miss_kept``),
+    or starts inside the support (PENETRATING: it cannot be placed there at all)."""
     if kind == "stable":
         return res.status == STABLE
     moved = np.linalg.norm(res.settled_pose[:, :3] - poses[:, :3], axis=1)
     miss = (
-        (res.status == FALLEN) | (res.status == DIVERGED) | (moved > dataset_config.negative_moved)
+        (res.status == FALLEN)
+        | (res.status == DIVERGED)
+        | (res.status == PENETRATING)
+        | (moved > dataset_config.negative_moved)
     )
     return ~miss
+
+
+def behind_wall_depth(obj, poses: np.ndarray, wall_y: float | None) -> np.ndarray:
+    """[B] m, how far the object at ``poses`` [B, 7] reaches behind the wall plane
+    ``y = wall_y`` (0 when it stays in front, or without a wall): exact for capsules
+    (endpoints minus radius), boxes and hulls (vertices). The scene's wall is a 2 cm slab,
+    which MuJoCo's capsule-box collision lets a strap pass through (docs/judges.md); a
+    real wall is a half-space."""
+    from sim.geometry import Capsule
+
+    poses = kernels.check_poses(poses)
+    if wall_y is None:
+        return np.zeros(len(poses))
+    rot = kernels._rotations(poses)  # [B, 3, 3]
+    deepest = np.full(len(poses), -np.inf)
+    for part in obj.parts:
+        if isinstance(part, Capsule):
+            pts, r = np.stack([part.p0, part.p1]), part.radius
+        else:
+            pts, r = part.support_points(), 0.0
+        y = np.einsum("bj,kj->bk", rot[:, 1, :], pts) + poses[:, 1:2] - r
+        deepest = np.maximum(deepest, wall_y - y.min(1))
+    return np.maximum(deepest, 0.0)
 
 
 def judge_pair(
