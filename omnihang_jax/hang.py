@@ -706,17 +706,97 @@ def stages_where(predictor, num_proposals: int, scorer=None) -> WhereFn:
     return where
 
 
-def default_how():
-    """The how-to-hang planner when ``omnihang_jax.planner`` provides ``plan_hang``, else
-    (None, reason)."""
+COLLISION_WEIGHTS = ("weights/collision_paper", "weights/collision_fast", "weights/collision")
+
+
+def find_collision_weights() -> Path | None:
+    """The first trained neural collision estimator (``<folder>/nce/config.json``) among
+    COLLISION_WEIGHTS, or None."""
+    for folder in COLLISION_WEIGHTS:
+        if (Path(folder) / "nce" / "config.json").exists():
+            return Path(folder) / "nce"
+    return None
+
+
+class _CloudGeometry(NamedTuple):
+    """What ``omnihang_jax.planner``'s start, bounds and metric read from a scene, taken from
+    the clouds when there is no scene: the object's extents and the support's box."""
+
+    obj: Any
+    support_bounds: np.ndarray
+
+
+def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
+    """(how, description) of the OMPL RRT-Connect planner (``omnihang_jax.planner``), or
+    (None, reason). The checker is the neural collision estimator on the observed clouds when
+    trained weights exist (the paper's "how"), else the full meshes in MuJoCo
+    (``planner.MeshChecker``, needs both meshes). With meshes, every returned path is checked
+    densely against the meshes (``planner.dense_check``). The path is resampled every
+    ``path_step`` (m, in the planner's metric) for drawing and keyframes."""
     try:
         from omnihang_jax import planner
-    except Exception as exc:
-        return None, f"omnihang_jax.planner not importable ({type(exc).__name__})"
-    fn = getattr(planner, "plan_hang", None)
-    if fn is None:
-        return None, "omnihang_jax.planner has no plan_hang(...) yet"
-    return fn, "omnihang_jax.planner.plan_hang"
+    except Exception as exc:  # ompl missing or the module broken: say so, do not fail
+        return None, f"omnihang_jax.planner not importable ({type(exc).__name__}: {exc})"
+    weights = find_collision_weights()
+
+    def how(scene, obj: Body, sup: Body, pose: np.ndarray) -> PathPlan | None:
+        import jax
+
+        if scene is not None:
+            geometry = scene
+        else:
+            extents = type("Extents", (), {"extents": np.ptp(obj.points, axis=0)})()
+            geometry = _CloudGeometry(extents, np.stack([sup.points.min(0), sup.points.max(0)]))
+        start = planner.start_pose(geometry, pose)
+        bounds = planner.default_bounds(geometry)
+        radius = planner.object_radius(geometry)
+        if weights is not None:
+            from omnihang_jax import collision
+
+            cfg, params, _ = collision.load_estimator(weights)
+            checker = planner.EstimatorChecker(
+                jax.jit(collision.nce_collides(cfg)),
+                params,
+                collision.subsample_cloud(obj.points, cfg.object_points, 0),
+                collision.subsample_cloud(sup.points, cfg.support_points, 1),
+            )
+            checker.warm_up()
+            name = f"RRT-Connect (OMPL) with the neural collision estimator {weights}"
+        elif scene is not None:
+            checker = planner.MeshChecker(scene)
+            name = "RRT-Connect (OMPL) with the full meshes in MuJoCo (no trained NCE yet)"
+        else:
+            return None
+        config = planner.PlannerConfig(time_limit=time_limit)
+        res = planner.plan(checker, start, pose, bounds, radius, config)
+        info = dict(
+            checker=name,
+            status=res.status,
+            planning_s=res.planning_s,
+            states_checked=res.states_checked,
+            start_xyz_wxyz=[float(x) for x in start],
+        )
+        if res.path is None:
+            return PathPlan(np.zeros((0, 7)), name, info)
+        info["waypoints"] = len(res.path)
+        if scene is not None:
+            free, deepest, n = planner.dense_check(
+                planner.MeshChecker(scene, config.penetration_tolerance), res.path,
+                config.dense_resolution, radius,
+            )  # fmt: skip
+            info.update(
+                dense_check_collision_free=free, deepest_penetration_m=deepest, dense_states=n
+            )
+        return PathPlan(planner.interpolate_path(res.path, path_step, radius), name, info)
+
+    if weights is None:
+        return how, "OMPL RRT-Connect, full-mesh checker (no trained collision estimator yet)"
+    return how, f"OMPL RRT-Connect, neural collision estimator {weights}"
+
+
+def default_how():
+    """The how-to-hang step: :func:`planner_how` (or None, the reason)."""
+    return planner_how()
 
 
 def available_steps() -> dict:
@@ -989,8 +1069,20 @@ def hang(
             steps["how"] = "not run: no candidate hangs"
         else:
             _say(log, f"how to hang: {reason}")
-            path = how(scene, obj, sup, pose)
-            steps["how"] = reason if path is not None else f"{reason}: no path found"
+            try:
+                path = how(scene, obj, sup, pose)
+            except Exception as exc:  # a planner failure must not lose the where answer
+                path = PathPlan(
+                    np.zeros((0, 7)), reason, {"status": f"{type(exc).__name__}: {exc}"}
+                )
+                warnings.append(f"how to hang failed: {type(exc).__name__}: {exc}")
+            if path is None:
+                steps["how"] = f"not possible: {reason} needs the meshes of both bodies"
+            elif len(path.poses) == 0:
+                steps["how"] = f"{reason}: no path found ({path.info.get('status')})"
+                path = None
+            else:
+                steps["how"] = f"{reason}: {len(path.poses)} poses"
     else:
         steps["how"] = "skipped (plan=False)"
     timings["how"] = time.perf_counter() - t

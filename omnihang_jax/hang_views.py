@@ -166,7 +166,7 @@ def draw_png(result, scene, path: str | os.PathLike) -> Path:
         + ("" if result.path is None else f", path of {len(result.path.poses)} poses"),
         fontsize=11,
     )
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
     path = Path(path)
     fig.savefig(path)
     plt.close(fig)
