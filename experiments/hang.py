@@ -70,6 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--model", default=DEFAULT_MODEL, help=f"trained networks (default {DEFAULT_MODEL})"
     )
     p.add_argument(
+        "--value", default=None,
+        help="Stage-3 value weights (default: MODEL/stage3 or weights/stage3_paper when trained)",
+    )  # fmt: skip
+    p.add_argument(
         "--num-proposals", type=int, default=d.num_proposals,
         help=f"Stage-1 proposals; each is also refined by Stage 2 (default {d.num_proposals})",
     )  # fmt: skip
@@ -161,6 +165,7 @@ def main(argv=None) -> int:
         recenter=args.recenter,
         coacd=args.coacd,
         cache_dir=args.cache,
+        value=args.value,
     )
     if args.noise < 0:
         raise ValueError(f"--noise must be >= 0, got {args.noise}")

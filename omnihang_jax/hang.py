@@ -130,6 +130,7 @@ class HangConfig:
     free_standing: bool = False  # a user support stands on the floor instead of a wall
     recenter: bool = False  # clouds: move each cloud's bounding-box centre to the origin
     coacd: str = "default"  # "default" or "fast" (sim.decompose.FAST: previews, tests)
+    value: str | None = None  # Stage-3 value weights; None: find_value_weights(model)
     cache_dir: str | None = None  # CoACD cache; None: out/cache/coacd in the working directory
 
     def scale_of(self, kind: str) -> float | None:
@@ -664,26 +665,82 @@ def _clearance_scores(obj: Body, sup: Body, poses: np.ndarray) -> np.ndarray:
     return 1.0 - np.asarray(pen, np.float64)
 
 
-def stage3_scorer():
-    """The Stage-3 value function when ``omnihang_jax.stage3`` provides a loadable one,
-    else None (with the reason). Looked up at call time: Stage 3 lands separately."""
-    try:
-        from omnihang_jax import stage3
-    except Exception as exc:  # absent or broken module: say so, do not fail the call
-        return None, f"omnihang_jax.stage3 not importable ({type(exc).__name__})"
-    loader = getattr(stage3, "load_value_scorer", None)
-    if loader is None:
-        return None, "omnihang_jax.stage3 has no load_value_scorer(folder) yet"
-    try:
-        return loader(DEFAULT_MODEL), "omnihang_jax.stage3.load_value_scorer"
-    except Exception as exc:
-        return None, f"Stage-3 weights not loadable ({type(exc).__name__}: {exc})"
+VALUE_WEIGHTS = ("weights/stage3_paper", "weights/value_paper", "weights/stage3", "weights/value")
+CEM_STARTS = 5  # Stage-2 proposals CEM refines (the paper's K at evaluation); CEM costs
+# population x iterations = 320 value-network states per start
 
 
-def stages_where(predictor, num_proposals: int, scorer=None) -> WhereFn:
+def find_value_weights(model: str | os.PathLike = DEFAULT_MODEL) -> Path | None:
+    """The trained Stage-3 value network (``config.json`` + ``params.msgpack``, as
+    ``omnihang_jax.refine.save_value`` writes): ``MODEL/stage3``, ``MODEL/value``, then
+    VALUE_WEIGHTS (each folder or its ``value/``); None when there is none yet."""
+    places = [Path(model) / "stage3", Path(model) / "value"]
+    for folder in VALUE_WEIGHTS:
+        places += [Path(folder), Path(folder) / "value"]
+    for place in places:
+        if (place / "params.msgpack").exists() and (place / "config.json").exists():
+            return place
+    return None
+
+
+class Stage3(NamedTuple):
+    """A loaded value network: ``score(clouds, poses [P, 7]) -> [P]`` log P(hang) and
+    ``refine(clouds, starts [K, 7], seed) -> (poses [K, 7], scores [K])`` (CEM on V)."""
+
+    folder: str
+    score: Callable
+    refine: Callable
+
+
+def load_stage3(folder: str | os.PathLike) -> Stage3:
+    """Stage 3 from a value-weights folder (``omnihang_jax.refine.load_value``), jitted."""
+    import jax
+
+    from omnihang_jax import refine, stage3
+
+    config, params = refine.load_value(folder)
+    value = stage3.make_value(config)
+    score_jit = jax.jit(value.score)
+    refine_jit = jax.jit(stage3.make_refiner(config, stage3.CEMConfig()))
+
+    def clouds_of(obj: Body, sup: Body):
+        full = stage3.PairClouds(obj.points, obj.normals, sup.points, sup.normals)
+        return stage3.subsample_clouds(full, config)
+
+    def score(obj: Body, sup: Body, poses):
+        return np.asarray(score_jit(params, clouds_of(obj, sup), np.asarray(poses, np.float32)))
+
+    def refine_fn(obj: Body, sup: Body, starts, seed: int):
+        small = jax.tree.map(lambda x: x[None], clouds_of(obj, sup))
+        out = refine_jit(params, jax.random.key(seed), small, np.asarray(starts, np.float32)[None])
+        return np.asarray(out.poses[0], np.float64), np.asarray(out.scores[0], np.float64)
+
+    return Stage3(os.fspath(folder), score, refine_fn)
+
+
+def stage3_scorer(config: HangConfig | None = None):
+    """(Stage3 or None, description): the value network when trained weights exist
+    (``config.value`` or :func:`find_value_weights`), else None and the reason."""
+    config = config or HangConfig()
+    folder = Path(config.value) if config.value else find_value_weights(config.model)
+    if folder is None:
+        return None, (
+            "no trained Stage-3 value weights yet (looked in MODEL/stage3, MODEL/value, "
+            + ", ".join(VALUE_WEIGHTS)
+            + ")"
+        )
+    try:
+        return load_stage3(folder), f"Stage-3 value network {folder} (CEM on the best {CEM_STARTS})"
+    except Exception as exc:  # present but unusable weights: say so, rank without them
+        return None, f"Stage-3 weights {folder} not loadable ({type(exc).__name__}: {exc})"
+
+
+def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) -> WhereFn:
     """The where-to-hang step on the committed networks: K Stage-1 proposals and their
-    Stage-2 refinements (2K candidates), ranked best first by ``scorer(obj, sup, poses)``
-    ([C] higher better: the Stage-3 value) or, without one, by the observed-cloud clearance."""
+    Stage-2 refinements (2K candidates). With ``stage3``: every candidate scored by the value
+    network (log P(hang)) and the CEM_STARTS best Stage-2 proposals refined by CEM on it (K'
+    more candidates, stage "stage3"), ranked by the value; without: ranked by the observed-
+    cloud clearance."""
     import jax
 
     def where(obj: Body, sup: Body, seed: int) -> Candidates:
@@ -696,8 +753,15 @@ def stages_where(predictor, num_proposals: int, scorer=None) -> WhereFn:
         k = num_proposals
         stage = np.array(["stage1"] * k + ["stage1_2"] * k)
         proposal = np.concatenate([np.arange(k), np.arange(k)])
-        if scorer is not None:
-            score, name = np.asarray(scorer(obj, sup, poses), np.float64), "stage3_value"
+        if stage3 is not None:
+            score, name = stage3.score(obj, sup, poses).astype(np.float64), "stage3_log_value"
+            best = np.argsort(-score[k:], kind="stable")[: min(CEM_STARTS, k)]
+            refined, refined_score = stage3.refine(obj, sup, poses[k + best], seed)
+            refined[:, 3:] /= np.linalg.norm(refined[:, 3:], axis=1, keepdims=True)
+            poses = np.concatenate([poses, refined])
+            stage = np.concatenate([stage, ["stage3"] * len(best)])
+            proposal = np.concatenate([proposal, best])
+            score = np.concatenate([score, refined_score])
         else:
             score, name = _clearance_scores(obj, sup, poses), "observed_clearance"
         order = np.argsort(-score, kind="stable")
@@ -1009,11 +1073,16 @@ def hang(
     # ---- where
     t = time.perf_counter()
     if where is None:
-        scorer, steps["stage3"] = stage3_scorer()
+        scorer, steps["stage3"] = stage3_scorer(config)
         where = stages_where(predictor, config.num_proposals, scorer)
         steps["where"] = (
             f"Stages 1-2 ({config.model}), {config.num_proposals} proposals + their Stage-2 "
-            f"refinements, ranked by {'the Stage-3 value' if scorer else 'observed-cloud clearance'}"
+            f"refinements"
+            + (
+                f", the best {CEM_STARTS} refined by CEM on the Stage-3 value, ranked by it"
+                if scorer
+                else ", ranked by observed-cloud clearance"
+            )
         )
         if scorer is None:
             steps["stage3"] = f"not available yet: {steps['stage3']}"

@@ -2,7 +2,7 @@
 
 - :func:`write_scene_xml`: the pair's MJCF (``sim.scene.write_scene``: convex parts as STL,
   visual meshes as OBJ) with the object at the answer and keyframes ``answer``, ``settled``
-  and ``path_000``... (MuJoCo's viewer: Ctrl+Shift+K cycles... or the Keyframes panel).
+  and ``path_000``... (MuJoCo's viewer: the Simulation panel's Key slider, then "Load key").
 - :func:`draw_png`: the clouds, the candidates (coloured by their simulated status), the
   answer before and after the simulated second (ray-cast renders, ``sim.render``), the path.
 - :func:`write_viewer`: one self-contained interactive 3-D page (plotly's offline HTML with

@@ -164,6 +164,31 @@ def test_output_folder_is_complete_or_absent(tmp_path, monkeypatch):
         H.write_outputs(result, tmp_path / "other", config, log=None)
 
 
+@pytest.mark.slow  # compiles the full Stage 1 + 2 networks and CEM: ~60 s on 2 cores
+def test_stage3_is_wired_in_when_value_weights_exist(tmp_path):
+    """With value weights present (here a tiny random network: wiring, not learning), the
+    candidates are ranked by log V and the best Stage-2 proposals come back refined by CEM,
+    never scoring below their start (CEM scores the start first)."""
+    import jax
+
+    from omnihang_jax import refine, stage3
+
+    folder = tmp_path / "value"
+    net = stage3.make_value(stage3.VALUE_TINY)
+    refine.save_value(folder, stage3.VALUE_TINY, net.init(jax.random.key(0)))
+    config = H.HangConfig(num_proposals=3, value=str(folder), plan=False, verify=False,
+                          image_width=160, image_height=120)  # fmt: skip
+    result = H.hang(None, None, None, config, log=None)
+    c = result.candidates
+    assert c.score_name == "stage3_log_value" and "Stage-3 value network" in result.steps["stage3"]
+    assert sorted(set(c.stage)) == ["stage1", "stage1_2", "stage3"]
+    assert (np.diff(c.score) <= 1e-6).all()  # ranked by the value, best first
+    s3 = H.load_stage3(folder)
+    for i in np.flatnonzero(c.stage == "stage3"):
+        start = c.poses[(c.stage == "stage1_2") & (c.proposal == c.proposal[i])][0]
+        assert c.score[i] >= s3.score(result.object, result.support, start[None])[0] - 1e-4
+
+
 # ----------------------------------------------------------------------------- the page
 
 # Injected into a copy of the page: records uncaught errors, failed resources and
