@@ -7,6 +7,10 @@
 #               command="bash scripts/device_stage3.sh start")
 #   call 2+: run(carry=[".whl_min", ".whl_train"], timeout_s=600,
 #               command="bash scripts/device_stage3.sh wait")     (issue within 30 s)
+#   (measured: the 30-s warm window is easily missed, and a missed one starts a bare machine
+#   that has lost the job; the whole train job fits one call: docs/device_runs.md)
+#   eval:   run(carry=[".whl_min", ".whl_train"], timeout_s=600,
+#               command="bash scripts/device_stage3.sh eval")      (one call, foreground)
 #
 # The job: derive NTRAIN training pairs (round robin over categories) and the held-out pairs
 # of results/hanging_success.pairs.jsonl on all cores; train V (experiments.train_stage3,
@@ -21,6 +25,28 @@ W=/tmp/s3
 WAIT_S=${WAIT_S:-560}
 T0=$(date +%s)
 mkdir -p "$OUT" "$W"
+
+if [ "$MODE" = eval ]; then
+    # one call, foreground: derive the held-out pairs, evaluate the committed V
+    # (VALUE, default weights/value_small_paper) on all of them, benchmark the pipeline
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
+        .whl_min/*.whl .whl_train/*.whl || exit 5
+    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+    V=${VALUE:-weights/value_small_paper}
+    nvidia-smi -L | tee "$OUT/eval.log"
+    python3 -m experiments.derive_dataset --data datasets/paper --split test \
+        --pairs-from results/hanging_success.pairs.jsonl --workers 16 --no-progress >"$OUT/derive_test.log" 2>&1
+    echo "[$(($(date +%s) - T0)) s] derived $(ls datasets/paper/derived/test | wc -l)" | tee -a "$OUT/eval.log"
+    timeout ${EVAL_S:-420} python3 -m experiments.eval_stage3 --value "$V" \
+        --pairs-from results/hanging_success.pairs.jsonl --workers 15 --batch 16 \
+        --out "$OUT/hanging_success_stage3.json" --label "${LABEL:-the 1,814 held-out pairs}" \
+        --no-progress 2>&1 | tail -40 | tee -a "$OUT/eval.log"
+    echo "[$(($(date +%s) - T0)) s] evaluated" | tee -a "$OUT/eval.log"
+    timeout $((570 - $(date +%s) + T0)) python3 -m experiments.bench_stage3 --value "$V" \
+        --out "$OUT/bench_stage3.json" 2>&1 | tail -5 | tee -a "$OUT/eval.log"
+    gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
+    exit 0
+fi
 
 if [ "$MODE" = start ]; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
