@@ -269,11 +269,18 @@ def _read_cloud(path: Path) -> np.ndarray:
 
             cloud = trimesh.load(str(path), process=False)
             arr = np.asarray(cloud.vertices, np.float64)
-            raw = getattr(cloud, "metadata", {}).get("_ply_raw", {}).get("vertex", {})
-            names = raw.get("data", np.zeros(0)).dtype.names or () if raw else ()
-            if {"nx", "ny", "nz"} <= set(names):
-                data = raw["data"]
-                arr = np.concatenate([arr, np.stack([data[k] for k in ("nx", "ny", "nz")], 1)], 1)
+            data = getattr(cloud, "metadata", {}).get("_ply_raw", {}).get("vertex", {}).get("data")
+            if isinstance(data, dict):  # trimesh's ASCII reader: one array per property
+                columns = data
+            elif data is not None and getattr(data, "dtype", None) is not None:  # binary
+                columns = {k: data[k] for k in (data.dtype.names or ())}
+            else:
+                columns = {}
+            if all(k in columns for k in ("nx", "ny", "nz")):
+                normals = np.stack(
+                    [np.asarray(columns[k], float).ravel() for k in ("nx", "ny", "nz")], 1
+                )
+                arr = np.concatenate([arr, normals], 1)
     except HangInputError:
         raise
     except zipfile.BadZipFile as exc:

@@ -129,6 +129,14 @@ def test_clouds_only_are_unverified_and_say_so(tmp_path):
     assert record["support"]["report"]["normals"].startswith("estimated")
 
 
+@pytest.mark.parametrize("name", ["mug_cloud.npy", "mug_cloud.ply"])
+def test_cloud_files_with_normals(name):
+    body = H.load_body(PAIR / name, "object", H.HangConfig(), 512, 128, np.random.default_rng(0))
+    assert body.source == "cloud" and body.report["normals"] == "file"
+    assert body.points.shape == (512, 3) and body.report["points_read"] == 2048
+    np.testing.assert_allclose(np.linalg.norm(body.normals, axis=1), 1.0, atol=1e-5)
+
+
 def test_millimetre_cloud_is_accepted_with_scale(tmp_path):
     rng = np.random.default_rng(0)
     mm = np.load(PAIR / "mug_cloud.npy")[:, :3] * 1000.0
