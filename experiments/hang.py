@@ -193,7 +193,16 @@ def main(argv=None) -> int:
         )
     if result.search is not None:
         s = result.search
-        lines.append(f"search: {s['stable']} stable of {s['candidates']} sampled ({s['sampler']})")
+        near = s.get("nearest_to_answer")
+        lines.append(
+            f"search: {s['stable']} stable of {s['candidates']} sampled ({s['sampler']})"
+            + (
+                f"; the nearest to the answer is {100 * near['translation_m']:.1f} cm, "
+                f"{near['rotation_deg']:.0f} deg away"
+                if near
+                else ""
+            )
+        )
     for step in ("stage3", "how"):
         if step in result.steps:
             lines.append(f"{step}: {result.steps[step]}")

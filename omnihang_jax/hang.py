@@ -1181,11 +1181,17 @@ def hang(
             )  # fmt: skip
             bar.close()
             if len(search["poses"]):
+                # nearest in the planner's metric: translation + half-extent x angle, roughly
+                # the largest displacement of an object point (omnihang_jax.planner)
                 dt, dr = pose_distance(pose, search["poses"])
-                j = int(np.argmin(dt))
+                half = 0.5 * float(np.max(obj_asset.extents))
+                j = int(np.argmin(dt + half * np.radians(dr)))
                 search["nearest_to_answer"] = dict(
-                    index=j, translation_m=float(dt[j]), rotation_deg=float(dr[j])
-                )
+                    index=j, translation_m=float(dt[j]), rotation_deg=float(dr[j]),
+                    metric="translation + half-extent x angle", pose_xyz_wxyz=[
+                        float(x) for x in search["poses"][j]
+                    ], answer_xyz_wxyz=[float(x) for x in pose],
+                )  # fmt: skip
             steps["search"] = f"{search['sampler']}: {search['stable']} of {search['candidates']}"
     else:
         steps["search"] = "not requested (--search)"
