@@ -1,6 +1,6 @@
 """Inference latency of the where-to-hang pipeline (Stage 1 proposals + Stage 2 updates).
 
-    python -m experiments.bench_where --model runs/where --out results/bench_where.json
+    python -m experiments.bench_where --model weights/where_small_paper --out results/bench_where.json
     python -m experiments.bench_where --preset small --out /tmp/bench_where.json  # random weights
 
 Times the jitted ``predict`` (clouds -> K pose proposals with Stage-2 translations) at each

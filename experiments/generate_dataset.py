@@ -1,8 +1,8 @@
 """Generate (or resume) the hanging dataset.
 
     python -m experiments.generate_dataset --preset demo --out out/dataset_demo
-    python -m experiments.generate_dataset --preset paper --out data/paper --workers 0
-    python -m experiments.generate_dataset --preset paper --out data/paper --part 1/2
+    python -m experiments.generate_dataset --preset paper --out datasets/paper --workers 0
+    python -m experiments.generate_dataset --preset paper --out datasets/paper --part 1/2
 
 Shards already on disk are never redone; kill the job at any time and run the same command
 again. The dataset card is written at the end (DIR/dataset_card.json and .md).

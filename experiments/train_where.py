@@ -2,7 +2,7 @@
 Stage 2b (contact correspondences).
 
     python -m experiments.train_where --data synthetic --out runs/where_tiny --preset tiny --steps 200
-    python -m experiments.train_where --data data/paper --out runs/where --stage all
+    python -m experiments.train_where --data datasets/paper/derived --out runs/where --stage all
 
 Each stage trains into OUT/stage<name>/ (config.json, orbax checkpoints, metrics.jsonl,
 loss.png) and resumes from its latest checkpoint: run the same command again to continue or
