@@ -233,10 +233,10 @@ def draw_figure(summary: dict, items, verdicts, comps: list[str], cases, png) ->
 
     recipe, library = _STATE["recipe"], _STATE["library"]
     shown = cases[:8]
-    rows = 1 + (1 if shown else 0)
-    fig = plt.figure(figsize=(16, 4.2 * rows))
+    fig = plt.figure(figsize=(16, 7.4 if shown else 4.4))
+    grid = fig.add_gridspec(2 if shown else 1, 8, height_ratios=[1.6, 1] if shown else [1])
     for col, kind in enumerate(("stable", "near_miss")):
-        ax = fig.add_subplot(rows, 2, col + 1)
+        ax = fig.add_subplot(grid[0, 4 * col : 4 * col + 4])
         cats = sorted(summary["comparisons"][comps[0]][kind]["per_category"])
         width = 0.8 / len(comps)
         for j, c in enumerate(comps):
@@ -251,15 +251,16 @@ def draw_figure(summary: dict, items, verdicts, comps: list[str], cases, png) ->
         ax.set_xticks(np.arange(len(cats)) + 0.4 - width / 2)
         ax.set_xticklabels(cats, rotation=35, ha="right", fontsize=8)
         ax.set_ylim(0, 102)
-        ax.set_ylabel("agreement with MuJoCo (%)")
-        ax.set_title(f"{kind.replace('_', ' ')} poses, per category")
+        ax.set_ylabel("verdicts agreeing (%)")
+        n = summary["comparisons"][comps[0]][kind]["overall"]["n"]
+        ax.set_title(f"{kind.replace('_', ' ')} poses ({n}), per object category")
         ax.legend(fontsize=7, loc="lower left")
     for j, case in enumerate(shown):
         it = items[case["item"]]
         obj, sup, _ = recipe["pairs"][it.pair_index]
         scene = build_scene(library.objects[obj], library.supports[sup])
         img = render_scene(scene, np.asarray(it.pose), 240, 180)
-        ax = fig.add_subplot(rows * 2, 8, 8 * (2 * rows - 2) + j + 1 + 8)
+        ax = fig.add_subplot(grid[1, j])
         ax.imshow(img)
         ax.set_axis_off()
         verdict = ", ".join(
@@ -298,7 +299,41 @@ def main(argv=None) -> dict:
     parser.add_argument("--export-per-category", type=int, default=3)
     parser.add_argument("--figure", default=None, help="PNG")
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument(
+        "--redraw",
+        metavar="ITEMS_JSONL",
+        default=None,
+        help="only redraw --figure from an earlier run's --items and --out files",
+    )
     args = parser.parse_args(argv)
+    if args.redraw:
+        if not args.figure:
+            parser.error("--redraw needs --figure")
+        _init(args.data)
+        rows = [json.loads(line) for line in Path(args.redraw).read_text().splitlines()]
+        items = [
+            judges.SampleItem(
+                r["pair_index"], r["kind"], r["pose_index"], tuple(r["pose"]), r["category"],
+                r["family"],
+            )
+            for r in rows
+        ]  # fmt: skip
+        verdicts = {k: np.array([r["hangs"][k] for r in rows]) for k in rows[0]["hangs"]}
+        result = json.loads(Path(args.out).read_text())
+        comps = [c for c in result["comparisons"] if not c.startswith("dataset_vs")]
+        comps = [
+            c
+            for c in comps
+            if not c.startswith(f"mujoco:{list(result['mujoco_variants'])[0]}_vs_mujoco")
+        ]
+        a, b = result["before_after"]["after"]["comparison"].split("_vs_")
+        shown = [
+            {"item": int(i), a: bool(verdicts[a][i]), b: bool(verdicts[b][i])}
+            for i in np.flatnonzero(verdicts[a] != verdicts[b])[:8]
+        ]
+        draw_figure(result, items, verdicts, comps, shown, args.figure)
+        print(f"wrote {args.figure}")
+        return result
     bullet = list(judges.BULLET_VARIANT_NAMES) if args.bullet == "all" else args.bullet.split(",")
     mujoco = list(judges.MUJOCO_VARIANTS) if args.mujoco == "all" else args.mujoco.split(",")
     for b in bullet:

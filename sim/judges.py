@@ -126,6 +126,7 @@ def _bullet_variants() -> dict:
     return {
         "matched": m,
         "original": pr.ORIGINAL,
+        "legacy": pr.LEGACY,
         "matched+bullet_margins": dataclasses.replace(m, hulls="inflated"),
         "matched+product_friction": dataclasses.replace(m, friction_combine="original"),
         "matched+no_spin_friction": dataclasses.replace(m, spinning_friction=0.0),
@@ -161,6 +162,7 @@ def bullet_variant(name: str):
 BULLET_VARIANT_NAMES = (
     "matched",
     "original",
+    "legacy",
     "matched+bullet_margins",
     "matched+product_friction",
     "matched+no_spin_friction",
