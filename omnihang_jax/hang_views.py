@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import re
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -143,7 +144,9 @@ def draw_png(result, scene, path: str | os.PathLike) -> Path:
                 (result.pose, f"{before}\nbefore simulation"),
                 (
                     result.settled_pose if result.settled_pose is not None else result.pose,
-                    f"after 1 s simulated: {result.verdict}",
+                    f"after 1 s simulated: {result.verdict}"
+                    if result.settled_pose is not None
+                    else "not simulated (verify=False)",
                 ),
             ]
         ):
@@ -159,8 +162,9 @@ def draw_png(result, scene, path: str | os.PathLike) -> Path:
         ax.set_title(f"{before}\n(clouds only: unverified)", fontsize=9)
         ax = fig.add_subplot(1, 4, 4)
         ax.set_axis_off()
-        ax.text(0.05, 0.5, "no simulation:\nonly clouds were given\n(no meshes to simulate)",
-                fontsize=11, va="center")  # fmt: skip
+        reason = result.steps.get("check", "no meshes to simulate").split(";")[0]
+        ax.text(0.0, 0.5, "no simulation:\n" + textwrap.fill(reason, 34), fontsize=10,
+                va="center")  # fmt: skip
     fig.suptitle(
         f"hang {obj.name} on {sup.name}: {result.verdict}"
         + ("" if result.path is None else f", path of {len(result.path.poses)} poses"),
