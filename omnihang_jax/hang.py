@@ -1270,6 +1270,23 @@ def _check_out(out: Path) -> None:
         raise HangInputError(f"{out}: cannot write into {parent} (permission denied)")
 
 
+def _input_frame_pose(result: HangResult) -> dict | None:
+    """With --recenter: the answer between the clouds as given (before recentring):
+    ``T_input = Trans(c_support) T Trans(-c_object)``; None when nothing was recentred."""
+    c_obj = np.asarray(result.object.report.get("recentered_by", np.zeros(3)), float)
+    c_sup = np.asarray(result.support.report.get("recentered_by", np.zeros(3)), float)
+    if not (c_obj.any() or c_sup.any()):
+        return None
+    m = result.matrix.copy()
+    m[:3, 3] = m[:3, 3] - m[:3, :3] @ c_obj + c_sup
+    return dict(
+        xyz=[float(x) for x in m[:3, 3]],
+        quat_wxyz=[float(x) for x in result.pose[3:]],
+        matrix=[[float(x) for x in row] for row in m],
+        note="the answer between the input clouds before --recenter moved them",
+    )
+
+
 def result_json(result: HangResult, config: HangConfig) -> dict:
     """The JSON record of a result (the layout of result.json; docs/hang.md)."""
     from sim import kernels
@@ -1318,6 +1335,7 @@ def result_json(result: HangResult, config: HangConfig) -> dict:
             rank=int(result.chosen),
             score=float(c.score[result.chosen]),
         ),
+        pose_in_input_frames=_input_frame_pose(result),
         settled_pose_xyz_wxyz=(
             None if result.settled_pose is None else [float(x) for x in result.settled_pose]
         ),

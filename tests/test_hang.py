@@ -137,6 +137,25 @@ def test_cloud_files_with_normals(name):
     np.testing.assert_allclose(np.linalg.norm(body.normals, axis=1), 1.0, atol=1e-5)
 
 
+def test_recentred_clouds_answer_in_the_input_frames(tmp_path):
+    """--recenter: clouds far from their frames' origins are moved there, and result.json
+    also gives the answer between the clouds as they were given."""
+    mug = np.load(PAIR / "mug_cloud.npy")[:, :3].astype(np.float64)
+    bar = mug * np.array([0.3, 1.2, 0.2])
+    c_obj, c_sup = np.array([3.0, -1.0, 0.5]), np.array([-2.0, 4.0, 1.0])
+    config = H.HangConfig(recenter=True, plan=False)
+    result = H.hang(mug + c_obj, bar + c_sup, tmp_path / "r", config, where=cloud_where, log=None)
+    record = json.loads((tmp_path / "r" / "result.json").read_text())
+    m_in = np.asarray(record["pose_in_input_frames"]["matrix"])
+    points = mug[:50] + c_obj  # object points as given
+    moved_in = points @ m_in[:3, :3].T + m_in[:3, 3]
+    rec = points - np.asarray(result.object.report["recentered_by"])
+    moved = hang_views.transform(rec, result.pose) + np.asarray(
+        result.support.report["recentered_by"]
+    )
+    np.testing.assert_allclose(moved_in, moved, atol=1e-9)
+
+
 def test_millimetre_cloud_is_accepted_with_scale(tmp_path):
     rng = np.random.default_rng(0)
     mm = np.load(PAIR / "mug_cloud.npy")[:, :3] * 1000.0
