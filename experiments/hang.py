@@ -2,9 +2,12 @@
 pose checked in MuJoCo out.
 
     python -m experiments.hang --out out/hang                         # built-in mug on hook
-    python -m experiments.hang --object mug.obj --support hook.stl --out out/my_hang --search
-    python -m experiments.hang --object mug_cloud.npy --support hook.ply --out out/clouds
-    python -m experiments.hang --object mug_mm.stl --scale 0.001 --out out/mm
+    python -m experiments.hang --object tests/fixtures/hang_pair/mug.obj \
+        --support tests/fixtures/hang_pair/l_hook.stl --out out/my_hang --search
+    python -m experiments.hang --object tests/fixtures/hang_pair/mug_cloud.ply --out out/clouds
+    python -m experiments.hang --object towel_bar_0001 --support mug_0016 --out out/x  # error: swapped
+    python -m experiments.hang --object my_mug_in_mm.stl --scale 0.001 --out out/mm
+    python -m experiments.hang --heldout 6 --out out/hang_heldout    # held-out library pairs
 
 Inputs: a mesh (OBJ, STL, PLY, GLB/GLTF), a point cloud (.npy / .npz / .ply of [N, 3] points
 or [N, 6] points + normals), a library asset name (mug_0016, single_rod_hook_0001) or
