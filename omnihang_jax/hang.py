@@ -672,7 +672,9 @@ def _clearance_scores(obj: Body, sup: Body, poses: np.ndarray) -> np.ndarray:
     return 1.0 - np.asarray(pen, np.float64)
 
 
-VALUE_WEIGHTS = ("weights/stage3_paper", "weights/value_paper", "weights/stage3", "weights/value")
+# where Stage-3 value weights are looked for (scripts/device_stage3.sh writes the first);
+# then any weights/value_* folder
+VALUE_WEIGHTS = ("weights/value_small_paper", "weights/value_paper", "weights/stage3_paper")
 CEM_STARTS = 5  # Stage-2 proposals CEM refines (the paper's K at evaluation); CEM costs
 # population x iterations = 320 value-network states per start
 
@@ -682,7 +684,7 @@ def find_value_weights(model: str | os.PathLike = DEFAULT_MODEL) -> Path | None:
     ``omnihang_jax.refine.save_value`` writes): ``MODEL/stage3``, ``MODEL/value``, then
     VALUE_WEIGHTS (each folder or its ``value/``); None when there is none yet."""
     places = [Path(model) / "stage3", Path(model) / "value"]
-    for folder in VALUE_WEIGHTS:
+    for folder in [*VALUE_WEIGHTS, *map(str, sorted(Path("weights").glob("value_*")))]:
         places += [Path(folder), Path(folder) / "value"]
     for place in places:
         if (place / "params.msgpack").exists() and (place / "config.json").exists():
@@ -777,13 +779,14 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
     return where
 
 
-COLLISION_WEIGHTS = ("weights/collision_paper", "weights/collision_fast", "weights/collision")
+# scripts/device_collision.sh's weights are copied to weights/collision_<preset>/
+COLLISION_WEIGHTS = ("weights/collision_paper", "weights/collision_small", "weights/collision_fast")
 
 
 def find_collision_weights() -> Path | None:
     """The first trained neural collision estimator (``<folder>/nce/config.json``) among
-    COLLISION_WEIGHTS, or None."""
-    for folder in COLLISION_WEIGHTS:
+    COLLISION_WEIGHTS, then any ``weights/collision_*``; None when there is none yet."""
+    for folder in [*COLLISION_WEIGHTS, *map(str, sorted(Path("weights").glob("collision_*")))]:
         if (Path(folder) / "nce" / "config.json").exists():
             return Path(folder) / "nce"
     return None
