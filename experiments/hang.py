@@ -95,6 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-verify", action="store_true", help="do not simulate the candidates")
     p.add_argument("--no-plan", action="store_true", help="do not run the how-to-hang planner")
     p.add_argument(
+        "--plan-time", type=float, default=d.plan_time,
+        help=f"planner time limit, s (default {d.plan_time:g})",
+    )  # fmt: skip
+    p.add_argument(
         "--coacd", choices=["default", "fast"], default="default",
         help="convex decomposition settings for user meshes (fast: previews)",
     )  # fmt: skip
@@ -160,6 +164,7 @@ def main(argv=None) -> int:
         search=args.search,
         search_candidates=args.search_candidates,
         plan=not args.no_plan,
+        plan_time=args.plan_time,
         scale=args.scale,
         object_scale=args.object_scale,
         support_scale=args.support_scale,

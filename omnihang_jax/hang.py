@@ -123,6 +123,7 @@ class HangConfig:
     search: bool = False  # also find stable poses with the data engine's sampler
     search_candidates: int = 4096  # uniform yield is ~0.8 % (results/proposal_yield.json)
     plan: bool = True  # run the how-to-hang planner when it exists
+    plan_time: float = 20.0  # s, OMPL's time limit (omnihang_jax.planner.PlannerConfig)
     scale: float | None = None  # multiply both inputs' coordinates (0.001 for millimetres)
     object_scale: float | None = None  # overrides ``scale`` for the object
     support_scale: float | None = None  # overrides ``scale`` for the support
@@ -1139,7 +1140,7 @@ def hang(
     path = None
     if config.plan:
         if how is None:
-            how, reason = default_how()
+            how, reason = planner_how(config.plan_time)
         else:
             reason = f"user function {getattr(how, '__name__', repr(how))}"
         if how is None:
