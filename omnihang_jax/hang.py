@@ -979,6 +979,8 @@ def hang(
     rng = np.random.default_rng([config.seed, 11])
     if config.num_proposals < 1:
         raise HangInputError(f"--num-proposals must be >= 1, got {config.num_proposals}")
+    if not config.plan_time > 0:
+        raise HangInputError(f"--plan-time must be > 0 s, got {config.plan_time}")
     if config.coacd not in ("default", "fast"):
         raise HangInputError(f"--coacd must be 'default' or 'fast', got {config.coacd!r}")
     if config.up not in ("z", "y"):
