@@ -315,6 +315,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--pairs", type=int, default=20, help="held-out pairs")
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--time-limit", type=float, default=20.0, help="s per plan")
+    parser.add_argument(
+        "--goal-radius", type=float, default=1e-6, help="m: states this near the goal unchecked"
+    )
     parser.add_argument("--out", default="out/paths")
     parser.add_argument("--results", default=None, help="summary JSON (default OUT/paths.json)")
     parser.add_argument("--figure", default=None, help="strip-of-frames PNG")
@@ -326,7 +329,7 @@ def main(argv=None) -> dict:
     bad = [m for m in methods if m not in METHODS]
     if bad:
         raise SystemExit(f"unknown methods {bad}; choose from {METHODS}")
-    config = planner.PlannerConfig(time_limit=args.time_limit)
+    config = planner.PlannerConfig(time_limit=args.time_limit, goal_radius=args.goal_radius)
     out = Path(args.out)
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     est = load_estimators(args.weights)

@@ -194,10 +194,10 @@ def make_nce(config: NCEConfig) -> EstimatorNets:
     """
     net = _NCENet(config)
 
-    def init(key):
+    def init(key):  # jitted: op-by-op PointNet++ initialisation takes ~10x longer
         obj = jnp.zeros((1, config.object_points, 3))
         sup = jnp.zeros((1, config.support_points, 3))
-        return net.init(key, obj, sup)["params"]
+        return jax.jit(lambda k: net.init(k, obj, sup)["params"])(key)
 
     def apply(params, object_points, support_points, poses):
         return net.apply({"params": params}, transform_points(poses, object_points), support_points)
@@ -253,7 +253,7 @@ def make_normal_net(config: NormalNetConfig) -> EstimatorNets:
     net = _NormalNet(config)
 
     def init(key):
-        return net.init(key, jnp.zeros((1, config.points, 3)))["params"]
+        return jax.jit(lambda k: net.init(k, jnp.zeros((1, config.points, 3)))["params"])(key)
 
     def apply(params, points):
         return net.apply({"params": params}, points)
@@ -274,7 +274,8 @@ def heuristic_score(
 
     For each posed object point p_i, nearest support point s_k: cosine between (p_i - s_k)
     and n_k; the score is minus its mean over the object points (higher: deeper inside)."""
-    posed = transform_points(poses, object_cloud)  # [B, N, 3]
+    support_cloud, support_normals = jnp.asarray(support_cloud), jnp.asarray(support_normals)
+    posed = transform_points(jnp.asarray(poses), jnp.asarray(object_cloud))  # [B, N, 3]
 
     def one(points):
         d2 = (

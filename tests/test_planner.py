@@ -1,0 +1,118 @@
+"""The planner and its ground truth: RRT-Connect goes around an obstacle that an exact checker
+describes, the mesh check rejects a path through the support and accepts one that threads a
+ring onto a hook, and the batched estimator checker agrees with per-pose calls."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("ompl")
+
+from omnihang_jax import planner  # noqa: E402
+from sim import geometry, proposals  # noqa: E402
+from sim.assets import objects, supports  # noqa: E402, F401  (registers the generators)
+from sim.assets.base import Asset, HangLoop, build_object, build_support  # noqa: E402
+from sim.scene import build_scene  # noqa: E402
+
+FAST = planner.PlannerConfig(time_limit=10.0)
+
+
+def test_planner_goes_around_an_obstacle_with_an_exact_checker():
+    # a slab between start and goal (|x| < 5 cm, z < 30 cm); the sphere (r 2 cm) must pass over it
+    slab = planner.AnalyticChecker([([-0.05, -1.0, -1.0], [0.05, 1.0, 0.3])], radius=0.02)
+    start = np.array([-0.3, 0.0, 0.0, 1, 0, 0, 0])
+    goal = np.array([0.3, 0.0, 0.0, 0, 0, 0, 1])  # half a turn too
+    bounds = (np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.6]))
+    straight = planner.interpolate_path(np.stack([start, goal]), 0.002, 0.05)
+    assert slab(straight).any(), "the straight path must be blocked, or the test proves nothing"
+
+    res = planner.plan(slab, start, goal, bounds, 0.05, FAST)
+
+    assert res.status == "Exact solution" and res.path is not None
+    np.testing.assert_allclose(res.path[0], start, atol=1e-9)
+    np.testing.assert_allclose(res.path[-1][:3], goal[:3], atol=1e-9)
+    assert abs(abs(np.dot(res.path[-1][3:], goal[3:])) - 1) < 1e-9
+    dense = planner.interpolate_path(res.path, 0.002, 0.05)
+    assert not slab(dense).any()
+    assert dense[:, 2].max() > 0.32  # it went over the slab
+    assert res.checker_calls < res.states_checked  # motions were checked in batches
+
+
+def test_interpolation_matches_omplish_slerp_and_keeps_unit_quaternions():
+    a = np.array([0, 0, 0, 1, 0, 0, 0.0])
+    b = np.array([1, 0, 0, 0, 0, 0, 1.0])  # half a turn about z
+    seg = planner.interpolate_segment(a, b, 4)
+    np.testing.assert_allclose(np.linalg.norm(seg[:, 3:], axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(seg[1, 3:], [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)], atol=1e-12)
+    np.testing.assert_allclose(seg[-1], b, atol=1e-12)
+
+
+def _mug_on_rod():
+    return build_object("mug", 3), build_support("single_rod_hook", 0)
+
+
+def test_straight_path_through_the_support_is_rejected_by_the_mesh_check():
+    obj, sup = _mug_on_rod()
+    scene = build_scene(obj, sup)
+    mesh = planner.MeshChecker(scene)
+    weight = planner.object_radius(scene)
+    # the mug's centre moves along y straight through the middle of the hook's rod
+    peg = sup.features[0]
+    through = 0.5 * (np.asarray(peg.base) + np.asarray(peg.tip))
+    front = planner.start_pose(scene, np.array([*through, 1, 0, 0, 0]))
+    behind = front.copy()
+    behind[1] = through[1] - (front[1] - through[1])
+    path = np.stack([front, behind])
+
+    free, deepest, n = planner.dense_check(mesh, path, 0.002, weight)
+
+    assert not free and deepest > 1e-3 and n > 100
+    # the same distance moved sideways in front of the support stays free
+    aside = front.copy()
+    aside[0] += front[1] - behind[1]
+    assert planner.dense_check(mesh, np.stack([front, aside]), 0.002, weight)[0]
+
+
+def test_mesh_planner_threads_a_ring_onto_a_hook():
+    parts = geometry.ring([0, 0, 0], [0, 0, 1], 0.03, 0.004, 12)
+    free_r = 0.03 * np.cos(np.pi / 12) - 0.004
+    ring = Asset("ring", "object", "others", 0, parts, [HangLoop(np.zeros(3), np.array([0, 0, 1.0]), free_r)], {})  # fmt: skip
+    hook = build_support("single_rod_hook", 0)
+    loop, peg = ring.features[0], hook.features[0]
+    exact = proposals.ProposalConfig(jitter_angle=0.0, jitter_position=0.0)
+    lo, hi, _ = proposals._peg_range(ring, loop, peg, 1.0, exact)
+    goal = proposals.thread_pose(ring, loop, peg, 0.5 * (lo + hi), 1.0, exact)
+    scene = build_scene(ring, hook)
+    mesh = planner.MeshChecker(scene)
+    assert not mesh(goal[None])[0], "the threaded pose is free of penetration"
+    start = planner.start_pose(scene, goal)
+    weight = planner.object_radius(scene)
+
+    res = planner.plan(mesh, start, goal, planner.default_bounds(scene), weight, FAST)
+
+    assert res.path is not None, res.status
+    free, deepest, _ = planner.dense_check(mesh, res.path, 0.002, weight)
+    assert free, f"the mesh planner's own path penetrates {deepest * 1e3:.2f} mm"
+
+
+def test_estimator_checker_batches_agree_with_single_calls():
+    import jax
+
+    from omnihang_jax import collision
+
+    cfg = collision.NCE_PRESETS["tiny"]
+    params = collision.make_nce(cfg).init(jax.random.key(0))
+    rng = np.random.default_rng(0)
+    oc = rng.uniform(-0.03, 0.03, (cfg.object_points, 3))
+    sc = rng.uniform(-0.05, 0.05, (cfg.support_points, 3))
+    prob = jax.jit(collision.nce_probability(cfg))
+    poses = np.concatenate([rng.uniform(-0.05, 0.05, (8, 3)), rng.normal(size=(8, 4))], 1)
+    poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+    p = np.asarray(prob(params, oc, sc, poses))
+    thr = float(np.median(p))  # about half the poses collide
+    checker = planner.EstimatorChecker(lambda *a: prob(*a) > thr, params, oc, sc)
+    batched = checker(poses[:5])  # padded to 8, as every single call is
+    single = np.array([checker(x[None])[0] for x in poses[:5]])
+    np.testing.assert_array_equal(batched, single)
+    np.testing.assert_array_equal(batched, p[:5] > thr)
