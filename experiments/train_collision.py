@@ -101,6 +101,7 @@ def _derive_one(job: tuple[dict, str]) -> str:
         collision_poses=poses.astype(np.float32),
         collision_labels=np.asarray(record["collision_label"], bool)[kept],
         stable_poses=np.asarray(record["stable_poses"], np.float32),
+        **pair_geometry(obj, sup),
         pair_index=np.int64(index),
         object_name=np.str_(obj_name),
         support_name=np.str_(sup_name),
@@ -109,6 +110,47 @@ def _derive_one(job: tuple[dict, str]) -> str:
         split=np.str_(split),
     )
     return path
+
+
+def pair_geometry(obj, sup) -> dict:
+    """What far-pose labelling needs: the object's half diagonal (m), the support's box
+    [2, 3] and its wall plane y (NaN when free-standing)."""
+    return dict(
+        object_half_diagonal=np.float32(0.5 * np.linalg.norm(obj.extents)),
+        support_bounds=np.asarray(sup.bounds(), np.float32),
+        wall_y=np.float32(np.nan if sup.wall_y is None else sup.wall_y),
+    )
+
+
+FAR_MARGIN = 0.02  # m: far poses clear the support's box (and wall) by this much at least
+
+
+def far_free_poses(
+    rng: np.random.Generator, half_diagonal: float, support_bounds, wall_y: float, n: int
+) -> np.ndarray:
+    """``n`` poses [n, 7] that cannot collide, by geometry alone: the object's bounding
+    sphere (radius = half diagonal of its box) clears the support's box by ``FAR_MARGIN``
+    (and lies in front of the wall). Positions uniform in the support's box grown by 1.25
+    object diagonals + the margin (most of them inside the planner's bounds, which grow the
+    box by the largest extent), rotations uniform.
+
+    Why: the dataset keeps free poses only within 2 cm of the support (the original's
+    protocol), so a network trained on those alone has never seen the open space a planner
+    starts in, and calls it colliding (measured: docs/paths.md)."""
+    lo, hi = np.asarray(support_bounds, float)
+    grow = 2.5 * half_diagonal + FAR_MARGIN
+    out = []
+    while sum(len(x) for x in out) < n:
+        pos = rng.uniform(lo - grow, hi + grow, (4 * n, 3))
+        gap = np.linalg.norm(pos - np.clip(pos, lo, hi), axis=1)
+        ok = gap > half_diagonal + FAR_MARGIN
+        if np.isfinite(wall_y):
+            ok &= pos[:, 1] - half_diagonal > wall_y + FAR_MARGIN
+        out.append(pos[ok])
+    pos = np.concatenate(out)[:n]
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.concatenate([pos, q], axis=1).astype(np.float32)
 
 
 def derive_collision_pairs(
@@ -178,11 +220,34 @@ class CollisionData:
     poses: np.ndarray  # [L, 7]
     labels: np.ndarray  # [L] bool, True = colliding
     meta: list[dict]  # per pair: names, category, family, split, pair_index
+    far_pair: np.ndarray | None = None  # [F] int32: far free poses (training only)
+    far_poses: np.ndarray | None = None  # [F, 7], see far_free_poses
 
 
-def load_collision_data(files: list[Path]) -> CollisionData:
+def _geometry_of(f, meta: dict, cache: dict) -> dict:
+    """The pair's geometry from its file, or (files derived before it was stored) rebuilt
+    from the library."""
+    if "object_half_diagonal" in f.files:
+        return {k: f[k] for k in ("object_half_diagonal", "support_bounds", "wall_y")}
+    if "library" not in cache:
+        from sim.assets.base import build_object, build_support  # noqa: F401
+        from sim.library import LibraryConfig, build_library
+
+        cache["library"] = build_library(LibraryConfig(), progress=False)
+    lib = cache["library"]
+    return pair_geometry(lib.objects[meta["object_name"]], lib.supports[meta["support_name"]])
+
+
+def load_collision_data(
+    files: list[Path], far_per_pair: int = 0, seed: int = 0, recipe_library=None
+) -> CollisionData:
+    """Clouds and labels of the pair files; ``far_per_pair`` far free poses per pair
+    (:func:`far_free_poses`) for training."""
     if not files:
         raise ValueError("no pair files to load")
+    rng = np.random.default_rng(seed)
+    cache: dict = {} if recipe_library is None else {"library": recipe_library}
+    far_pair, far_poses = [], []
     keys = ("object_points", "object_normals", "support_points", "support_normals")
     clouds: dict[str, list] = {k: [] for k in keys}
     pair, poses, labels, meta = [], [], [], []
@@ -206,12 +271,26 @@ def load_collision_data(files: list[Path]) -> CollisionData:
                     )
                 }
             )
+            if far_per_pair:
+                g = _geometry_of(f, meta[-1], cache)
+                far_poses.append(
+                    far_free_poses(
+                        rng,
+                        float(g["object_half_diagonal"]),
+                        g["support_bounds"],
+                        float(g["wall_y"]),
+                        far_per_pair,
+                    )
+                )
+                far_pair.append(np.full(far_per_pair, i, np.int32))
     return CollisionData(
         *(np.stack(clouds[k]) for k in keys),
         pair=np.concatenate(pair),
         poses=np.concatenate(poses).astype(np.float32),
         labels=np.concatenate(labels),
         meta=meta,
+        far_pair=np.concatenate(far_pair) if far_pair else None,
+        far_poses=np.concatenate(far_poses) if far_poses else None,
     )
 
 
@@ -245,8 +324,13 @@ def train_nce(
     opt_state = opt.init(params)
     obj_clouds = jnp.asarray(data.object_points)
     sup_clouds = jnp.asarray(data.support_points)
-    pair, poses = jnp.asarray(data.pair), jnp.asarray(data.poses)
-    labels = jnp.asarray(data.labels, jnp.float32)
+    pair, poses, labels = data.pair, data.poses, data.labels
+    if data.far_poses is not None:  # far free poses: geometry says free (far_free_poses)
+        pair = np.concatenate([pair, data.far_pair])
+        poses = np.concatenate([poses, data.far_poses])
+        labels = np.concatenate([labels, np.zeros(len(data.far_pair), bool)])
+    pair, poses = jnp.asarray(pair), jnp.asarray(poses)
+    labels = jnp.asarray(labels, jnp.float32)
 
     @jax.jit
     def step(params, opt_state, key):
@@ -436,6 +520,12 @@ def main(argv=None) -> dict:
     parser.add_argument("--batch", type=int, default=64, help="NCE batch (poses)")
     parser.add_argument("--normal-batch", type=int, default=16, help="normal-net batch (clouds)")
     parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument(
+        "--far-per-pair",
+        type=int,
+        default=100,
+        help="far free poses per training pair (0: the dataset's labels only)",
+    )
     parser.add_argument("--eval-labels", type=int, default=20000, help="held-out labels scored")
     parser.add_argument("--threshold-labels", type=int, default=20000, help="training labels")
     parser.add_argument("--workers", type=int, default=1, help="derive processes (0 = all cores)")
@@ -472,7 +562,8 @@ def main(argv=None) -> dict:
             f"derived: {len(train_files)} train, {len(test_files)} test pairs in {derive_s:.0f} s"
         )
         return {"train_files": len(train_files), "test_files": len(test_files)}
-    train, test = load_collision_data(train_files), load_collision_data(test_files)
+    train = load_collision_data(train_files, far_per_pair=args.far_per_pair)
+    test = load_collision_data(test_files)
     held_out = {m["pair_index"] for m in test.meta}
     if held_out & {m["pair_index"] for m in train.meta} or any(
         m["split"] != "train" for m in train.meta
@@ -481,7 +572,8 @@ def main(argv=None) -> dict:
     print(
         f"pairs: {len(train.meta)} train ({len(train.labels)} labels, "
         f"{train.labels.mean():.1%} colliding), {len(test.meta)} held out "
-        f"({len(test.labels)} labels); derived in {derive_s:.0f} s; device {jax.devices()[0]}"
+        f"({len(test.labels)} labels); {args.far_per_pair} far free poses per training pair; "
+        f"derived in {derive_s:.0f} s; device {jax.devices()[0]}"
     )
 
     nce_params = normal_params = None
@@ -532,6 +624,7 @@ def main(argv=None) -> dict:
         test_pairs=len(test.meta),
         test_labels=int(len(test.labels)),
         derive_s=round(derive_s, 1),
+        far_free_per_pair=args.far_per_pair,
         nce=nce_log,
         normals=normal_log,
         hce_threshold=hce_threshold,

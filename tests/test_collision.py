@@ -132,3 +132,25 @@ def test_nce_learns_collisions_on_a_tiny_set():
 
     assert after >= 0.75, f"held-out accuracy {after:.2f} after {log['steps']} steps (chance 0.5)"
     assert after > before + 0.15
+
+
+def test_far_free_poses_never_touch_the_support_or_its_wall():
+    from experiments.train_collision import far_free_poses, pair_geometry
+    from omnihang_jax import planner
+    from sim.assets import objects, supports  # noqa: F401  (registers the generators)
+    from sim.assets.base import build_object, build_support
+    from sim.scene import build_scene
+
+    rng = np.random.default_rng(4)
+    for category, family in (("mug", "pegboard_hook"), ("racquet", "mug_tree")):
+        obj, sup = build_object(category, 1), build_support(family, 1)
+        g = pair_geometry(obj, sup)
+        poses = far_free_poses(
+            rng, float(g["object_half_diagonal"]), g["support_bounds"], float(g["wall_y"]), 200
+        )
+        pen = planner.MeshChecker(build_scene(obj, sup), tolerance=0.0).penetration(poses)
+        assert (pen == 0).all()
+        # and they fill the planner's bounds, not just a far shell
+        lo, hi = planner.default_bounds(build_scene(obj, sup))
+        inside = np.all((poses[:, :3] >= lo) & (poses[:, :3] <= hi), axis=1)
+        assert inside.mean() > 0.2
