@@ -131,7 +131,7 @@ class HangConfig:
     free_standing: bool = False  # a user support stands on the floor instead of a wall
     recenter: bool = False  # clouds: move each cloud's bounding-box centre to the origin
     coacd: str = "default"  # "default" or "fast" (sim.decompose.FAST: previews, tests)
-    value: str | None = None  # Stage-3 value weights; None: find_value_weights(model)
+    value: str | None = None  # Stage-3 value weights; None: find_value_weights(model); "off"
     cache_dir: str | None = None  # CoACD cache; None: out/cache/coacd in the working directory
 
     def scale_of(self, kind: str) -> float | None:
@@ -732,6 +732,8 @@ def stage3_scorer(config: HangConfig | None = None):
     """(Stage3 or None, description): the value network when trained weights exist
     (``config.value`` or :func:`find_value_weights`), else None and the reason."""
     config = config or HangConfig()
+    if config.value == "off":
+        return None, "switched off (--value off)"
     folder = Path(config.value) if config.value else find_value_weights(config.model)
     if folder is None:
         return None, (
@@ -825,6 +827,20 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
         start = planner.start_pose(geometry, pose)
         bounds = planner.default_bounds(geometry)
         radius = planner.object_radius(geometry)
+        config = planner.PlannerConfig(time_limit=time_limit)
+
+        def attempt(checker, name):
+            res = planner.plan(checker, start, pose, bounds, radius, config)
+            info = dict(
+                checker=name,
+                status=res.status,
+                planning_s=res.planning_s,
+                states_checked=res.states_checked,
+                start_xyz_wxyz=[float(x) for x in start],
+            )
+            return res.path, info
+
+        path, info, tried = None, None, []
         if weights is not None:
             from omnihang_jax import collision
 
@@ -836,37 +852,36 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
                 collision.subsample_cloud(sup.points, cfg.support_points, 1),
             )
             checker.warm_up()
-            name = f"RRT-Connect (OMPL) with the neural collision estimator {weights}"
-        elif scene is not None:
-            checker = planner.MeshChecker(scene)
-            name = "RRT-Connect (OMPL) with the full meshes in MuJoCo (no trained NCE yet)"
-        else:
+            path, info = attempt(checker, f"the neural collision estimator {weights}")
+            tried.append(info)
+        if path is None and scene is not None:
+            # no NCE, or it found no path (an estimator can call the start colliding): the
+            # full meshes in MuJoCo, the planner's ground truth
+            path, info = attempt(planner.MeshChecker(scene), "the full meshes in MuJoCo")
+            tried.append(info)
+        if info is None:
             return None
-        config = planner.PlannerConfig(time_limit=time_limit)
-        res = planner.plan(checker, start, pose, bounds, radius, config)
-        info = dict(
-            checker=name,
-            status=res.status,
-            planning_s=res.planning_s,
-            states_checked=res.states_checked,
-            start_xyz_wxyz=[float(x) for x in start],
-        )
-        if res.path is None:
+        info = dict(info, attempts=tried) if len(tried) > 1 else info
+        name = f"RRT-Connect (OMPL) with {info['checker']}"
+        if path is None:
             return PathPlan(np.zeros((0, 7)), name, info)
-        info["waypoints"] = len(res.path)
+        info["waypoints"] = len(path)
         if scene is not None:
             free, deepest, n = planner.dense_check(
-                planner.MeshChecker(scene, config.penetration_tolerance), res.path,
+                planner.MeshChecker(scene, config.penetration_tolerance), path,
                 config.dense_resolution, radius,
             )  # fmt: skip
             info.update(
                 dense_check_collision_free=free, deepest_penetration_m=deepest, dense_states=n
             )
-        return PathPlan(planner.interpolate_path(res.path, path_step, radius), name, info)
+        return PathPlan(planner.interpolate_path(path, path_step, radius), name, info)
 
     if weights is None:
         return how, "OMPL RRT-Connect, full-mesh checker (no trained collision estimator yet)"
-    return how, f"OMPL RRT-Connect, neural collision estimator {weights}"
+    return how, (
+        f"OMPL RRT-Connect, neural collision estimator {weights} (the full meshes when it "
+        f"finds no path and meshes are known)"
+    )
 
 
 def default_how():
@@ -1164,7 +1179,7 @@ def hang(
                 steps["how"] = f"{reason}: no path found ({path.info.get('status')})"
                 path = None
             else:
-                steps["how"] = f"{reason}: {len(path.poses)} poses"
+                steps["how"] = f"{path.planner}: {len(path.poses)} poses"
     else:
         steps["how"] = "skipped (plan=False)"
     timings["how"] = time.perf_counter() - t
