@@ -37,7 +37,13 @@ from omnihang_jax import refine, stage3
 from omnihang_jax.refine import Labeller, PairBank, ReplayBuffer
 from omnihang_jax.stage3 import CEMConfig, PairClouds, ValueConfig
 
-__all__ = ["RLConfig", "validation_objects", "train_stage3", "run_pipeline_on_pairs"]
+__all__ = [
+    "RLConfig",
+    "validation_objects",
+    "train_stage3",
+    "run_pipeline_on_pairs",
+    "learning_curve",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -395,4 +401,118 @@ def plot_curves(workdir: str | os.PathLike) -> None:
         ax[2].legend()
     fig.tight_layout()
     fig.savefig(d / "curves.png", dpi=90)
+    plt.close(fig)
+
+
+def learning_curve(
+    data: str | os.PathLike, weights: str, out_json: str | os.PathLike, num_pairs: int = 100,
+    max_steps: int = 10_000, steps_per_round: int = 1_000, train_steps: int = 200,
+    config: RLConfig = RLConfig(), starts: tuple[str, ...] = ("stage2", "uniform"),
+    progress: bool = True,
+) -> dict:  # fmt: skip
+    """The paper's refinement-learning experiment: on ``num_pairs`` random training pairs,
+    success against RL steps (simulated transitions) for Stage 3 started from Stage 2's
+    proposals and from uniformly sampled poses; V starts untrained each time.
+
+    A round: CEM on the current V from K starts per pair, the best-V pose of each pair is
+    the pair's answer (success = it hangs, measured before V trains on it), every refined
+    pose and a perturbed copy are added to the buffer (``steps_per_round`` transitions in
+    all), V trains ``train_steps`` steps. Returns (and writes) the curves."""
+    from omnihang_jax import dataset_bridge
+
+    _, derived_dir = dataset_bridge.resolve_dataset_dir(data)
+    files = sorted(dataset_bridge.derived_files(derived_dir, "train"))
+    if len(files) < num_pairs:
+        raise FileNotFoundError(f"{len(files)} derived training pairs, {num_pairs} needed")
+    rng0 = np.random.default_rng(config.seed)
+    files = [files[i] for i in sorted(rng0.permutation(len(files))[:num_pairs])]
+    bank = PairBank.from_files(files, config.value, progress=progress)
+    dataset_dir = dataset_bridge.resolve_dataset_dir(data)[0]
+    predictor = _load_where(weights)
+    k = config.num_proposals
+    per_round = max(1, steps_per_round // (2 * k * num_pairs))  # CEM runs per pair per round
+    refine_fn = jax.jit(stage3.make_refiner(config.value, config.cem))
+    curves = {}
+    slots = np.arange(num_pairs)
+    with Labeller(dataset_dir, config.workers) as labeller:
+        for start in starts:
+            rng = np.random.default_rng(config.seed)
+            key = jax.random.key(config.seed)
+            trainer = refine.make_value_trainer(config.value, max_steps // steps_per_round * train_steps)  # fmt: skip
+            state = trainer.init(jax.random.key(config.seed))
+            bank_dev = PairClouds(*(jnp.asarray(x) for x in bank.clouds))
+            buffer = ReplayBuffer()
+            rows, steps, r = [], 0, 0
+            t0 = time.time()
+            bar = tqdm(total=max_steps, desc=f"RL from {start}", disable=not progress)
+            while steps < max_steps:
+                r += 1
+                new_slots, new_poses, chosen_ok = [], [], []
+                for j in range(per_round):
+                    kr = jax.random.fold_in(key, 100 * r + j)
+                    override = None
+                    if start == "uniform":
+                        override = np.stack([refine.uniform_poses(bank.clouds.support_points[s], rng, k)
+                                             for s in slots])  # fmt: skip
+                    out = run_pipeline_on_pairs(predictor, refine_fn, state.params, bank, slots,
+                                                kr, k, starts_override=override)  # fmt: skip
+                    poses = out["refined"].reshape(-1, 7)
+                    explore = refine.perturb_poses(poses, rng, len(poses), 0.004, 0.05)
+                    s_all = np.concatenate([np.repeat(slots, k)] * 2)
+                    p_all = np.concatenate([poses, explore])
+                    rew, _ = _label_chunked(labeller, bank, s_all, p_all, False)
+                    chosen = rew[: len(poses)].reshape(-1, k)[np.arange(num_pairs), out["best"]]
+                    chosen_ok.append(chosen)
+                    new_slots.append(s_all)
+                    new_poses.append((p_all, rew))
+                for s_all, (p_all, rew) in zip(new_slots, new_poses, strict=True):
+                    buffer.add(s_all, p_all, rew, "cem", r)
+                steps = len(buffer)
+                succ = float(np.mean(chosen_ok))
+                for _ in range(train_steps):
+                    idx = buffer.sample(rng, config.value.batch_size)
+                    d = buffer.data
+                    state, _m = trainer.step(state, bank_dev, d["slot"][idx], d["pose"][idx],
+                                             d["reward"][idx], jax.random.fold_in(key, int(state.step)))  # fmt: skip
+                rows.append({"round": r, "steps": steps, "success": succ,
+                             "buffer_success_rate": float(buffer.data["reward"].mean()),
+                             "s": time.time() - t0})  # fmt: skip
+                bar.update(steps - bar.n)
+                bar.set_postfix(success=f"{succ:.2f}")
+            bar.close()
+            curves[start] = rows
+    result = {
+        "what": "success of the best-V pose (before V trains on it) against RL steps "
+        "(simulated transitions) on random training pairs; V untrained at step 0",
+        "pairs": num_pairs, "max_steps": max_steps, "steps_per_round": steps_per_round,
+        "train_steps_per_round": train_steps, "proposals": k,
+        "files": [os.path.basename(f) for f in files], "curves": curves,
+        "paper": {"stage2_start_at_10k": 71.0, "uniform_start_at_10k": 10.0},
+    }  # fmt: skip
+    refine.write_json(out_json, result)
+    _plot_learning_curve(result, Path(out_json).with_suffix(".png"))
+    return result
+
+
+def _plot_learning_curve(result: dict, png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    names = {
+        "stage2": "Stage 3 from Stage 2's proposals",
+        "uniform": "Stage 3 alone (uniform start)",
+    }
+    for start, rows in result["curves"].items():
+        ax.plot([0] + [r["steps"] for r in rows], [np.nan] + [100 * r["success"] for r in rows],
+                "o-", label=names.get(start, start))  # fmt: skip
+    ax.axhline(71, ls="--", c="C0", lw=0.8, label="paper, from Stage 2 (10k steps)")
+    ax.axhline(10, ls="--", c="C1", lw=0.8, label="paper, uniform (10k steps)")
+    ax.set_xlabel("RL steps (simulated transitions)")
+    ax.set_ylabel(f"success on {result['pairs']} training pairs (%)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
     plt.close(fig)

@@ -48,6 +48,30 @@ if [ "$MODE" = eval ]; then
     exit 0
 fi
 
+if [ "$MODE" = curve ]; then
+    # one call: the refinement-learning curve (100 training pairs, 10,000 steps, Stage-2 vs
+    # uniform start), then CEM_ROUNDS-round CEM on a balanced held-out subset (a variant)
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
+        .whl_min/*.whl .whl_train/*.whl || exit 5
+    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+    nvidia-smi -L | tee "$OUT/curve.log"
+    python3 -m experiments.derive_dataset --data datasets/paper --split train --limit 400 \
+        --workers 16 --no-progress >/dev/null 2>&1
+    (python3 -m experiments.derive_dataset --data datasets/paper --split test \
+        --pairs-from results/hanging_success.pairs.jsonl --workers 6 --no-progress >/dev/null 2>&1; touch /tmp/test_derived) &
+    timeout ${CURVE_S:-300} python3 -m experiments.refinement_learning --workers 10 \
+        --out "$OUT/refinement_learning.json" --no-progress 2>&1 | tail -3 | tee -a "$OUT/curve.log"
+    echo "[$(($(date +%s) - T0)) s] curve" | tee -a "$OUT/curve.log"
+    while [ ! -e /tmp/test_derived ]; do sleep 2; done
+    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 \
+        --pairs-from results/hanging_success.pairs.jsonl --per-category ${PER_CAT:-60} \
+        --rounds ${CEM_ROUNDS:-2} --workers 15 --batch 16 --out "$OUT/hanging_success_cem2.json" \
+        --label "CEM ${CEM_ROUNDS:-2} rounds, balanced subset" --no-progress 2>&1 | tail -12 | tee -a "$OUT/curve.log"
+    echo "[$(($(date +%s) - T0)) s] done" | tee -a "$OUT/curve.log"
+    gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
+    exit 0
+fi
+
 if [ "$MODE" = start ]; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
         .whl_min/*.whl .whl_train/*.whl || exit 5
