@@ -4,8 +4,8 @@ hanging pose with four collision checkers, and check every returned path with th
     python -m experiments.eval_paths --weights weights/collision_fast --pairs 40 \\
         --out out/paths --results results/paths.json --figure docs/img/paths.png
 
-Per held-out pair (``DATA/derived/collision/test``, derived on demand, round robin over the
-object categories) and its first stable pose (the paper's protocol: the dataset's stable
+Per held-out pair (``DATA/derived/collision/test``, derived on demand: a seeded random sample,
+round robin over the object categories) and its first stable pose (the paper's protocol: the dataset's stable
 poses as goals), OMPL's RRT-Connect plans with (``omnihang_jax.planner``):
 
 - ``nce``: the neural collision estimator on the partial clouds;
@@ -61,12 +61,13 @@ class PairCase(NamedTuple):
 
 
 def load_pairs(data: str, n: int, workers: int = 1, progress: bool = False) -> list[PairCase]:
-    """The first ``n`` held-out pairs (derived on demand) with their scenes."""
+    """``n`` held-out pairs (derived on demand) with their scenes."""
     from omnihang_jax import dataset_bridge
     from sim.library import build_library
     from sim.scene import build_scene
 
-    files = derive_collision_pairs(data, {"test": n}, workers, progress)["test"]
+    # a seeded random sample of the held-out pairs, round robin over object categories
+    files = derive_collision_pairs(data, {"test": n}, workers, progress, shuffle_seed=0)["test"]
     config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(data))
     library = build_library(config.library, progress=False)
     cases = []
@@ -262,8 +263,9 @@ def summarise(rows: list[dict], methods=METHODS) -> dict:
 
 
 def strip_figure(cases_paths: list[tuple[PairCase, str, np.ndarray]], path: str, frames=6):
-    """One row per (pair, method, path): the support cloud and the object cloud at ``frames``
-    states along the path (start ... goal), seen from the side (x-z) and from above (x-y)."""
+    """One row per (pair, label, path): the support cloud and the object cloud at ``frames``
+    states along the path (start ... goal), seen from the side (y-z: the wall on the left,
+    the start in front on the right)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -282,11 +284,11 @@ def strip_figure(cases_paths: list[tuple[PairCase, str, np.ndarray]], path: str,
         lo, hi = allpts.min(0), allpts.max(0)
         for c, (i, posed) in enumerate(zip(idx, posed_all)):
             ax = axes[r, c]
-            # side view from the front (+y looks at the support): x right, z up
-            ax.scatter(sup[:, 0], sup[:, 2], s=0.5, c="0.5")
-            ax.scatter(posed[:, 0], posed[:, 2], s=0.5, c="tab:orange")
-            ax.plot(dense[:, 0], dense[:, 2], lw=0.6, c="tab:blue")
-            ax.set_xlim(lo[0] - 0.02, hi[0] + 0.02)
+            # side view: y right (away from the wall), z up
+            ax.scatter(sup[:, 1], sup[:, 2], s=0.5, c="0.5")
+            ax.scatter(posed[:, 1], posed[:, 2], s=0.5, c="tab:orange")
+            ax.plot(dense[:, 1], dense[:, 2], lw=0.6, c="tab:blue")
+            ax.set_xlim(lo[1] - 0.02, hi[1] + 0.02)
             ax.set_ylim(lo[2] - 0.02, hi[2] + 0.02)
             ax.set_aspect("equal")
             ax.set_xticks([])
@@ -297,13 +299,20 @@ def strip_figure(cases_paths: list[tuple[PairCase, str, np.ndarray]], path: str,
             f"{case.meta['object_name']}\n{case.meta['support_name']}\n{method}", fontsize=6
         )
     fig.suptitle(
-        "Planned paths (front view, x-z): support cloud grey, object cloud orange, path blue",
+        "Planned paths (side view, y-z; wall left): support cloud grey, object cloud orange, "
+        "path of the object's centre blue",
         fontsize=9,
     )
     fig.tight_layout()
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _label(row: dict) -> str:
+    if row["collision_free"]:
+        return f"{row['method']}: free"
+    return f"{row['method']}: {1e3 * row['deepest_m']:.1f} mm deep"
 
 
 def main(argv=None) -> dict:
@@ -353,7 +362,9 @@ def main(argv=None) -> dict:
             (out / "scenes" / case.name).mkdir(exist_ok=True)
             (out / "scenes" / case.name / f"{method}.xml").write_text(xml)
             np.save(out / "scenes" / case.name / f"{method}_path.npy", path)
-    rows = [r for r in rows if r["pair"] in {c.name for c in cases} and r["method"] in methods]
+    names = {c.name for c in cases}
+    latest = {(r["pair"], r["method"]): r for r in rows}  # a resumed run: the last row counts
+    rows = [r for r in latest.values() if r["pair"] in names and r["method"] in methods]
     summary = summarise(rows, methods)
     summary["settings"] = dict(
         planner=dataclasses.asdict(config),
@@ -377,13 +388,13 @@ def main(argv=None) -> dict:
                 break
             p = out / "scenes" / r["pair"] / f"{r['method']}_path.npy"
             if r["method"] == "nce" and r["returned"] and p.exists():
-                figure_items.append((by_name[r["pair"]], r["method"], np.load(p)))
+                figure_items.append((by_name[r["pair"]], _label(r), np.load(p)))
         for r in rows:  # fill up with other methods' paths
             if len(figure_items) >= args.figure_paths:
                 break
             p = out / "scenes" / r["pair"] / f"{r['method']}_path.npy"
             if r["method"] != "nce" and r["returned"] and p.exists():
-                figure_items.append((by_name[r["pair"]], r["method"], np.load(p)))
+                figure_items.append((by_name[r["pair"]], _label(r), np.load(p)))
         if figure_items:
             strip_figure(figure_items, args.figure)
     for m in methods:

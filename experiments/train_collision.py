@@ -160,11 +160,14 @@ def derive_collision_pairs(
     progress: bool = True,
     out_dir: str | os.PathLike | None = None,
     existing_only: bool = False,
+    shuffle_seed: int | None = None,
 ) -> dict[str, list[Path]]:
     """Per split in ``limits`` ("test" / "train" -> n): its first n pairs with stable poses
     (round robin over object categories), derived to ``DATA/derived/collision/<split>/`` if
     not there yet (resumable; the splits in the order given, in one worker pool). Returns the
-    files per split; ``existing_only``: derive nothing, return those already there."""
+    files per split; ``existing_only``: derive nothing, return those already there;
+    ``shuffle_seed``: pairs in a seeded random order within each category (by default the
+    pair order, which takes each category's first object with every support in turn)."""
     from sim import dataset
 
     for split in limits:
@@ -187,6 +190,9 @@ def derive_collision_pairs(
     files = {}
     todo = []
     for split, n in limits.items():
+        if shuffle_seed is not None:
+            order = np.random.default_rng(shuffle_seed).permutation(len(jobs[split]))
+            jobs[split] = [jobs[split][i] for i in order]
         chosen = dataset_bridge.interleave_by_category(jobs[split], pairs)[:n]
         files[split] = [Path(j[1]) for j in chosen]
         todo += [j for j in chosen if not os.path.exists(j[1])]
