@@ -50,6 +50,7 @@ complete or absent.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import re
@@ -703,7 +704,13 @@ class Stage3(NamedTuple):
 
 
 def load_stage3(folder: str | os.PathLike) -> Stage3:
-    """Stage 3 from a value-weights folder (``omnihang_jax.refine.load_value``), jitted."""
+    """Stage 3 from a value-weights folder (``omnihang_jax.refine.load_value``), jitted;
+    one per folder and process (so many pairs compile the networks once)."""
+    return _load_stage3(os.path.abspath(folder))
+
+
+@functools.lru_cache(maxsize=4)
+def _load_stage3(folder: str) -> Stage3:
     import jax
 
     from omnihang_jax import refine, stage3
@@ -817,7 +824,6 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
     weights = find_collision_weights()
 
     def how(scene, obj: Body, sup: Body, pose: np.ndarray) -> PathPlan | None:
-        import jax
 
         if scene is not None:
             geometry = scene
@@ -844,9 +850,9 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
         if weights is not None:
             from omnihang_jax import collision
 
-            cfg, params, _ = collision.load_estimator(weights)
+            cfg, params, collides = _nce(os.path.abspath(weights))
             checker = planner.EstimatorChecker(
-                jax.jit(collision.nce_collides(cfg)),
+                collides,
                 params,
                 collision.subsample_cloud(obj.points, cfg.object_points, 0),
                 collision.subsample_cloud(sup.points, cfg.support_points, 1),
@@ -882,6 +888,17 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
         f"OMPL RRT-Connect, neural collision estimator {weights} (the full meshes when it "
         f"finds no path and meshes are known)"
     )
+
+
+@functools.lru_cache(maxsize=2)
+def _nce(folder: str):
+    """(config, params, jitted collides) of an NCE folder, once per process."""
+    import jax
+
+    from omnihang_jax import collision
+
+    cfg, params, _ = collision.load_estimator(folder)
+    return cfg, params, jax.jit(collision.nce_collides(cfg))
 
 
 def default_how():
