@@ -226,8 +226,8 @@ class CollisionData:
     poses: np.ndarray  # [L, 7]
     labels: np.ndarray  # [L] bool, True = colliding
     meta: list[dict]  # per pair: names, category, family, split, pair_index
-    far_pair: np.ndarray | None = None  # [F] int32: far free poses (training only)
-    far_poses: np.ndarray | None = None  # [F, 7], see far_free_poses
+    far_pair: np.ndarray | None = None  # [F] int32: extra free poses (training only):
+    far_poses: np.ndarray | None = None  # [F, 7] far_free_poses and/or stable poses
 
 
 def _geometry_of(f, meta: dict, cache: dict) -> dict:
@@ -245,10 +245,15 @@ def _geometry_of(f, meta: dict, cache: dict) -> dict:
 
 
 def load_collision_data(
-    files: list[Path], far_per_pair: int = 0, seed: int = 0, recipe_library=None
+    files: list[Path],
+    far_per_pair: int = 0,
+    seed: int = 0,
+    recipe_library=None,
+    stable_free: bool = False,
 ) -> CollisionData:
     """Clouds and labels of the pair files; ``far_per_pair`` far free poses per pair
-    (:func:`far_free_poses`) for training."""
+    (:func:`far_free_poses`) and, with ``stable_free``, the pair's stable poses as free
+    labels, for training (see ``main``'s ``--stable-free``)."""
     if not files:
         raise ValueError("no pair files to load")
     rng = np.random.default_rng(seed)
@@ -289,6 +294,10 @@ def load_collision_data(
                     )
                 )
                 far_pair.append(np.full(far_per_pair, i, np.int32))
+            if stable_free:
+                stable = f["stable_poses"].astype(np.float32)
+                far_poses.append(stable)
+                far_pair.append(np.full(len(stable), i, np.int32))
     return CollisionData(
         *(np.stack(clouds[k]) for k in keys),
         pair=np.concatenate(pair),
@@ -527,6 +536,13 @@ def main(argv=None) -> dict:
     parser.add_argument("--normal-batch", type=int, default=16, help="normal-net batch (clouds)")
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument(
+        "--stable-free",
+        type=int,
+        default=1,
+        help="1: the training pairs' stable poses are free labels too (hanging poses rest on "
+        "the support, < 1 mm deep: free by the planner's ground truth); 0: off",
+    )
+    parser.add_argument(
         "--far-per-pair",
         type=int,
         default=100,
@@ -568,7 +584,9 @@ def main(argv=None) -> dict:
             f"derived: {len(train_files)} train, {len(test_files)} test pairs in {derive_s:.0f} s"
         )
         return {"train_files": len(train_files), "test_files": len(test_files)}
-    train = load_collision_data(train_files, far_per_pair=args.far_per_pair)
+    train = load_collision_data(
+        train_files, far_per_pair=args.far_per_pair, stable_free=bool(args.stable_free)
+    )
     test = load_collision_data(test_files)
     held_out = {m["pair_index"] for m in test.meta}
     if held_out & {m["pair_index"] for m in train.meta} or any(
@@ -631,6 +649,7 @@ def main(argv=None) -> dict:
         test_labels=int(len(test.labels)),
         derive_s=round(derive_s, 1),
         far_free_per_pair=args.far_per_pair,
+        stable_poses_free=bool(args.stable_free),
         nce=nce_log,
         normals=normal_log,
         hce_threshold=hce_threshold,
