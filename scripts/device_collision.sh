@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One GPU device call (issue 13): derive the clouds and collision labels of training and
-# held-out pairs on all CPU cores, train the NCE and the HCE normal net on the GPU under time
-# budgets, print held-out accuracy / precision / recall, benchmark the batched estimators,
+# held-out pairs on all CPU cores, train the NCE (dataset labels + 100 far free poses per pair
+# + the pairs' stable poses as free: train_collision's defaults, docs/paths.md) and the HCE
+# normal net on the GPU under time budgets, print held-out accuracy / precision / recall, benchmark the batched estimators,
 # and bring back the small weights.
 #
 #   run(carry=[".whl_min", ".whl_train"], timeout_s=600,
