@@ -75,7 +75,11 @@ def main(argv=None) -> dict:
     refine.write_json(out, summary)
     pairs = out.with_name(out.name.removesuffix(".json") + ".pairs.jsonl")
     pairs.write_text("".join(json.dumps(r) + "\n" for r in records))
-    brief = {s: round(summary[s]["mean"], 1) for s in eval_pipeline.STAGES}
+    brief = {
+        s: round(summary[s]["mean"], 1)
+        for s in eval_pipeline.STAGES + eval_pipeline.VARIANTS
+        if s in summary
+    }
     brief.update(pairs=len(records), ranker=summary["ranker"], ceiling=summary["ceiling"])
     print(json.dumps(brief, indent=1))
     return summary

@@ -48,6 +48,28 @@ if [ "$MODE" = eval ]; then
     exit 0
 fi
 
+if [ "$MODE" = variants ]; then
+    # one call: the held-out evaluation again (now also the separated answer), then K = 10
+    # proposals on a balanced subset (more proposals = a wider search)
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
+        .whl_min/*.whl .whl_train/*.whl || exit 5
+    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+    nvidia-smi -L | tee "$OUT/variants.log"
+    python3 -m experiments.derive_dataset --data datasets/paper --split test \
+        --pairs-from results/hanging_success.pairs.jsonl --workers 16 --no-progress >/dev/null 2>&1
+    timeout 300 python3 -m experiments.eval_stage3 --pairs-from results/hanging_success.pairs.jsonl \
+        --workers 15 --batch 16 --out "$OUT/hanging_success_stage3.json" \
+        --label "the 1,814 held-out pairs" --no-progress 2>&1 | tail -9 | tee -a "$OUT/variants.log"
+    echo "[$(($(date +%s) - T0)) s] K=5 done" | tee -a "$OUT/variants.log"
+    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 \
+        --pairs-from results/hanging_success.pairs.jsonl --per-category 60 --proposals 10 \
+        --workers 15 --batch 8 --out "$OUT/hanging_success_k10.json" \
+        --label "K = 10 proposals, balanced subset" --no-progress 2>&1 | tail -9 | tee -a "$OUT/variants.log"
+    echo "[$(($(date +%s) - T0)) s] done" | tee -a "$OUT/variants.log"
+    gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
+    exit 0
+fi
+
 if [ "$MODE" = curve ]; then
     # one call: the refinement-learning curve (100 training pairs, 10,000 steps, Stage-2 vs
     # uniform start), then CEM_ROUNDS-round CEM on a balanced held-out subset (a variant)
