@@ -49,6 +49,7 @@ complete or absent.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
@@ -836,7 +837,8 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
         config = planner.PlannerConfig(time_limit=time_limit)
 
         def attempt(checker, name):
-            res = planner.plan(checker, start, pose, bounds, radius, config)
+            with _captured_stderr() as log:  # OMPL's C++ warnings: kept in info, not shown
+                res = planner.plan(checker, start, pose, bounds, radius, config)
             info = dict(
                 checker=name,
                 status=res.status,
@@ -844,6 +846,8 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
                 states_checked=res.states_checked,
                 start_xyz_wxyz=[float(x) for x in start],
             )
+            if log.text.strip():
+                info["ompl_log"] = log.text.strip().splitlines()[:20]
             return res.path, info
 
         path, info, tried = None, None, []
@@ -888,6 +892,31 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
         f"OMPL RRT-Connect, neural collision estimator {weights} (the full meshes when it "
         f"finds no path and meshes are known)"
     )
+
+
+class _Captured:
+    text = ""
+
+
+@contextlib.contextmanager
+def _captured_stderr():
+    """Capture what C/C++ code writes to file descriptor 2 (OMPL's console log) while the
+    block runs; ``.text`` holds it afterwards."""
+    import sys
+
+    captured = _Captured()
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield captured
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            captured.text = sink.read().decode(errors="replace")
 
 
 @functools.lru_cache(maxsize=2)
@@ -1129,7 +1158,7 @@ def hang(
                 else ", ranked by observed-cloud clearance"
             )
         )
-        if scorer is None:
+        if scorer is None and not steps["stage3"].startswith("switched off"):
             steps["stage3"] = f"not available yet: {steps['stage3']}"
     else:
         steps["where"] = f"user function {getattr(where, '__name__', repr(where))}"
