@@ -50,9 +50,10 @@ def cloud_where(obj, sup, seed):
     return H.Candidates(poses, np.array(["test"] * 6), np.arange(6), score, "observed_clearance")
 
 
-# value="off": Stage 3 (CEM) compiles for a minute on 2 cores; its wiring has its own test
+# value="off": Stage 3 (CEM) compiles for a minute on 2 cores; its wiring has its own test.
+# plan_time 5 s: an estimator that finds no path gives up sooner, the meshes then plan.
 SMALL = H.HangConfig(
-    num_proposals=6, image_width=160, image_height=120, coacd="fast", value="off"
+    num_proposals=6, image_width=160, image_height=120, coacd="fast", value="off", plan_time=5.0
 )
 
 
@@ -90,6 +91,12 @@ def test_user_mug_hangs_on_user_hook(tmp_path):
     assert record["candidates"][record["pose"]["rank"]]["status"] == "stable"
     assert set(record["files"]) == {"result.json", "hang.png", "viewer.html", "scene.xml"}
     assert "stage3" in record["steps"] and "how" in record["steps"]
+    # the path (when the planner found one) ends at the answer and is collision-free in MuJoCo
+    if record["path"] is not None:
+        path = np.asarray(record["path"]["poses_xyz_wxyz"])
+        np.testing.assert_allclose(path[-1], result.pose, atol=1e-6)
+        # no state of the path sinks into the hook deeper than the answer may (3 mm)
+        assert record["path"]["info"]["deepest_penetration_m"] < 0.003
     # physics: replay the written answer in MuJoCo from the file, 1 s under gravity
     start, end = resimulate(out / "scene.xml", "answer")
     assert np.linalg.norm(end - start) < 0.03  # it settles, it does not fall (a fall: > 0.2 m)
