@@ -137,10 +137,15 @@ def _write_hull_obj(fname: str, vertices) -> None:
             f.write("f {} {} {}\n".format(*(remap[tri] + 1)))
 
 
-def erode_hull(vertices, depth: float) -> np.ndarray:
-    """[K, 3] vertices of the convex hull of ``vertices`` with every face moved ``depth``
-    (m) inwards; a hull whose inradius is below ``depth / 0.9`` is eroded by 90 % of its
-    inradius instead (it would vanish). Bullet adds its margin back as a sphere."""
+def erode_hull(vertices, depth: float, max_error: float = 0.001) -> np.ndarray:
+    """[K, 3] vertices of the convex hull of ``vertices`` with every face moved inwards by
+    the largest of ``depth`` x (1, 3/4, 1/2, 1/4, 0) (m) that keeps every original vertex
+    within ``depth + max_error`` of the eroded hull (bounded by its nearest eroded vertex):
+    Bullet adds ``depth`` back as a sphere, so faces are exact and no point of the part
+    is more than ``max_error`` outside the result. A sharp tip retracts by
+    ``d / sin(half angle)`` when its faces move by ``d``: a knife's blade tip would lose
+    centimetres at the full depth, so such hulls are eroded less (and stay up to
+    ``depth - d`` too large). Never more than 90 % of the inradius (thin plates)."""
     pts = np.unique(np.round(np.asarray(vertices, float), 12), axis=0)
     try:
         hull = ConvexHull(pts)
@@ -154,9 +159,14 @@ def erode_hull(vertices, depth: float) -> np.ndarray:
     if not lp.success or lp.x[3] <= 0:
         return pts
     centre, inradius = lp.x[:3], lp.x[3]
-    d = min(depth, 0.9 * inradius)
-    cut = HalfspaceIntersection(np.c_[a, b + d * norm], centre)
-    return np.unique(np.round(cut.intersections, 12), axis=0)
+    for k in (1.0, 0.75, 0.5, 0.25):
+        d = min(k * depth, 0.9 * inradius)
+        cut = HalfspaceIntersection(np.c_[a, b + d * norm], centre)
+        eroded = np.unique(np.round(cut.intersections, 12), axis=0)
+        gap = np.linalg.norm(pts[:, None] - eroded[None], axis=-1).min(1).max()
+        if gap - d <= max_error:
+            return eroded
+    return pts
 
 
 def _fmt(v) -> str:
@@ -365,10 +375,14 @@ class PairWorld:
         ground = set(support.ground_parts)
         hold = [p for i, p in enumerate(support.parts) if i not in ground]
         base = [p for i, p in enumerate(support.parts) if i in ground]
-        if support.wall_y is not None:
-            h = scene.physics.wall_half_size
+        if scene.wall_geom >= 0:  # the wall box exactly as the MuJoCo model has it
+            w = scene.wall_geom
             hold.append(
-                Box(np.array([0, support.wall_y - 0.01, 0]), np.eye(3), np.array([h, 0.01, h]))
+                Box(
+                    np.array(scene.model.geom_pos[w], float),
+                    np.eye(3),
+                    np.array(scene.model.geom_size[w], float),
+                )
             )
         self.support = self._static(hold, "s")
         floor = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)

@@ -210,11 +210,14 @@ def test_pybullet_reference_loads_every_mesh_part(category):
     try:
         pose = np.array([0.3, 0.2, 0.5, 1, 0, 0, 0.0])
         world.set_pose(pose)
-        lo, hi = pb.getAABB(world.body, physicsClientId=world.client)
+        shapes = pb.getCollisionShapeData(world.body, -1, physicsClientId=world.client)
+        assert len(shapes) == len(scene.obj.parts)  # every part, beyond PyBullet's 16 too
+        lo, hi = np.array(pb.getAABB(world.body, physicsClientId=world.client))
         box = kernels.object_boxes(scene, pose[None])[0]
-        # PyBullet's AABB adds its collision margins (~2 mm)
-        np.testing.assert_allclose(lo, box[0], atol=5e-3)
-        np.testing.assert_allclose(hi, box[1], atol=5e-3)
+        # PyBullet's AABB (the union of its children's rotated local boxes, not tight)
+        # holds the whole object, to the 1 mm of hull erosion (docs/judges.md); distances
+        # to MuJoCo's geometry: tests/test_pybullet_ref.py
+        assert (lo <= box[0] + 1e-3).all() and (hi >= box[1] - 1e-3).all()
     finally:
         world.close()
 

@@ -188,3 +188,17 @@ def test_bad_settings_fail_clearly(hang):
             pybullet_ref.PairWorld(
                 scene, dataclasses.replace(pybullet_ref.MATCHED, **{field: value})
             )
+
+
+def test_erode_hull_keeps_sharp_tips():
+    """A knife-like wedge (6 degree tip): eroding its faces by 1 mm would pull the tip back
+    about 1 cm, so it is eroded less and no vertex ends more than 1 mm outside."""
+    wedge = np.array(
+        [[0, -0.005, -0.01], [0, 0.005, -0.01], [0, -0.005, 0.01], [0, 0.005, 0.01]]
+        + [[0.1, 0, -0.01], [0.1, 0, 0.01]]
+    )
+    for depth in (0.001,):
+        eroded = pybullet_ref.erode_hull(wedge, depth)
+        gap = np.linalg.norm(wedge[:, None] - eroded[None], axis=-1).min(1)
+        assert eroded[:, 0].max() > 0.1 - 0.02  # the tip stays near x = 0.1
+        assert (gap <= depth + 0.001 + 1e-9).all()
