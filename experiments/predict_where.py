@@ -43,6 +43,13 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
+        "--value",
+        default=None,
+        metavar="DIR",
+        help="also run Stage 3 (CEM on this value function, e.g. weights/value_small_paper): "
+        "the whole pipeline as one jitted call; adds stage3_poses, stage3_scores, answer",
+    )
+    parser.add_argument(
         "--out",
         default="out/predict_where/predictions.json",
         help="output JSON (default out/predict_where/predictions.json)",
@@ -59,6 +66,18 @@ def main(argv=None) -> dict:
         dataset = data.load_hang_dataset(args.data, split=args.split)
         batch = dataset.sample_batch(np.random.default_rng(args.seed), args.pairs)
     out = predictor(batch.object_points, batch.support_points, num_proposals=args.proposals)
+    stage3_out = None
+    if args.value:
+        from omnihang_jax import stage3
+
+        k = args.proposals or predictor.stage1_config.num_eval_samples
+        hang, params = predict.load_hang_pipeline(
+            args.model, args.value, stage3.PipelineConfig(num_proposals=k)
+        )
+        clouds = stage3.PairClouds(
+            batch.object_points, batch.object_normals, batch.support_points, batch.support_normals
+        )
+        stage3_out = hang(params, jax.random.key(args.seed), clouds)
 
     records = []
     for i, sample in enumerate(data.unstack(batch)):
@@ -75,6 +94,14 @@ def main(argv=None) -> dict:
                 "stage2_position_error_m": position_errors(out.stage2_poses[i], sample).tolist(),
             }
         )
+        if stage3_out is not None:
+            refined = np.asarray(stage3_out.refined["stage2"][i])
+            records[-1].update(
+                stage3_poses=refined.tolist(),
+                stage3_scores=np.asarray(stage3_out.scores["stage2"][i]).tolist(),
+                answer=np.asarray(stage3_out.pose[i]).tolist(),
+                stage3_position_error_m=position_errors(refined, sample).tolist(),
+            )
     summary = {
         "model": args.model,
         "data": args.data,

@@ -130,3 +130,21 @@ def load_predictor(folder: str | os.PathLike, seed: int = 0) -> Predictor:
         stages[stage] = restore_stage(path)
     (config1, params1, _), (config2, params2, _) = stages["stage1"], stages["stage2b"]
     return Predictor(config1.stage1, params1, config2.stage2, params2, seed=seed)
+
+
+def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.PathLike,
+                       config=None):  # fmt: skip
+    """(hang, params): the jitted Stages 1-3 pipeline (``stage3.make_hang_pipeline``) and its
+    parameters, from the Stage 1/2 weights and a value folder (``refine.save_value``).
+
+    ``hang(params, key, clouds: stage3.PairClouds [B, ...]) -> stage3.HangOutput``."""
+    from omnihang_jax import refine, stage3
+
+    where = load_predictor(where_folder)
+    value_config, value_params = refine.load_value(value_folder)
+    config = config or stage3.PipelineConfig()
+    hang = jax.jit(
+        stage3.make_hang_pipeline(where.stage1_config, where.stage2_config, value_config, config)
+    )
+    params = {"stage1": where.stage1_params, "stage2": where.stage2_params, "value": value_params}
+    return hang, params
