@@ -65,9 +65,7 @@ def test_cem_vmapped_over_pairs_and_proposals():
         return -jnp.sum((poses[:, :3] - target) ** 2, -1)
 
     optimise = stage3.make_cem(score, CEMConfig())
-    run = jax.jit(
-        jax.vmap(jax.vmap(optimise, in_axes=(0, 0, 0, None)), in_axes=(0, 0, 0, 0))
-    )
+    run = jax.jit(jax.vmap(jax.vmap(optimise, in_axes=(0, 0, 0, None)), in_axes=(0, 0, 0, 0)))
     keys = jax.random.split(jax.random.key(1), 6).reshape(2, 3)
     res = run(keys, starts, starts[..., :3], targets)
     assert res.pose.shape == (2, 3, 7)
@@ -123,9 +121,7 @@ def test_value_pipeline_runs_in_one_jit():
         num_proposals=2, cem=CEMConfig(population=8, iterations=2, elites=3),
         starts=("stage2", "stage1"),
     )  # fmt: skip
-    hang = jax.jit(
-        stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg)
-    )
+    hang = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg))
     c = _clouds(128, 128)
     batch = PairClouds(*(jnp.stack([x, x]) for x in c))
     out = hang(params, jax.random.key(5), batch)
