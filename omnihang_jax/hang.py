@@ -811,18 +811,23 @@ class _CloudGeometry(NamedTuple):
     support_bounds: np.ndarray
 
 
-def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
+def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str = "auto"):
     """(how, description) of the OMPL RRT-Connect planner (``omnihang_jax.planner``), or
     (None, reason). The checker is the neural collision estimator on the observed clouds when
     trained weights exist (the paper's "how"), else the full meshes in MuJoCo
     (``planner.MeshChecker``, needs both meshes). With meshes, every returned path is checked
     densely against the meshes (``planner.dense_check``). The path is resampled every
-    ``path_step`` (m, in the planner's metric) for drawing and keyframes."""
+    ``path_step`` (m, in the planner's metric) for drawing and keyframes. ``checker``:
+    "auto" (as described), "mesh" (the full meshes only) or "nce" (the estimator only)."""
+    if checker not in ("auto", "mesh", "nce"):
+        raise ValueError(f"checker must be 'auto', 'mesh' or 'nce', got {checker!r}")
     try:
         from omnihang_jax import planner
     except Exception as exc:  # ompl missing or the module broken: say so, do not fail
         return None, f"omnihang_jax.planner not importable ({type(exc).__name__}: {exc})"
-    weights = find_collision_weights()
+    weights = None if checker == "mesh" else find_collision_weights()
+    if checker == "nce" and weights is None:
+        return None, "no trained neural collision estimator (weights/collision_*/nce)"
 
     def how(scene, obj: Body, sup: Body, pose: np.ndarray) -> PathPlan | None:
 
@@ -864,7 +869,7 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01):
             checker.warm_up()
             path, info = attempt(checker, f"the neural collision estimator {weights}")
             tried.append(info)
-        if path is None and scene is not None:
+        if path is None and scene is not None and checker != "nce":
             # no NCE, or it found no path (an estimator can call the start colliding): the
             # full meshes in MuJoCo, the planner's ground truth
             path, info = attempt(planner.MeshChecker(scene), "the full meshes in MuJoCo")
