@@ -860,14 +860,14 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
             from omnihang_jax import collision
 
             cfg, params, collides = _nce(os.path.abspath(weights))
-            checker = planner.EstimatorChecker(
+            nce_checker = planner.EstimatorChecker(
                 collides,
                 params,
                 collision.subsample_cloud(obj.points, cfg.object_points, 0),
                 collision.subsample_cloud(sup.points, cfg.support_points, 1),
             )
-            checker.warm_up()
-            path, info = attempt(checker, f"the neural collision estimator {weights}")
+            nce_checker.warm_up()
+            path, info = attempt(nce_checker, f"the neural collision estimator {weights}")
             tried.append(info)
         if path is None and scene is not None and checker != "nce":
             # no NCE, or it found no path (an estimator can call the start colliding): the
