@@ -358,7 +358,8 @@ def main(argv=None) -> dict:
                 f.write(json.dumps(row) + "\n")
         rows += new_rows
         for method, path in paths.items():
-            xml = planner.path_scene_xml(case.scene, path)
+            dense = planner.interpolate_path(path, 0.01, planner.object_radius(case.scene))
+            xml = planner.path_scene_xml(case.scene, dense)  # <= 100 keys, 1 cm or more apart
             (out / "scenes" / case.name).mkdir(exist_ok=True)
             (out / "scenes" / case.name / f"{method}.xml").write_text(xml)
             np.save(out / "scenes" / case.name / f"{method}_path.npy", path)
