@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import _cli
 from omnihang_jax import refine, stage3
 from omnihang_jax.predict import load_predictor
 
@@ -88,4 +89,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

@@ -17,6 +17,7 @@ import json
 import sys
 from pathlib import Path
 
+from experiments import _cli
 from omnihang_jax import dataset_bridge, eval_pipeline, evaluate, refine
 from omnihang_jax.stage3 import CEMConfig
 
@@ -86,4 +87,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

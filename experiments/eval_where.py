@@ -25,6 +25,7 @@ import argparse
 import json
 from pathlib import Path
 
+from experiments import _cli
 from omnihang_jax import evaluate
 
 
@@ -164,4 +165,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

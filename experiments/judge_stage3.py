@@ -18,6 +18,7 @@ import sys
 
 import numpy as np
 
+from experiments import _cli
 from omnihang_jax import dataset_bridge, refine
 from omnihang_jax.eval_pipeline import STAGES
 
@@ -103,4 +104,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

@@ -16,6 +16,7 @@ import dataclasses
 import json
 import sys
 
+from experiments import _cli
 from experiments.train_stage3 import PRESETS
 from omnihang_jax.rl import learning_curve
 
@@ -51,4 +52,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)

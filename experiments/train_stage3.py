@@ -16,6 +16,7 @@ import dataclasses
 import json
 import sys
 
+from experiments import _cli
 from omnihang_jax import stage3
 from omnihang_jax.rl import RLConfig, train_stage3
 from omnihang_jax.stage3 import CEMConfig
@@ -94,4 +95,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    _cli.run(main)
