@@ -31,6 +31,7 @@ import dataclasses
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -305,7 +306,23 @@ def main(argv=None) -> dict:
         default=None,
         help="only redraw --figure from an earlier run's --items and --out files",
     )
+    parser.add_argument(
+        "--wall-census",
+        action="store_true",
+        help="only count the dataset's stable poses that reach behind the wall plane "
+        "(sim.judges.wall_census), written to --out",
+    )
     args = parser.parse_args(argv)
+    cli = list(argv) if argv is not None else sys.argv[1:]
+    if args.wall_census:
+        _init(args.data)
+        records = dataset.load_records(dataset_bridge.resolve_dataset_dir(args.data)[0])
+        census = judges.wall_census(records, _STATE["recipe"], _STATE["library"])
+        census["command"] = "python -m experiments.cross_engine " + " ".join(cli)
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(census, indent=1) + "\n")
+        print(json.dumps({k: v for k, v in census.items() if not k.startswith("per_")}))
+        return census
     if args.redraw:
         if not args.figure:
             parser.error("--redraw needs --figure")
@@ -363,7 +380,7 @@ def main(argv=None) -> dict:
         "what": "MuJoCo vs PyBullet verdicts on a seeded sample of the dataset's stable poses "
         "(2 s stability protocol) and near misses (0.5 s rollout: a miss falls, diverges or "
         "moves > 0.3 m); 'hangs' = stable / not a miss (sim.judges, docs/judges.md)",
-        "command": "python -m experiments.cross_engine " + " ".join(argv or []),
+        "command": "python -m experiments.cross_engine " + " ".join(cli),
         "data": args.data,
         "seed": args.seed,
         "sample": {

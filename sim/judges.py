@@ -18,6 +18,7 @@ docs/judges.md for the protocol and findings.
 
 from __future__ import annotations
 
+import collections
 import copy
 import dataclasses
 from typing import NamedTuple
@@ -367,3 +368,36 @@ def agreement(
             "per_family": {f: table(k & (fams == f)) for f in sorted(set(fams[k]))},
         }
     return out
+
+
+def wall_census(records: list[dict], recipe: dict, library, depth: float = 0.001) -> dict:
+    """How many stored stable poses of a dataset reach more than ``depth`` (m) behind their
+    support's wall plane (:func:`behind_wall_depth`): totals, pairs affected, pairs left
+    without any other stable pose, and counts per object category and support family."""
+    total, behind = collections.Counter(), collections.Counter()
+    pairs, emptied = 0, 0
+    for r in records:
+        poses = r["stable_poses"]
+        if len(poses) == 0:
+            continue
+        obj, sup, _ = recipe["pairs"][int(r["pair_index"])]
+        o, s = library.objects[obj], library.supports[sup]
+        n = int((behind_wall_depth(o, poses, s.wall_y) > depth).sum())
+        for key in (("category", o.category), ("family", s.category)):
+            total[key] += len(poses)
+            behind[key] += n
+        pairs += n > 0
+        emptied += n == len(poses)
+    return {
+        "depth_m": depth,
+        "stable_poses": sum(v for (k, _), v in total.items() if k == "category"),
+        "behind_wall": sum(v for (k, _), v in behind.items() if k == "category"),
+        "pairs_affected": pairs,
+        "pairs_left_without_stable_poses": emptied,
+        "per_category": {
+            c: [behind[(k, c)], total[(k, c)]] for (k, c) in sorted(total) if k == "category"
+        },
+        "per_family": {
+            f: [behind[(k, f)], total[(k, f)]] for (k, f) in sorted(total) if k == "family"
+        },
+    }
