@@ -289,7 +289,9 @@ class SetAbstraction(nn.Module):
             idx = ball_query(points, centroids, level.radius, level.nsample)
             grouped = group_points(points, features, centroids, idx)
         # Offsets in units of the radius: O(1) inputs without batch norm (module docstring).
-        grouped = grouped.at[..., :3].divide(level.radius)
+        # (a concatenate, not ``.at[..., :3].divide``: XLA constant-folded that scatter at
+        # every compilation, seconds per compile)
+        grouped = jnp.concatenate([grouped[..., :3] / level.radius, grouped[..., 3:]], axis=-1)
         pooled = jnp.max(SharedMLP(level.mlp)(grouped), axis=2)
         return centroids, pooled
 
