@@ -25,13 +25,16 @@ W=/tmp/s3
 WAIT_S=${WAIT_S:-560}
 T0=$(date +%s)
 mkdir -p "$OUT" "$W"
+setup_env() {  # the carried wheels into /tmp/site; this tree on the path
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
+        .whl_min/*.whl .whl_train/*.whl || return 5
+    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+}
 
 if [ "$MODE" = eval ]; then
     # one call, foreground: derive the held-out pairs, evaluate the committed V
     # (VALUE, default weights/value_small_paper) on all of them, benchmark the pipeline
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
-        .whl_min/*.whl .whl_train/*.whl || exit 5
-    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+    setup_env || exit 5
     V=${VALUE:-weights/value_small_paper}
     nvidia-smi -L | tee "$OUT/eval.log"
     python3 -m experiments.derive_dataset --data datasets/paper --split test \
@@ -51,9 +54,7 @@ fi
 if [ "$MODE" = variants ]; then
     # one call: the held-out evaluation again (now also the separated answer), then K = 10
     # proposals on a balanced subset (more proposals = a wider search)
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
-        .whl_min/*.whl .whl_train/*.whl || exit 5
-    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+    setup_env || exit 5
     nvidia-smi -L | tee "$OUT/variants.log"
     python3 -m experiments.derive_dataset --data datasets/paper --split test \
         --pairs-from results/hanging_success.pairs.jsonl --workers 16 --no-progress >/dev/null 2>&1
@@ -73,9 +74,7 @@ fi
 if [ "$MODE" = curve ]; then
     # one call: the refinement-learning curve (100 training pairs, 10,000 steps, Stage-2 vs
     # uniform start), then CEM_ROUNDS-round CEM on a balanced held-out subset (a variant)
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
-        .whl_min/*.whl .whl_train/*.whl || exit 5
-    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+    setup_env || exit 5
     nvidia-smi -L | tee "$OUT/curve.log"
     python3 -m experiments.derive_dataset --data datasets/paper --split train --limit 400 \
         --workers 16 --no-progress >/dev/null 2>&1
