@@ -123,3 +123,31 @@ def test_save_and_load_value(tmp_path):
     np.testing.assert_array_equal(np.asarray(leaves[0]), np.asarray(jax.tree.leaves(params2)[0]))
     with pytest.raises(FileNotFoundError, match="train V first"):
         refine.load_value(tmp_path / "missing")
+
+
+@pytest.mark.slow
+def test_train_stage3_tiny_runs_and_resumes(tmp_path):
+    """The whole RL job on a few derived pairs (tiny preset), then a rerun of the same folder
+    with one more round: it resumes (no second seeding, the round counter continues, the
+    buffer keeps its transitions) and writes V, metrics and curves."""
+    import dataclasses
+    import json
+
+    from experiments.train_stage3 import PRESETS
+    from omnihang_jax import dataset_bridge, rl
+
+    dataset_bridge.derive_dataset(DATA, splits=("train",), limit=12, progress=False)
+    cfg = dataclasses.replace(PRESETS["tiny"], rounds=1)
+    out = tmp_path / "job"
+    first = rl.train_stage3(cfg, out, DATA, "weights/where_small_paper", progress=False)
+    n1 = first["buffer"]["transitions"]
+    assert first["state"]["round"] == 1 and first["state"]["seeded"]
+    assert (out / "value" / "params.msgpack").exists() and (out / "curves.png").exists()
+    seed_s = json.loads((out / "state.json").read_text())["seed_s"]
+    second = rl.train_stage3(dataclasses.replace(cfg, rounds=2), out, DATA,
+                             "weights/where_small_paper", progress=False)  # fmt: skip
+    assert second["state"]["round"] == 2
+    assert second["state"]["seed_s"] == seed_s  # seeding not redone
+    assert second["buffer"]["transitions"] > n1
+    rounds = [json.loads(x) for x in (out / "rounds.jsonl").read_text().splitlines()]
+    assert [r.get("round") for r in rounds if "round" in r] == [1, 2]
