@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 from experiments import _cli
@@ -41,33 +40,29 @@ def main(argv=None) -> dict:
     parser.add_argument("--label", default="")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    try:
-        dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(args.data)
-        files = dataset_bridge.derived_files(derived_dir, args.split)
-        if args.pairs_from:
-            wanted = [json.loads(x)["file"] for x in Path(args.pairs_from).read_text().splitlines()]
-            have = {Path(f).name: f for f in files}
-            missing = [w for w in wanted if w not in have]
-            if missing:
-                raise FileNotFoundError(
-                    f"{len(missing)} of {len(wanted)} pairs of {args.pairs_from} are not derived"
-                    f" under {derived_dir}/{args.split} (first: {missing[0]}); derive them first"
-                )
-            files = [have[w] for w in wanted]
-        if args.per_category:
-            files = evaluate.spread_per_category(files, args.per_category)
-        if args.limit:
-            files = files[: args.limit]
-        if not files:
-            raise FileNotFoundError(f"no derived {args.split} pairs under {derived_dir}")
-        records, timings = eval_pipeline.evaluate_pipeline(
-            files, args.weights, args.value, dataset_dir, num_proposals=args.proposals,
-            cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
-            progress=not args.no_progress,
-        )  # fmt: skip
-    except (FileNotFoundError, ValueError) as err:
-        print(f"eval_stage3: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+    dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(args.data)
+    files = dataset_bridge.derived_files(derived_dir, args.split)
+    if args.pairs_from:
+        wanted = [json.loads(x)["file"] for x in Path(args.pairs_from).read_text().splitlines()]
+        have = {Path(f).name: f for f in files}
+        missing = [w for w in wanted if w not in have]
+        if missing:
+            raise FileNotFoundError(
+                f"{len(missing)} of {len(wanted)} pairs of {args.pairs_from} are not derived"
+                f" under {derived_dir}/{args.split} (first: {missing[0]}); derive them first"
+            )
+        files = [have[w] for w in wanted]
+    if args.per_category:
+        files = evaluate.spread_per_category(files, args.per_category)
+    if args.limit:
+        files = files[: args.limit]
+    if not files:
+        raise FileNotFoundError(f"no derived {args.split} pairs under {derived_dir}")
+    records, timings = eval_pipeline.evaluate_pipeline(
+        files, args.weights, args.value, dataset_dir, num_proposals=args.proposals,
+        cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
+        progress=not args.no_progress,
+    )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
                    cem_rounds=args.rounds, num_proposals=args.proposals)  # fmt: skip

@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 
 from experiments import _cli
 from experiments.train_stage3 import PRESETS
@@ -37,15 +36,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     config = dataclasses.replace(PRESETS[args.preset], workers=args.workers)
-    try:
-        result = learning_curve(
-            args.data, args.weights, args.out, num_pairs=args.pairs, max_steps=args.max_steps,
-            steps_per_round=args.steps_per_round, train_steps=args.train_steps, config=config,
-            progress=not args.no_progress,
-        )  # fmt: skip
-    except (FileNotFoundError, ValueError) as err:
-        print(f"refinement_learning: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+    result = learning_curve(
+        args.data, args.weights, args.out, num_pairs=args.pairs, max_steps=args.max_steps,
+        steps_per_round=args.steps_per_round, train_steps=args.train_steps, config=config,
+        progress=not args.no_progress,
+    )  # fmt: skip
     brief = {s: [round(r["success"], 3) for r in rows] for s, rows in result["curves"].items()}
     print(json.dumps(brief))
     return result

@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 
 from experiments import _cli
 from omnihang_jax import stage3
@@ -83,13 +82,8 @@ def main(argv=None) -> dict:
         config = dataclasses.replace(
             config, value=dataclasses.replace(config.value, batch_size=args.batch)
         )
-    try:
-        summary = train_stage3(
-            config, args.out, args.data, args.weights, progress=not args.no_progress
-        )
-    except (FileNotFoundError, ValueError) as err:
-        print(f"train_stage3: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+    # a missing dataset or weights folder is a user error: one line + exit 2 (experiments._cli)
+    summary = train_stage3(config, args.out, args.data, args.weights, progress=not args.no_progress)
     print(json.dumps(summary, indent=1))
     return summary
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -424,7 +423,3 @@ def write_json(path: str | os.PathLike, data: dict) -> None:
     from sim import atomic
 
     atomic.write_text(os.fspath(path), json.dumps(data, indent=1))
-
-
-def now() -> float:
-    return time.time()

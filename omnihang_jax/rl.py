@@ -164,6 +164,7 @@ def train_stage3(
 ) -> dict:  # fmt: skip
     """Run (or resume) a Stage-3 job; returns a summary dict (also ``workdir/summary.json``)."""
     from omnihang_jax import dataset_bridge
+    from omnihang_jax.config import save_config
 
     t_start = time.time()
 
@@ -173,8 +174,6 @@ def train_stage3(
         )
 
     job = _Job(workdir, config)
-    from omnihang_jax.config import save_config
-
     save_config(config, job.dir / "config.json", data=os.fspath(data), weights=weights)
     dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(data)
     files = dataset_bridge.derived_files(derived_dir, "train")
@@ -420,14 +419,14 @@ def learning_curve(
     all), V trains ``train_steps`` steps. Returns (and writes) the curves."""
     from omnihang_jax import dataset_bridge
 
-    _, derived_dir = dataset_bridge.resolve_dataset_dir(data)
+    dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(data)
     files = sorted(dataset_bridge.derived_files(derived_dir, "train"))
     if len(files) < num_pairs:
         raise FileNotFoundError(f"{len(files)} derived training pairs, {num_pairs} needed")
     rng0 = np.random.default_rng(config.seed)
     files = [files[i] for i in sorted(rng0.permutation(len(files))[:num_pairs])]
     bank = PairBank.from_files(files, config.value, progress=progress)
-    dataset_dir = dataset_bridge.resolve_dataset_dir(data)[0]
+    bank_dev = PairClouds(*(jnp.asarray(x) for x in bank.clouds))
     predictor = _load_where(weights)
     k = config.num_proposals
     per_round = max(1, steps_per_round // (2 * k * num_pairs))  # CEM runs per pair per round
@@ -440,7 +439,6 @@ def learning_curve(
             key = jax.random.key(config.seed)
             trainer = refine.make_value_trainer(config.value, max_steps // steps_per_round * train_steps)  # fmt: skip
             state = trainer.init(jax.random.key(config.seed))
-            bank_dev = PairClouds(*(jnp.asarray(x) for x in bank.clouds))
             buffer = ReplayBuffer()
             rows, steps, r = [], 0, 0
             t0 = time.time()
