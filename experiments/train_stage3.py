@@ -40,6 +40,49 @@ PRESETS = {
     ),
     # the GPU job: every derived training pair, the small PointNet++ preset
     "paper": RLConfig(workers=15, time_budget=0.0),
+    # issue 12, the device chain (scripts/chain/stage3.sh): every training pair, derived
+    # while the job runs (ingested every 3 rounds), a lighter seed (8 + 8 perturbations per
+    # pair), then hard-negative rounds: CEM's answers + the 8 best-scored members of every
+    # final population labelled by the physics, a quarter of each batch from those hard cases
+    "hardneg": RLConfig(
+        workers=4,
+        perturb_wide=8,
+        perturb_tight=8,
+        pretrain_steps=6000,
+        rounds=60,
+        round_pairs=256,
+        round_steps=400,
+        val_every=3,
+        keep_top=8,
+        hard_fraction=0.25,
+        min_pairs=200,
+        ingest_every=3,
+        ingest_min=200,
+        seed_chunk=1500,
+        bank_capacity=16384,
+    ),
+    # the same at CPU scale (tests, CHAIN_TINY=1)
+    "hardneg_tiny": RLConfig(
+        value=stage3.VALUE_TINY,
+        cem=CEMConfig(population=8, iterations=3, elites=3),
+        num_proposals=2,
+        max_pairs=24,
+        perturb_wide=4,
+        perturb_tight=4,
+        pretrain_steps=30,
+        rounds=3,
+        round_pairs=6,
+        round_steps=20,
+        val_every=1,
+        val_pairs=4,
+        eval_every=20,
+        val_fraction=0.25,
+        keep_top=4,
+        hard_fraction=0.25,
+        ingest_every=1,
+        seed_chunk=8,
+        bank_capacity=32,
+    ),
 }
 
 
@@ -65,6 +108,18 @@ def main(argv=None) -> dict:
     parser.add_argument("--batch", type=int, default=None, help="V training batch")
     parser.add_argument("--workers", type=int, default=None, help="simulation processes")
     parser.add_argument("--time-budget", type=float, default=None, help="seconds for the job")
+    parser.add_argument(
+        "--keep-top", type=int, default=None,
+        help="hard-negative rounds: label the N best members of each final CEM population",
+    )  # fmt: skip
+    parser.add_argument(
+        "--hard-fraction", type=float, default=None, help="share of a batch from the hard cases"
+    )
+    parser.add_argument("--val-every", type=int, default=None, help="rounds between val checks")
+    parser.add_argument("--perturb-wide", type=int, default=None)
+    parser.add_argument("--perturb-tight", type=int, default=None)
+    parser.add_argument("--init-value", default=None, help="start V from this value/ folder")
+    parser.add_argument("--min-pairs", type=int, default=None, help="wait for this many pairs")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     config = PRESETS[args.preset]
@@ -76,6 +131,13 @@ def main(argv=None) -> dict:
         "round_steps": args.round_steps,
         "workers": args.workers,
         "time_budget": args.time_budget,
+        "keep_top": args.keep_top,
+        "hard_fraction": args.hard_fraction,
+        "val_every": args.val_every,
+        "perturb_wide": args.perturb_wide,
+        "perturb_tight": args.perturb_tight,
+        "init_value": args.init_value,
+        "min_pairs": args.min_pairs,
     }
     config = dataclasses.replace(config, **{k: v for k, v in over.items() if v is not None})
     if args.batch:

@@ -35,6 +35,7 @@ from omnihang_jax.stage3 import PairClouds, ValueConfig
 
 __all__ = [
     "SOURCES",
+    "HARD_SOURCES",
     "PairBank",
     "ReplayBuffer",
     "perturb_poses",
@@ -47,7 +48,10 @@ __all__ = [
 ]
 
 # Where a transition came from (ReplayBuffer.source).
-SOURCES = ("stable", "perturbed", "stage1", "stage2", "cem", "uniform", "cem_explore")
+SOURCES = ("stable", "perturbed", "stage1", "stage2", "cem", "uniform", "cem_explore", "cem_top")
+# The hard cases: poses CEM chose or V scored highest in CEM's final populations (V's false
+# positives are among them); ``ReplayBuffer.sample(hard_fraction=...)`` draws a stream of them.
+HARD_SOURCES = ("cem", "cem_top")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -73,25 +77,74 @@ class PairBank:
     def from_files(
         cls, files: Sequence[str | os.PathLike], config: ValueConfig, progress: bool = True
     ) -> PairBank:
+        """Read the pair files (only the clouds, stable poses and metadata: not the contact
+        maps) and subsample the clouds as ``stage3.subsample_clouds`` does."""
         from tqdm.auto import tqdm
-
-        from omnihang_jax import dataset_bridge
 
         parts, meta, stable = [], [], []
         for f in tqdm(files, desc="load pairs", unit="pair", disable=not progress):
-            sample, m = dataset_bridge.load_pair_file(f)
-            c = PairClouds(
-                sample.object_points, sample.object_normals,
-                sample.support_points, sample.support_normals,
-            )  # fmt: skip
-            c = stage3.subsample_clouds(jax.tree.map(jnp.asarray, c), config)
-            parts.append(jax.tree.map(np.asarray, c))
-            meta.append({**{k: (v.item() if hasattr(v, "item") else v) for k, v in m.items()},
-                         "file": os.fspath(f)})  # fmt: skip
-            mask = np.asarray(sample.pose_mask, bool)
-            stable.append(np.asarray(sample.stable_poses, np.float32)[mask])
+            c, m, sp = _read_pair_light(f, config)
+            parts.append(c)
+            meta.append(m)
+            stable.append(sp)
+        if not parts:
+            n, m = config.num_object_points, config.num_support_points
+            clouds = PairClouds(*(np.zeros((0, k, 3), np.float32) for k in (n, n, m, m)))
+            return cls(clouds, [], [])
         clouds = PairClouds(*(np.stack(x) for x in zip(*parts, strict=True)))
         return cls(clouds, meta, stable)
+
+    def extend(self, other: PairBank) -> None:
+        """Append ``other``'s pairs (slots continue after this bank's)."""
+        self.clouds = PairClouds(
+            *(np.concatenate([a, b]) for a, b in zip(self.clouds, other.clouds, strict=True))
+        )
+        self.meta = self.meta + other.meta
+        self.stable_poses = self.stable_poses + other.stable_poses
+
+    def save(self, path: str | os.PathLike) -> None:
+        """One ``.npz`` (clouds, metadata as JSON, stable poses concatenated + offsets): a
+        job reloads it instead of re-reading thousands of pair files."""
+        from sim import atomic
+
+        counts = np.array([len(p) for p in self.stable_poses], np.int64)
+        atomic.savez(
+            os.fspath(path),
+            **{f: getattr(self.clouds, f) for f in PairClouds._fields},
+            meta=np.array(json.dumps(self.meta)),
+            stable=np.concatenate(self.stable_poses) if len(self) else np.zeros((0, 7), np.float32),
+            stable_offsets=np.concatenate([[0], np.cumsum(counts)]),
+        )
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> PairBank:
+        with np.load(path) as z:
+            clouds = PairClouds(*(z[f] for f in PairClouds._fields))
+            meta = json.loads(z["meta"].item())
+            off, st = z["stable_offsets"], z["stable"]
+        stable = [st[off[i] : off[i + 1]] for i in range(len(meta))]
+        return cls(clouds, meta, stable)
+
+
+def _read_pair_light(path, config: ValueConfig):
+    """(subsampled PairClouds of numpy, metadata dict, stable poses [D, 7]) of a pair file."""
+    from omnihang_jax.dataset_bridge import META_KEYS
+
+    with np.load(path) as f:
+        missing = [k for k in META_KEYS if k not in f.files]
+        if missing:
+            raise ValueError(f"{path}: no pair metadata {missing}; derive it with derive_dataset")
+        op, on = f["object_points"], f["object_normals"]
+        sp, sn = f["support_points"], f["support_normals"]
+        poses = np.asarray(f["stable_poses"], np.float32)
+        mask = np.asarray(f["pose_mask"], bool) if "pose_mask" in f.files else None
+        meta = {k: f[k].item() for k in META_KEYS}
+    meta["pair_index"] = int(meta["pair_index"])
+    meta["file"] = os.fspath(path)
+    io = (np.arange(config.num_object_points) * len(op)) // config.num_object_points
+    js = (np.arange(config.num_support_points) * len(sp)) // config.num_support_points
+    clouds = PairClouds(*(np.asarray(x, np.float32) for x in (op[io], on[io], sp[js], sn[js])))
+    return clouds, meta, poses if mask is None else poses[mask]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -131,15 +184,38 @@ class ReplayBuffer:
         out.data = {k: v[mask] for k, v in self.data.items()}
         return out
 
-    def sample(self, rng: np.random.Generator, batch: int) -> np.ndarray:
+    def sample(
+        self, rng: np.random.Generator, batch: int, hard_fraction: float = 0.0
+    ) -> np.ndarray:
         """Indices: half successes, half failures (facts), with replacement; all from one
-        side when the other is empty."""
+        side when the other is empty.
+
+        ``hard_fraction`` f > 0: a third stream, ``round(f * batch)`` of the indices drawn
+        from the hard cases (sources ``HARD_SOURCES``: CEM's answers and the top-scored
+        members of its final populations), again half successes and half failures (all
+        failures when the hard cases hold no success), the rest 50/50 from everything. So the
+        batch stays balanced while the poses V liked most, and the false positives among them,
+        come far more often than their share of the buffer."""
         r = self.data["reward"]
+        n_hard = int(round(hard_fraction * batch)) if hard_fraction > 0 else 0
+        out = []
+        if n_hard:
+            hard = np.isin(self.data["source"], [SOURCES.index(s) for s in HARD_SOURCES])
+            hp, hn = np.flatnonzero(hard & (r == 1)), np.flatnonzero(hard & (r == 0))
+            if len(hn):
+                h = n_hard // 2 if len(hp) else 0
+                out += [rng.choice(hp, h) if h else np.zeros(0, np.int64),
+                        rng.choice(hn, n_hard - h)]  # fmt: skip
+            else:
+                n_hard = 0
+        rest = batch - n_hard
         pos, neg = np.flatnonzero(r == 1), np.flatnonzero(r == 0)
         if len(pos) == 0 or len(neg) == 0:
-            return rng.integers(len(r), size=batch)
-        h = batch // 2
-        return np.concatenate([rng.choice(pos, h), rng.choice(neg, batch - h)])
+            out.append(rng.integers(len(r), size=rest))
+        else:
+            h = rest // 2
+            out += [rng.choice(pos, h), rng.choice(neg, rest - h)]
+        return np.concatenate(out).astype(np.int64)
 
     def stats(self) -> dict:
         r, s = self.data["reward"], self.data["source"]

@@ -68,6 +68,18 @@ class RLConfig:
     workers: int = 0  # labelling processes (0: in this process)
     seed: int = 0
     time_budget: float = 0.0  # s; 0 = no limit (phases stop cleanly when it runs out)
+    # hard-negative rounds (issue 12): label not only CEM's answers but the keep_top
+    # best-scored members of every final population (V's false positives are among them)
+    keep_top: int = 0  # per proposal; 0: only the answers (the earlier rounds)
+    explore: bool = True  # also one perturbed copy (+-4 mm, 0.05 rad) of each answer
+    hard_fraction: float = 0.0  # share of each batch drawn from the hard cases (balanced)
+    init_value: str = ""  # start V from these weights (a value/ folder); "" = from scratch
+    # pairs arriving while the job runs (a background derive)
+    min_pairs: int = 1  # wait (within time_budget) until this many pairs are derived
+    ingest_every: int = 0  # rounds between looks for newly derived pairs (0: only at start)
+    ingest_min: int = 1  # ingest when at least this many new pairs are there
+    seed_chunk: int = 2000  # pairs seeded per chunk (buffer saved after each)
+    bank_capacity: int = 0  # device bank padded to at least this many pairs (one shape)
 
 
 def validation_objects(names, fraction: float) -> set[str]:
@@ -99,18 +111,15 @@ def run_pipeline_on_pairs(
     starts). ``starts_override`` [n, K, 7] replaces the Stage-1/2
     start (the learning-curve experiment's uniform start). Batches are padded (one
     compilation per batch size)."""
-    from omnihang_jax import dataset_bridge
-
     slots = np.asarray(slots)
-    out = {k: [] for k in ("stage1", "stage2", "refined", "scores", "initial", "best")}
+    names = ("stage1", "stage2", "refined", "scores", "initial", "best", "top_poses", "top_scores")
+    out = {k: [] for k in names}
     for i in range(0, len(slots), batch):
         chunk = slots[i : i + batch]
         m = len(chunk)
         pad = np.concatenate([chunk, np.repeat(chunk[:1], batch - m)])
         if starts_override is None:
-            samples = [dataset_bridge.load_pair_file(bank.meta[s]["file"])[0] for s in pad]
-            obj = np.stack([np.asarray(s.object_points, np.float32) for s in samples])
-            sup = np.stack([np.asarray(s.support_points, np.float32) for s in samples])
+            obj, sup = _full_clouds([bank.meta[s]["file"] for s in pad])
             pred = predictor(obj, sup, key=jax.random.fold_in(key, i), num_proposals=num_proposals)
             s1, s2 = pred.stage1_poses, pred.stage2_poses
             starts = s2 if start == "stage2" else s1
@@ -120,16 +129,28 @@ def run_pipeline_on_pairs(
             s1 = s2 = starts
         if refine_fn is None:  # Stages 1-2 only
             b, k = np.shape(starts)[:2]
-            res = stage3.Refined(starts, np.zeros((b, k)), np.zeros((b, k)), np.zeros(b, int))
+            res = stage3.Refined(starts, np.zeros((b, k)), np.zeros((b, k)), np.zeros(b, int),
+                                 np.zeros((b, k, 0, 7)), np.zeros((b, k, 0)))  # fmt: skip
         else:
             clouds = PairClouds(*(jnp.asarray(x[pad]) for x in bank.clouds))
             res = refine_fn(value_params, jax.random.fold_in(key, 10_000 + i), clouds,
                             jnp.asarray(starts, jnp.float32))  # fmt: skip
         for k, v in (("stage1", s1), ("stage2", s2), ("refined", res.poses),
                      ("scores", res.scores), ("initial", res.initial_scores),
-                     ("best", res.best)):  # fmt: skip
+                     ("best", res.best), ("top_poses", res.top_poses),
+                     ("top_scores", res.top_scores)):  # fmt: skip
             out[k].append(np.asarray(v)[:m])
     return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def _full_clouds(files) -> tuple[np.ndarray, np.ndarray]:
+    """Object and support points [n, N, 3] of pair files (only those two arrays are read)."""
+    obj, sup = [], []
+    for f in files:
+        with np.load(f) as z:
+            obj.append(np.asarray(z["object_points"], np.float32))
+            sup.append(np.asarray(z["support_points"], np.float32))
+    return np.stack(obj), np.stack(sup)
 
 
 class _Job:
@@ -158,11 +179,98 @@ def _total_steps(config: RLConfig) -> int:
     return config.pretrain_steps + config.rounds * config.round_steps
 
 
+def _derived_train_files(derived_dir) -> list[Path]:
+    """Sorted training pair files present now (none is fine: the derive may still run);
+    atomic-write temporaries (``.tmp_*``) are skipped."""
+    d = Path(derived_dir, "train")
+    if not d.is_dir():
+        return []
+    return sorted(f for f in d.glob("*.npz") if not f.name.startswith("."))
+
+
+class _Bank:
+    """The job's pairs: a :class:`PairBank` that only grows (slots never move), cached in
+    ``bank.npz``, mirrored on the device padded to a capacity (so the jitted steps keep one
+    shape while pairs arrive), with the fit/validation split by object name."""
+
+    def __init__(self, job: _Job, config: RLConfig, derived_dir, progress: bool):
+        self.job, self.config, self.derived_dir, self.progress = job, config, derived_dir, progress
+        self.path = job.dir / "bank.npz"
+        if self.path.exists():
+            self.bank = PairBank.load(self.path)
+        else:
+            self.bank = PairBank.from_files([], config.value, progress=False)
+            split = job.dir / "split.json"
+            if split.exists():  # a job of the earlier code: same pairs, same order
+                names = json.loads(split.read_text())["files"]
+                self.bank = PairBank.from_files(
+                    [Path(derived_dir, "train", n) for n in names], config.value, progress
+                )
+        self.dev = None
+        self._update_split()
+
+    def __len__(self) -> int:
+        return len(self.bank)
+
+    def new_files(self) -> list[Path]:
+        have = {os.path.basename(m["file"]) for m in self.bank.meta}
+        new = [f for f in _derived_train_files(self.derived_dir) if f.name not in have]
+        cap = self.config.max_pairs
+        if cap:
+            room = cap - len(self.bank)
+            if room <= 0:
+                return []
+            if len(new) > room:  # a fixed random subset (seeded): every category represented
+                pick = np.random.default_rng(self.config.seed + len(self.bank)).permutation(
+                    len(new)
+                )
+                new = [new[i] for i in sorted(pick[:room])]
+        return new
+
+    def ingest(self, files) -> np.ndarray:
+        """Append ``files``; returns their slots."""
+        first = len(self.bank)
+        if files:
+            self.bank.extend(PairBank.from_files(files, self.config.value, self.progress))
+            self.bank.save(self.path)
+            self._update_split()
+            self.dev = None
+        return np.arange(first, len(self.bank))
+
+    def _update_split(self) -> None:
+        names = sorted({m["object_name"] for m in self.bank.meta})
+        val_objects = validation_objects(names, self.config.val_fraction)
+        is_val = np.array([m["object_name"] in val_objects for m in self.bank.meta], bool)
+        self.fit_slots, self.val_slots = np.flatnonzero(~is_val), np.flatnonzero(is_val)
+        refine.write_json(self.job.dir / "split.json", {
+            "pairs": len(self.bank), "fit_pairs": len(self.fit_slots),
+            "val_pairs": len(self.val_slots), "val_objects": sorted(val_objects),
+            "files": [os.path.basename(m["file"]) for m in self.bank.meta],
+        })  # fmt: skip
+
+    def device(self) -> PairClouds:
+        """The clouds on the device, padded to max(len, bank_capacity) rounded up to 1,024
+        rows (a new shape, hence a recompilation, only when the bank outgrows it)."""
+        if self.dev is None:
+            n = len(self.bank)
+            cap = max(n, self.config.bank_capacity, 1)
+            cap = -(-cap // 1024) * 1024 if cap > 1024 else cap
+            self.dev = PairClouds(*(
+                jnp.asarray(np.concatenate([x, np.zeros((cap - n,) + x.shape[1:], x.dtype)]))
+                for x in self.bank.clouds
+            ))  # fmt: skip
+        return self.dev
+
+
 def train_stage3(
     config: RLConfig, workdir: str | os.PathLike, data: str | os.PathLike, weights: str,
     progress: bool = True,
 ) -> dict:  # fmt: skip
-    """Run (or resume) a Stage-3 job; returns a summary dict (also ``workdir/summary.json``)."""
+    """Run (or resume) a Stage-3 job; returns a summary dict (also ``workdir/summary.json``).
+
+    Pairs may arrive while the job runs (a derive in the background): at the start and every
+    ``ingest_every`` rounds the job appends the newly derived pairs to its bank and seeds
+    them, so a rerun in the same folder trains on everything derived by then."""
     from omnihang_jax import dataset_bridge
     from omnihang_jax.config import save_config
 
@@ -176,44 +284,39 @@ def train_stage3(
     job = _Job(workdir, config)
     save_config(config, job.dir / "config.json", data=os.fspath(data), weights=weights)
     dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(data)
-    files = dataset_bridge.derived_files(derived_dir, "train")
-    if not files:
+    pairs = _Bank(job, config, derived_dir, progress)
+    if "seeded_pairs" not in job.state:  # a job of the earlier code: all or nothing
+        job.state["seeded_pairs"] = len(pairs) if job.state.get("seeded") else 0
+    while len(pairs) + len(pairs.new_files()) < max(config.min_pairs, 1):
+        if time_left() < 120 or not config.time_budget:
+            break
+        time.sleep(5)  # the derive is still writing the first pairs
+    pairs.ingest(pairs.new_files())
+    if not len(pairs):
         raise FileNotFoundError(
             f"no derived training pairs under {derived_dir}/train: derive them first "
             f"(python -m experiments.derive_dataset --data {dataset_dir} --split train)"
         )
-    files = sorted(files)
-    if config.max_pairs:
-        # a fixed random subset (seeded), so every category and family is represented
-        pick = np.random.default_rng(config.seed).permutation(len(files))[: config.max_pairs]
-        files = [files[i] for i in sorted(pick)]
-    bank = PairBank.from_files(files, config.value, progress=progress)
-    names = sorted({m["object_name"] for m in bank.meta})
-    val_objects = validation_objects(names, config.val_fraction)
-    is_val = np.array([m["object_name"] in val_objects for m in bank.meta])
-    fit_slots, val_slots = np.flatnonzero(~is_val), np.flatnonzero(is_val)
-    refine.write_json(job.dir / "split.json", {
-        "pairs": len(bank), "fit_pairs": len(fit_slots), "val_pairs": len(val_slots),
-        "val_objects": sorted(val_objects), "files": [os.path.basename(f) for f in files],
-    })  # fmt: skip
-    rng = np.random.default_rng(config.seed + 1000 * job.state["round"])
+    rng = np.random.default_rng(config.seed + 1000 * job.state["round"] + job.state["seeded_pairs"])
     key = jax.random.key(config.seed)
     predictor = _load_where(weights)
     buffer_path = job.dir / "buffer.npz"
     buffer = ReplayBuffer.load(buffer_path) if buffer_path.exists() else ReplayBuffer()
+    timings = {"seed_per_pair": None, "round": None}
 
     labeller = Labeller(dataset_dir, config.workers)
     try:
         # 1. seed ------------------------------------------------------------------------------
-        if not job.state["seeded"]:
-            t0 = time.time()
-            slots_all = np.arange(len(bank))
+        def seed(slots_all: np.ndarray) -> None:
+            bank = pairs.bank
             for s in slots_all:
                 sp = bank.stable_poses[s]
                 buffer.add(np.full(len(sp), s), sp, np.ones(len(sp)), "stable")
             cand_slots, cand_poses, cand_src = [], [], []
             for s in slots_all:
                 sp = bank.stable_poses[s]
+                if not len(sp):
+                    continue
                 for n, tr, rot in ((config.perturb_wide, config.cem.clip_translation,
                                     config.cem.clip_rotation),
                                    (config.perturb_tight, 0.005, 0.1)):  # fmt: skip
@@ -223,34 +326,52 @@ def train_stage3(
                         cand_src.append(np.full(n, "perturbed"))
             if config.seed_proposals:
                 pred = run_pipeline_on_pairs(
-                    predictor, None, None, bank, slots_all, key, config.num_proposals
-                )
+                    predictor, None, None, bank, slots_all,
+                    jax.random.fold_in(key, int(slots_all[0])), config.num_proposals,
+                )  # fmt: skip
                 for name in ("stage1", "stage2"):
                     cand_poses.append(pred[name].reshape(-1, 7))
                     cand_slots.append(np.repeat(slots_all, config.num_proposals))
                     cand_src.append(np.full(len(slots_all) * config.num_proposals, name))
-            slots = np.concatenate(cand_slots)
-            poses = np.concatenate(cand_poses)
-            src = np.concatenate(cand_src)
-            rewards, _ = _label_chunked(labeller, bank, slots, poses, progress)
-            for name in np.unique(src):
-                m = src == name
-                buffer.add(slots[m], poses[m], rewards[m], str(name))
-            buffer.save(buffer_path)
-            job.state["seeded"] = True
-            job.state["seed_s"] = time.time() - t0
-            job.save_state()
-            job.log("rounds.jsonl", {"phase": "seed", "s": job.state["seed_s"],
-                                     **buffer.stats()})  # fmt: skip
+            if cand_slots:
+                slots = np.concatenate(cand_slots)
+                poses = np.concatenate(cand_poses)
+                src = np.concatenate(cand_src)
+                rewards, _ = _label_chunked(labeller, bank, slots, poses, progress)
+                for name in np.unique(src):
+                    m = src == name
+                    buffer.add(slots[m], poses[m], rewards[m], str(name))
+
+        def seed_pending(min_left: float) -> None:
+            """Seed the pairs not seeded yet, in chunks, while time allows."""
+            while job.state["seeded_pairs"] < len(pairs):
+                lo = job.state["seeded_pairs"]
+                chunk = np.arange(lo, min(lo + config.seed_chunk, len(pairs)))
+                est = (timings["seed_per_pair"] or 0.0) * len(chunk)
+                if time_left() < min_left + 1.3 * est:
+                    break
+                t0 = time.time()
+                seed(chunk)
+                buffer.save(buffer_path)
+                dt = time.time() - t0
+                timings["seed_per_pair"] = dt / len(chunk)
+                job.state["seeded_pairs"] = int(chunk[-1]) + 1
+                job.state["seed_s"] = job.state.get("seed_s", 0.0) + dt
+                job.state["seeded"] = job.state["seeded_pairs"] == len(pairs)
+                job.save_state()
+                job.log("rounds.jsonl", {"phase": "seed", "pairs": [int(lo), int(chunk[-1]) + 1],
+                                         "s": dt, **buffer.stats()})  # fmt: skip
+
+        seed_pending(min_left=60.0)
 
         # 2. V ---------------------------------------------------------------------------------
         trainer = refine.make_value_trainer(config.value, _total_steps(config))
-        state = trainer.init(jax.random.key(config.seed))
+        init_params = refine.load_value(config.init_value)[1] if config.init_value else None
+        state = trainer.init(jax.random.key(config.seed), init_params)
         ckpt = job.dir / "train_state.msgpack"
         if ckpt.exists():
             state = flax.serialization.from_bytes(state, ckpt.read_bytes())
-        bank_dev = PairClouds(*(jnp.asarray(x) for x in bank.clouds))
-        refine_fn = jax.jit(stage3.make_refiner(config.value, config.cem))
+        refine_fn = jax.jit(stage3.make_refiner(config.value, config.cem, config.keep_top))
 
         def save(state):
             blob = flax.serialization.to_bytes(state)
@@ -261,27 +382,38 @@ def train_stage3(
                               step=int(state.step))  # fmt: skip
             buffer.save(buffer_path)
 
+        hard_ids = [refine.SOURCES.index(x) for x in refine.HARD_SOURCES]
+
         def validate(state) -> dict:
+            """V on transitions of the validation pairs (never trained on): all of them
+            (4,096 at most) and the hard cases alone (CEM's answers and top-scored members
+            on the validation pairs: V's precision where it matters)."""
             d = buffer.data
-            m = np.isin(d["slot"], val_slots)
-            if not m.any():
-                return {}
-            idx = np.flatnonzero(m)
-            if len(idx) > 4096:
-                idx = np.random.default_rng(0).choice(idx, 4096, replace=False)
-            prob = refine.predict_in_batches(trainer, state.params, bank_dev, d["slot"][idx],
-                                             d["pose"][idx])  # fmt: skip
-            return {f"val_{k}": v for k, v in
-                    refine.classification_metrics(prob, d["reward"][idx]).items()}  # fmt: skip
+            m = np.isin(d["slot"], pairs.val_slots)
+            out = {}
+            for tag, mm in (("val", m), ("val_hard", m & np.isin(d["source"], hard_ids))):
+                if not mm.any():
+                    continue
+                idx = np.flatnonzero(mm)
+                if len(idx) > 4096:
+                    idx = np.random.default_rng(0).choice(idx, 4096, replace=False)
+                prob = refine.predict_in_batches(trainer, state.params, pairs.device(),
+                                                 d["slot"][idx], d["pose"][idx])  # fmt: skip
+                out.update({f"{tag}_{k}": v for k, v in
+                            refine.classification_metrics(prob, d["reward"][idx]).items()})  # fmt: skip
+            return out
 
         def train(state, steps: int, tag: str):
-            fit = buffer.select(np.isin(buffer.data["slot"], fit_slots))
+            fit = buffer.select(np.isin(buffer.data["slot"], pairs.fit_slots))
+            if not len(fit):
+                return state
+            bank_dev = pairs.device()
             bar = tqdm(range(steps), desc=f"train V ({tag})", disable=not progress)
             t0 = time.time()
             for i in bar:
                 if time_left() < 30:
                     break
-                idx = fit.sample(rng, config.value.batch_size)
+                idx = fit.sample(rng, config.value.batch_size, config.hard_fraction)
                 d = fit.data
                 state, metrics = trainer.step(
                     state, bank_dev, d["slot"][idx], d["pose"][idx], d["reward"][idx],
@@ -298,56 +430,103 @@ def train_stage3(
                                     acc=f"{row['accuracy']:.2f}")  # fmt: skip
             return state
 
-        if job.state["pretrain_step"] < config.pretrain_steps:
+        if job.state["pretrain_step"] < config.pretrain_steps and time_left() > 60:
             state = train(state, config.pretrain_steps - job.state["pretrain_step"], "pretrain")
             job.state["pretrain_step"] = int(state.step)
             save(state)
             job.save_state()
 
+        def cem_round(slots, r: int, tag_key: int):
+            """CEM on the current V from the K Stage-2 proposals of ``slots``; labels the
+            refined poses, the top ``keep_top`` members of each final population and one
+            perturbed copy of each refined pose in one simulation call. Returns the
+            pipeline's output, the per-source (slots, poses, rewards) and figures."""
+            k, mt = config.num_proposals, config.keep_top
+            out = run_pipeline_on_pairs(predictor, refine_fn, state.params, pairs.bank, slots,
+                                        jax.random.fold_in(key, tag_key), k)  # fmt: skip
+            n = len(slots)
+            refined = out["refined"].reshape(-1, 7)
+            parts = {"cem": (np.repeat(slots, k), refined)}
+            if mt:
+                parts["cem_top"] = (np.repeat(slots, k * mt), out["top_poses"].reshape(-1, 7))
+            if config.explore:
+                parts["cem_explore"] = (
+                    np.repeat(slots, k), refine.perturb_poses(refined, rng, len(refined), 0.004, 0.05)
+                )  # fmt: skip
+            s_all = np.concatenate([v[0] for v in parts.values()])
+            p_all = np.concatenate([v[1] for v in parts.values()])
+            rew, _ = _label_chunked(labeller, pairs.bank, s_all, p_all, False)
+            labelled, i = {}, 0
+            for name, (sl, po) in parts.items():
+                labelled[name] = (sl, po, rew[i : i + len(sl)])
+                i += len(sl)
+            rr = labelled["cem"][2].reshape(n, k)
+            figs = {"chosen_success": float(rr[np.arange(n), out["best"]].mean()),
+                    "any_refined_success": float(rr.any(1).mean())}  # fmt: skip
+            if mt:
+                # the top members as V judged them before training on them: how many hang,
+                # and V's precision (P > 0.5) on them (V's false positives = hard negatives)
+                tr = labelled["cem_top"][2]
+                tp = np.exp(out["top_scores"].reshape(-1))
+                figs.update(top_success=float(tr.mean()), top_called_good=float((tp > 0.5).mean()),
+                            top_precision=float(tr[tp > 0.5].mean()) if (tp > 0.5).any() else 0.0)  # fmt: skip
+            return out, labelled, figs
+
         # 3. RL rounds -------------------------------------------------------------------------
         while job.state["round"] < config.rounds and time_left() > 60:
             r = job.state["round"] + 1
+            if config.ingest_every and r % config.ingest_every == 0:
+                new = pairs.new_files()
+                if len(new) >= config.ingest_min:
+                    pairs.ingest(new)
+            seed_pending(min_left=90.0)
+            est = timings["round"] or 0.0
+            if time_left() < 45 + 1.3 * est:
+                break
             t0 = time.time()
-            slots = rng.choice(fit_slots, min(config.round_pairs, len(fit_slots)), replace=False)
-            out = run_pipeline_on_pairs(predictor, refine_fn, state.params, bank, slots,
-                                        jax.random.fold_in(key, 7 * r), config.num_proposals)  # fmt: skip
-            k = config.num_proposals
-            poses = out["refined"].reshape(-1, 7)
-            explore = refine.perturb_poses(poses, rng, len(poses), 0.004, 0.05)
-            all_slots = np.concatenate([np.repeat(slots, k), np.repeat(slots, k)])
-            all_poses = np.concatenate([poses, explore])
-            rewards, _ = _label_chunked(labeller, bank, all_slots, all_poses, False)
-            buffer.add(all_slots[: len(poses)], poses, rewards[: len(poses)], "cem", r)
-            buffer.add(all_slots[len(poses):], explore, rewards[len(poses):], "cem_explore", r)  # fmt: skip
-            chosen = rewards[: len(poses)].reshape(-1, k)[np.arange(len(slots)), out["best"]]
-            row = {"round": r, "pairs": len(slots), "chosen_success": float(chosen.mean()),
-                   "any_refined_success": float(rewards[: len(poses)].reshape(-1, k).any(1).mean()),
-                   "transitions": len(buffer)}  # fmt: skip
+            slots = rng.choice(pairs.fit_slots, min(config.round_pairs, len(pairs.fit_slots)),
+                               replace=False)  # fmt: skip
+            slots = slots[slots < job.state["seeded_pairs"]]
+            if not len(slots):
+                break
+            out, labelled, figs = cem_round(slots, r, 7 * r)
+            for name, (sl, po, rw) in labelled.items():
+                buffer.add(sl, po, rw, name, r)
+            row = {"round": r, "pairs": len(slots), **figs, "transitions": len(buffer),
+                   "bank_pairs": len(pairs), "seeded_pairs": job.state["seeded_pairs"]}  # fmt: skip
             state = train(state, config.round_steps, f"round {r}")
-            if config.val_every and r % config.val_every == 0 and len(val_slots):
-                vs = val_slots[: config.val_pairs]
-                vo = run_pipeline_on_pairs(predictor, refine_fn, state.params, bank, vs,
-                                           jax.random.fold_in(key, 99), config.num_proposals)  # fmt: skip
-                best = vo["refined"][np.arange(len(vs)), vo["best"]]
-                vr, _ = _label_chunked(labeller, bank, vs, best, False)
-                s2 = vo["stage2"][:, 0]
-                vr2, _ = _label_chunked(labeller, bank, vs, s2, False)
-                row.update(
-                    val_pairs=len(vs),
-                    val_all_stages_success=float(vr.mean()),
-                    val_stage1_2_success=float(vr2.mean()),
-                )
+            if config.val_every and r % config.val_every == 0 and len(pairs.val_slots):
+                vs = pairs.val_slots[pairs.val_slots < job.state["seeded_pairs"]][
+                    : config.val_pairs
+                ]
+                if len(vs):
+                    vo, vl, vf = cem_round(vs, r, 99)
+                    for name, (sl, po, rw) in vl.items():  # validation pairs: never trained on
+                        buffer.add(sl, po, rw, name, r)
+                    s2 = vo["stage2"][:, 0]
+                    vr2, _ = _label_chunked(labeller, pairs.bank, vs, s2, False)
+                    row.update(val_pairs=len(vs), val_stage1_2_success=float(vr2.mean()),
+                               val_all_stages_success=vf["chosen_success"],
+                               **{f"val_{k}": v for k, v in vf.items() if k != "chosen_success"})  # fmt: skip
             row["s"] = time.time() - t0
             row.update(validate(state))
+            timings["round"] = row["s"]
             job.log("rounds.jsonl", row)
             job.state["round"] = r
             save(state)
             job.save_state()
             if progress:
                 print(json.dumps(row))
+        if job.state["pretrain_step"] < config.pretrain_steps and time_left() > 45:
+            # pairs that arrived late: whatever pretraining the budget left undone
+            state = train(state, config.pretrain_steps - job.state["pretrain_step"], "pretrain")
+            job.state["pretrain_step"] = int(state.step)
+        save(state)
+        job.save_state()
     finally:
         labeller.close()
-    summary = {"state": job.state, "buffer": buffer.stats(), "wall_s": time.time() - t_start}
+    summary = {"state": job.state, "buffer": buffer.stats(), "pairs": len(pairs),
+               "wall_s": time.time() - t_start}  # fmt: skip
     refine.write_json(job.dir / "summary.json", summary)
     plot_curves(job.dir)
     return summary

@@ -291,13 +291,18 @@ class CEMState:
 
 class CEMResult(NamedTuple):
     """pose [7] refined; action [6]; score [] its score; initial_score [] the initial pose's;
-    history [iterations] best score after each iteration."""
+    history [iterations] best score after each iteration; top_poses [M, 7] / top_scores [M]:
+    the M best-scored members of the final iteration's population (``keep_top`` of
+    :func:`make_cem`; M = 0 by default), best first: the poses the score likes most, which
+    the RL loop labels as hard cases (V's false positives are among them)."""
 
     pose: jax.Array
     action: jax.Array
     score: jax.Array
     initial_score: jax.Array
     history: jax.Array
+    top_poses: Any = None
+    top_scores: Any = None
 
 
 def apply_action(pose7: jax.Array, pivot: jax.Array, action: jax.Array) -> jax.Array:
@@ -327,18 +332,23 @@ def contact_pivot(
     return jnp.where(total >= min_weight, centre, pose7[:3])
 
 
-def make_cem(score_fn: Callable, config: CEMConfig = CEMConfig()) -> Callable:
+def make_cem(score_fn: Callable, config: CEMConfig = CEMConfig(), keep_top: int = 0) -> Callable:
     """``optimise(key, init_pose [7], pivot [3], *score_args) -> CEMResult``.
 
     ``score_fn(poses [P, 7], *score_args) -> [P]`` is maximised. Pure and un-jitted; vmap it
     over proposals and pairs and jit once. The initial pose (action 0) is scored first, so the
-    result is never worse than the start under ``score_fn``.
+    result is never worse than the start under ``score_fn``. ``keep_top`` M > 0 also returns
+    the M best members of the last iteration's population (``CEMResult.top_poses``; with
+    ``rounds`` > 1, of the last round).
     """
+    if not 0 <= keep_top <= config.population:
+        raise ValueError(f"keep_top must be in [0, population={config.population}], got {keep_top}")
     lo = jnp.array([-config.clip_translation] * 3 + [-config.clip_rotation] * 3)
     hi = -lo
     std0 = jnp.sqrt(jnp.array([config.init_var_translation] * 3 + [config.init_var_rotation] * 3))
     min_std = jnp.array([config.min_std_translation] * 3 + [config.min_std_rotation] * 3)
     n_elite = min(config.elites, config.population)
+    n_top = max(n_elite, keep_top)
 
     def one_round(key, init_pose, pivot, score_args, best_action, best_score):
         def step(state: CEMState, key):
@@ -347,8 +357,8 @@ def make_cem(score_fn: Callable, config: CEMConfig = CEMConfig()) -> Callable:
             poses = jax.vmap(lambda a: apply_action(init_pose, pivot, a))(actions)
             scores = score_fn(poses, *score_args)
             scores = jnp.where(jnp.isfinite(scores), scores, -jnp.inf)
-            top, idx = jax.lax.top_k(scores, n_elite)
-            elite = actions[idx]
+            top, idx = jax.lax.top_k(scores, n_top)
+            elite = actions[idx[:n_elite]]
             i_best = idx[0]
             better = top[0] > state.best_score
             new = CEMState(
@@ -357,11 +367,13 @@ def make_cem(score_fn: Callable, config: CEMConfig = CEMConfig()) -> Callable:
                 best_action=jnp.where(better, actions[i_best], state.best_action),
                 best_score=jnp.where(better, top[0], state.best_score),
             )
-            return new, new.best_score
+            return new, (new.best_score, poses[idx[:keep_top]], top[:keep_top])
 
         state = CEMState(jnp.zeros(6), std0, best_action, best_score)
-        state, history = jax.lax.scan(step, state, jax.random.split(key, config.iterations))
-        return state, history
+        state, (history, top_p, top_s) = jax.lax.scan(
+            step, state, jax.random.split(key, config.iterations)
+        )
+        return state, history, top_p[-1], top_s[-1]
 
     def optimise(key, init_pose, pivot, *score_args) -> CEMResult:
         init_pose = jnp.asarray(init_pose, jnp.float32)
@@ -370,7 +382,7 @@ def make_cem(score_fn: Callable, config: CEMConfig = CEMConfig()) -> Callable:
         pose, action, best = init_pose, jnp.zeros(6), s0
         histories = []
         for r in range(config.rounds):
-            state, history = one_round(
+            state, history, top_poses, top_scores = one_round(
                 jax.random.fold_in(key, r), pose, pivot, score_args, jnp.zeros(6), best
             )
             new_pose = apply_action(pose, pivot, state.best_action)
@@ -379,7 +391,7 @@ def make_cem(score_fn: Callable, config: CEMConfig = CEMConfig()) -> Callable:
             pose, best = new_pose, state.best_score
             action = state.best_action if r == 0 else action  # first-round action (clipped box)
             histories.append(history)
-        return CEMResult(pose, action, best, s0, jnp.concatenate(histories))
+        return CEMResult(pose, action, best, s0, jnp.concatenate(histories), top_poses, top_scores)
 
     return optimise
 
@@ -419,19 +431,25 @@ class HangOutput(NamedTuple):
 
 class Refined(NamedTuple):
     """CEM from K starts per pair: poses [B, K, 7], scores [B, K] (final log V),
-    initial_scores [B, K], best [B] (index of the best final score)."""
+    initial_scores [B, K], best [B] (index of the best final score); top_poses [B, K, M, 7],
+    top_scores [B, K, M]: the M best members of each final population (``keep_top``)."""
 
     poses: Any
     scores: Any
     initial_scores: Any
     best: Any
+    top_poses: Any = None
+    top_scores: Any = None
 
 
-def make_refiner(value_config: ValueConfig, cem_config: CEMConfig = CEMConfig()) -> Callable:
+def make_refiner(
+    value_config: ValueConfig, cem_config: CEMConfig = CEMConfig(), keep_top: int = 0
+) -> Callable:
     """``refine(value_params, key, clouds [B, ...] subsampled, starts [B, K, 7]) -> Refined``:
-    CEM on V from every start, vmapped over starts and pairs. Pure, un-jitted."""
+    CEM on V from every start, vmapped over starts and pairs. Pure, un-jitted. ``keep_top``
+    M > 0 also returns each final population's M best members (the RL loop's hard cases)."""
     value = make_value(value_config)
-    cem = make_cem(lambda poses, p, c: value.score(p, c, poses), cem_config)
+    cem = make_cem(lambda poses, p, c: value.score(p, c, poses), cem_config, keep_top)
 
     def refine_one(key, pose, clouds, value_params):
         return cem(key, pose, contact_pivot(clouds, pose), value_params, clouds)
@@ -443,7 +461,10 @@ def make_refiner(value_config: ValueConfig, cem_config: CEMConfig = CEMConfig())
         b, k = starts.shape[:2]
         keys = jax.random.split(key, b * k).reshape(b, k)
         res = batched(keys, starts, clouds, value_params)
-        return Refined(res.pose, res.score, res.initial_score, jnp.argmax(res.score, axis=1))
+        return Refined(
+            res.pose, res.score, res.initial_score, jnp.argmax(res.score, axis=1),
+            res.top_poses, res.top_scores,
+        )  # fmt: skip
 
     return refine
 
