@@ -28,6 +28,7 @@ import dataclasses
 import json
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -37,6 +38,7 @@ import optax
 from tqdm.auto import tqdm
 
 from omnihang_jax import collision, dataset_bridge
+from omnihang_jax.collision import start_pose
 
 DERIVED = os.path.join(dataset_bridge.DERIVED_DIRNAME, "collision")  # ignored by git
 SUBSET_SEED_OBJECT, SUBSET_SEED_SUPPORT = 0, 1  # the planner's fixed cloud subsets
@@ -62,6 +64,7 @@ def _worker_init(recipe: dict, data_dir: str) -> None:
 
 
 def _derive_one(job: tuple[dict, str]) -> str:
+    """Derive one pair file, or add the near-contact labels to a file derived before them."""
     from sim import atomic, camera, dataset
     from sim.scene import build_scene
 
@@ -71,14 +74,22 @@ def _derive_one(job: tuple[dict, str]) -> str:
     obj_name, sup_name, split = w["pairs"][index]
     obj, sup = w["library"].objects[obj_name], w["library"].supports[sup_name]
     seed = int(record["pair_seed"])
+    if os.path.exists(path):  # derived before the near-contact labels: add them only
+        with np.load(path) as f:
+            fields = {k: f[k] for k in f.files}
+        fields |= near_contact_labels(
+            build_scene(obj, sup), fields["stable_poses"], fields["collision_poses"], seed
+        )
+        atomic.savez(path, **fields)
+        return path
     full = Path(w["data_dir"], dataset_bridge.DERIVED_DIRNAME, split)
     full = full / dataset_bridge.pair_file_name(index, obj_name, sup_name)
+    scene = build_scene(obj, sup)
     if full.exists():  # derive_dataset's file: the same clouds
         with np.load(full) as f:
             clouds = {k: f[k] for k in ("object_points", "object_normals")}
             clouds |= {k: f[k] for k in ("support_points", "support_normals")}
     else:  # the first two draws of derive_pair's generator (sim.dataset.derive_pair)
-        scene = build_scene(obj, sup)
         rng = np.random.default_rng([seed, 5])
         cam = w["config"].camera
         oc = camera.partial_cloud(
@@ -95,13 +106,15 @@ def _derive_one(job: tuple[dict, str]) -> str:
         )
     kept = np.asarray(record["collision_kept"], bool)
     poses = dataset.collision_poses(obj, sup, seed, w["config"])[kept]
+    stable = np.asarray(record["stable_poses"], np.float32)
     atomic.savez(
         path,
         **{k: np.asarray(v, np.float32) for k, v in clouds.items()},
         collision_poses=poses.astype(np.float32),
         collision_labels=np.asarray(record["collision_label"], bool)[kept],
-        stable_poses=np.asarray(record["stable_poses"], np.float32),
+        stable_poses=stable,
         **pair_geometry(obj, sup),
+        **near_contact_labels(scene, stable, poses, seed),
         pair_index=np.int64(index),
         object_name=np.str_(obj_name),
         support_name=np.str_(sup_name),
@@ -110,6 +123,85 @@ def _derive_one(job: tuple[dict, str]) -> str:
         split=np.str_(split),
     )
     return path
+
+
+# Near-contact poses (see near_contact_poses), labelled by the planner's own ground truth.
+NEAR_VERSION = 1
+NEAR_STABLE, NEAR_JITTER, NEAR_APPROACH, NEAR_LIFT = 0, 1, 2, 3
+NEAR_COUNTS = {NEAR_JITTER: 160, NEAR_APPROACH: 60, NEAR_LIFT: 40}  # per pair (+ stable poses)
+
+
+def near_contact_poses(scene, stable: np.ndarray, rng: np.random.Generator):
+    """Poses around the pair's hanging poses, where the planner's last edges run: (poses
+    [K, 7], kind [K] int8).
+
+    - ``NEAR_STABLE``: the stable poses themselves (resting on the support, MuJoCo puts them
+      0.03-0.06 mm inside: free by the planner's 1 mm tolerance);
+    - ``NEAR_JITTER``: a random stable pose moved 0.5-30 mm (log-uniform) in a random
+      direction and, for half of them, turned by up to 0.1 rad about a random axis: poses a
+      few millimetres into the support (hard negatives) and small clearances next to it;
+    - ``NEAR_APPROACH``: on the straight line from the planner's start pose
+      (``collision.start_pose``, in front of the support) to a stable pose, t^2-distributed
+      towards the goal: far free poses along the approach, and where the straight approach
+      runs into the support;
+    - ``NEAR_LIFT``: a stable pose raised 0.5-20 mm (log-uniform): the clearance above it.
+    """
+    from scipy.spatial.transform import Rotation
+
+    stable = np.asarray(stable, float).reshape(-1, 7)
+    if len(stable) == 0:
+        return np.zeros((0, 7), np.float32), np.zeros(0, np.int8)
+
+    def base(n):
+        return stable[rng.integers(len(stable), size=n)]
+
+    def log_uniform(lo, hi, n):
+        return np.exp(rng.uniform(np.log(lo), np.log(hi), n))
+
+    def unit(n):
+        v = rng.normal(size=(n, 3))
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    n = NEAR_COUNTS[NEAR_JITTER]
+    jitter = base(n)
+    jitter[:, :3] += unit(n) * log_uniform(5e-4, 0.03, n)[:, None]
+    angle = rng.uniform(0.0, 0.1, n) * (rng.random(n) < 0.5)
+    turn = Rotation.from_rotvec(unit(n) * angle[:, None])
+    quat = (turn * Rotation.from_quat(jitter[:, [4, 5, 6, 3]])).as_quat()
+    jitter[:, 3:] = quat[:, [3, 0, 1, 2]]
+
+    n = NEAR_COUNTS[NEAR_APPROACH]
+    goal = base(n)
+    start = np.stack([start_pose(scene, g) for g in goal])
+    t = rng.random(n)[:, None] ** 2
+    approach = goal.copy()
+    approach[:, :3] += t * (start[:, :3] - goal[:, :3])
+
+    n = NEAR_COUNTS[NEAR_LIFT]
+    lift = base(n)
+    lift[:, 2] += log_uniform(5e-4, 0.02, n)
+
+    poses = np.concatenate([stable, jitter, approach, lift])
+    kinds = [NEAR_STABLE, NEAR_JITTER, NEAR_APPROACH, NEAR_LIFT]
+    counts = [len(stable), len(jitter), len(approach), len(lift)]
+    return poses.astype(np.float32), np.repeat(np.array(kinds, np.int8), counts)
+
+
+def near_contact_labels(scene, stable, dataset_poses, seed: int) -> dict:
+    """The fields a pair file gets for planner-facing training: ``near_poses`` /
+    ``near_kind`` (:func:`near_contact_poses`, seeded by the pair), ``near_penetration``
+    (deepest object-support penetration on the full meshes, m: the planner's ground truth,
+    ``collision.MeshChecker``; colliding above 1 mm) and ``collision_penetration`` (the same
+    for the dataset's labelled poses, whose own labels call any penetration colliding)."""
+    mesh = collision.MeshChecker(scene)
+    poses, kind = near_contact_poses(scene, stable, np.random.default_rng([seed, 13]))
+    return dict(
+        near_poses=poses,
+        near_kind=kind,
+        near_penetration=mesh.penetration(poses).astype(np.float32),
+        collision_penetration=mesh.penetration(dataset_poses).astype(np.float32),
+        near_version=np.int64(NEAR_VERSION),
+    )
 
 
 def pair_geometry(obj, sup) -> dict:
@@ -195,9 +287,9 @@ def derive_collision_pairs(
             jobs[split] = [jobs[split][i] for i in order]
         chosen = dataset_bridge.interleave_by_category(jobs[split], pairs)[:n]
         files[split] = [Path(j[1]) for j in chosen]
-        todo += [j for j in chosen if not os.path.exists(j[1])]
+        todo += [j for j in chosen if not is_complete(j[1])]
     if existing_only:
-        return {split: [p for p in paths if p.exists()] for split, paths in files.items()}
+        return {split: [p for p in paths if is_complete(p)] for split, paths in files.items()}
     bar = tqdm(total=len(todo), desc="derive", unit="pair", disable=not progress)
     if todo and workers <= 1:
         _worker_init(recipe, os.fspath(data_dir))
@@ -214,6 +306,26 @@ def derive_collision_pairs(
     return files
 
 
+def is_complete(path) -> bool:
+    """The pair file exists and has the current near-contact labels."""
+    if not os.path.exists(path):
+        return False
+    try:
+        with np.load(path) as f:
+            return "near_version" in f.files and int(f["near_version"]) >= NEAR_VERSION
+    except (OSError, ValueError, EOFError):  # a damaged file: derive it again
+        os.remove(path)
+        return False
+
+
+class _Fields(dict):
+    """A pair file's arrays, read into memory (``.files`` like an open ``np.load``)."""
+
+    @property
+    def files(self):
+        return list(self)
+
+
 @dataclasses.dataclass
 class CollisionData:
     """Clouds of P pairs and their L labelled poses (host numpy)."""
@@ -226,8 +338,15 @@ class CollisionData:
     poses: np.ndarray  # [L, 7]
     labels: np.ndarray  # [L] bool, True = colliding
     meta: list[dict]  # per pair: names, category, family, split, pair_index
-    far_pair: np.ndarray | None = None  # [F] int32: extra free poses (training only):
-    far_poses: np.ndarray | None = None  # [F, 7] far_free_poses and/or stable poses
+    far_pair: np.ndarray | None = None  # [F] int32: extra training poses:
+    far_poses: np.ndarray | None = None  # [F, 7] far_free_poses, stable poses, near poses
+    far_labels: np.ndarray | None = None  # [F] bool (True = colliding; near poses only)
+    # near-contact poses of the pairs (near_contact_poses; files derived with them), labelled
+    # by the planner's ground truth (penetration > NEAR_TOLERANCE on the full meshes)
+    near_pair: np.ndarray | None = None  # [K] int32
+    near_poses: np.ndarray | None = None  # [K, 7]
+    near_kind: np.ndarray | None = None  # [K] int8 (NEAR_STABLE ... NEAR_LIFT)
+    near_labels: np.ndarray | None = None  # [K] bool
 
 
 def _geometry_of(f, meta: dict, cache: dict) -> dict:
@@ -244,60 +363,87 @@ def _geometry_of(f, meta: dict, cache: dict) -> dict:
     return pair_geometry(lib.objects[meta["object_name"]], lib.supports[meta["support_name"]])
 
 
+NEAR_TOLERANCE = 1e-3  # m: the planner's penetration tolerance (planner.PlannerConfig)
+
+
 def load_collision_data(
     files: list[Path],
     far_per_pair: int = 0,
     seed: int = 0,
     recipe_library=None,
     stable_free: bool = False,
+    near_train: bool = False,
 ) -> CollisionData:
     """Clouds and labels of the pair files; ``far_per_pair`` far free poses per pair
-    (:func:`far_free_poses`) and, with ``stable_free``, the pair's stable poses as free
-    labels, for training (see ``main``'s ``--stable-free``)."""
+    (:func:`far_free_poses`), with ``stable_free`` the pair's stable poses as free labels and
+    with ``near_train`` its near-contact poses (not the stable ones) with their mesh labels,
+    for training (see ``main``'s ``--stable-free`` / ``--near``). The near-contact poses are
+    always loaded (``near_*``, for the metrics) when the files have them."""
     if not files:
         raise ValueError("no pair files to load")
     rng = np.random.default_rng(seed)
     cache: dict = {} if recipe_library is None else {"library": recipe_library}
-    far_pair, far_poses = [], []
+    far_pair, far_poses, far_labels = [], [], []
+    near: dict[str, list] = {"pair": [], "poses": [], "kind": [], "labels": []}
     keys = ("object_points", "object_normals", "support_points", "support_normals")
     clouds: dict[str, list] = {k: [] for k in keys}
     pair, poses, labels, meta = [], [], [], []
-    for i, path in enumerate(files):
+
+    def read(path):  # zlib releases the GIL: threads read ~4x faster than one loop
         with np.load(path) as f:
-            for k in keys:
-                clouds[k].append(f[k])
-            poses.append(f["collision_poses"])
-            labels.append(f["collision_labels"])
-            pair.append(np.full(len(f["collision_labels"]), i, np.int32))
-            meta.append(
-                {
-                    k: f[k].item()
-                    for k in (
-                        "pair_index",
-                        "object_name",
-                        "support_name",
-                        "object_category",
-                        "support_family",
-                        "split",
-                    )
-                }
-            )
-            if far_per_pair:
-                g = _geometry_of(f, meta[-1], cache)
-                far_poses.append(
-                    far_free_poses(
-                        rng,
-                        float(g["object_half_diagonal"]),
-                        g["support_bounds"],
-                        float(g["wall_y"]),
-                        far_per_pair,
-                    )
+            return _Fields({k: f[k] for k in f.files})
+
+    with ThreadPoolExecutor(8) as pool:
+        contents = pool.map(read, files)
+    for i, f in enumerate(contents):
+        for k in keys:
+            clouds[k].append(f[k])
+        poses.append(f["collision_poses"])
+        labels.append(f["collision_labels"])
+        pair.append(np.full(len(f["collision_labels"]), i, np.int32))
+        meta.append(
+            {
+                k: f[k].item()
+                for k in (
+                    "pair_index",
+                    "object_name",
+                    "support_name",
+                    "object_category",
+                    "support_family",
+                    "split",
                 )
-                far_pair.append(np.full(far_per_pair, i, np.int32))
-            if stable_free:
-                stable = f["stable_poses"].astype(np.float32)
-                far_poses.append(stable)
-                far_pair.append(np.full(len(stable), i, np.int32))
+            }
+        )
+        if far_per_pair:
+            g = _geometry_of(f, meta[-1], cache)
+            far_poses.append(
+                far_free_poses(
+                    rng,
+                    float(g["object_half_diagonal"]),
+                    g["support_bounds"],
+                    float(g["wall_y"]),
+                    far_per_pair,
+                )
+            )
+            far_pair.append(np.full(far_per_pair, i, np.int32))
+            far_labels.append(np.zeros(far_per_pair, bool))
+        if stable_free:
+            stable = f["stable_poses"].astype(np.float32)
+            far_poses.append(stable)
+            far_pair.append(np.full(len(stable), i, np.int32))
+            far_labels.append(np.zeros(len(stable), bool))
+        if "near_poses" in f.files:
+            kind = f["near_kind"]
+            label = f["near_penetration"] > NEAR_TOLERANCE
+            near["pair"].append(np.full(len(kind), i, np.int32))
+            near["poses"].append(f["near_poses"].astype(np.float32))
+            near["kind"].append(kind)
+            near["labels"].append(label)
+            if near_train:
+                moved = kind != NEAR_STABLE
+                far_poses.append(f["near_poses"][moved].astype(np.float32))
+                far_pair.append(np.full(int(moved.sum()), i, np.int32))
+                far_labels.append(label[moved])
     return CollisionData(
         *(np.stack(clouds[k]) for k in keys),
         pair=np.concatenate(pair),
@@ -306,6 +452,8 @@ def load_collision_data(
         meta=meta,
         far_pair=np.concatenate(far_pair) if far_pair else None,
         far_poses=np.concatenate(far_poses) if far_poses else None,
+        far_labels=np.concatenate(far_labels) if far_labels else None,
+        **{f"near_{k}": np.concatenate(v) if v else None for k, v in near.items()},
     )
 
 
@@ -340,10 +488,10 @@ def train_nce(
     obj_clouds = jnp.asarray(data.object_points)
     sup_clouds = jnp.asarray(data.support_points)
     pair, poses, labels = data.pair, data.poses, data.labels
-    if data.far_poses is not None:  # far free poses: geometry says free (far_free_poses)
+    if data.far_poses is not None:  # far / stable (free) and near-contact poses
         pair = np.concatenate([pair, data.far_pair])
         poses = np.concatenate([poses, data.far_poses])
-        labels = np.concatenate([labels, np.zeros(len(data.far_pair), bool)])
+        labels = np.concatenate([labels, data.far_labels])
     pair, poses = jnp.asarray(pair), jnp.asarray(poses)
     labels = jnp.asarray(labels, jnp.float32)
 
@@ -458,22 +606,69 @@ def planner_clouds(object_points, support_points, n_object: int, n_support: int)
     )
 
 
-def estimator_scores(data: CollisionData, score_fn, n_object, n_support, max_labels=None, seed=0):
-    """Scores of (a random subset of at most ``max_labels``) labelled poses, pair by pair.
-    score_fn(pair_index, object_cloud, support_cloud, poses) -> [B]. Returns (scores, labels)."""
-    chosen = np.arange(len(data.labels))
-    if max_labels is not None and max_labels < len(chosen):
-        chosen = np.sort(np.random.default_rng(seed).choice(len(chosen), max_labels, False))
-    scores = np.zeros(len(chosen))
-    for p in np.unique(data.pair[chosen]):
-        rows = np.flatnonzero(data.pair[chosen] == p)
+def score_poses(data: CollisionData, pair, poses, score_fn, n_object, n_support) -> np.ndarray:
+    """Scores [L] of ``poses`` [L, 7] of pairs ``pair`` [L], pair by pair, with the planner's
+    cloud subsets. score_fn(pair_index, object_cloud, support_cloud, poses) -> [B]."""
+    scores = np.zeros(len(pair))
+    for p in np.unique(pair):
+        rows = np.flatnonzero(pair == p)
         oc, sc = planner_clouds(data.object_points[p], data.support_points[p], n_object, n_support)
         for a in range(0, len(rows), 512):  # chunks padded to 512: one compilation
             r = rows[a : a + 512]
-            poses = data.poses[chosen[r]]
-            padded = np.concatenate([poses, np.repeat(poses[:1], 512 - len(r), 0)])
+            chunk = poses[r]
+            padded = np.concatenate([chunk, np.repeat(chunk[:1], 512 - len(r), 0)])
             scores[r] = np.asarray(score_fn(p, oc, sc, padded))[: len(r)]
+    return scores
+
+
+def estimator_scores(
+    data: CollisionData, score_fn, n_object, n_support, max_labels=None, seed=0, max_pairs=None
+):
+    """Scores of (a random subset of at most ``max_labels``) labelled poses, pair by pair (of
+    the first ``max_pairs`` pairs only: one call per pair and chunk, so thousands of pairs
+    cost minutes). score_fn(pair_index, object_cloud, support_cloud, poses) -> [B].
+    Returns (scores, labels)."""
+    chosen = np.arange(len(data.labels))
+    if max_pairs is not None:
+        chosen = chosen[data.pair < max_pairs]
+    if max_labels is not None and max_labels < len(chosen):
+        chosen = np.sort(np.random.default_rng(seed).choice(len(chosen), max_labels, False))
+    scores = score_poses(data, data.pair[chosen], data.poses[chosen], score_fn, n_object, n_support)
     return scores, data.labels[chosen]
+
+
+def near_metrics(scores: np.ndarray, data: CollisionData, threshold: float) -> dict:
+    """What the planner needs near the goal, from the scores of ``data.near_poses``:
+    ``goal_pass`` = fraction of stable poses called free (a hanging pose that is called
+    colliding cannot be reached), and accuracy / precision / recall (positive = colliding
+    deeper than 1 mm on the full meshes) of the moved near-contact poses, all of them and per
+    kind (jitter: a few mm into or next to the support; approach: the straight line from the
+    start; lift: above the hanging pose)."""
+    called = scores > threshold
+    stable = data.near_kind == NEAR_STABLE
+    out = dict(
+        threshold=float(threshold),
+        goal_pass=float(np.mean(~called[stable])) if stable.any() else float("nan"),
+        stable_poses=int(stable.sum()),
+        near=collision.binary_metrics(called[~stable], data.near_labels[~stable]),
+    )
+    for name, kind in (("jitter", NEAR_JITTER), ("approach", NEAR_APPROACH), ("lift", NEAR_LIFT)):
+        rows = data.near_kind == kind
+        out[name] = collision.binary_metrics(called[rows], data.near_labels[rows])
+    return out
+
+
+def goal_pass_threshold(
+    scores: np.ndarray, data: CollisionData, target: float, lowest=0.5, highest=0.95
+) -> float:
+    """The lowest probability threshold in [lowest, highest] (steps of 0.01) at which at
+    least ``target`` of the stable poses are called free (``highest`` if none): stable goals
+    pass while as many near-contact collisions as possible stay detected."""
+    stable = scores[data.near_kind == NEAR_STABLE]
+    for t in np.arange(lowest, highest + 1e-9, 0.01):
+        if np.mean(stable <= t) >= target:
+            return round(float(t), 2)
+    return float(highest)
 
 
 def nce_score_fn(config, params):
@@ -548,8 +743,36 @@ def main(argv=None) -> dict:
         default=100,
         help="far free poses per training pair (0: the dataset's labels only)",
     )
+    parser.add_argument(
+        "--near",
+        type=int,
+        default=1,
+        help="1: train on the pairs' near-contact poses with their mesh labels too "
+        "(near_contact_poses: hard negatives a few mm into the support, clearances, the "
+        "approach); 0: off (they are still scored on held-out pairs)",
+    )
+    parser.add_argument(
+        "--val-every",
+        type=int,
+        default=20,
+        help="training-split pairs with pair_index %% N == 0 are not trained on: the NCE "
+        "threshold is chosen on them (0: none, threshold 0.5)",
+    )
+    parser.add_argument(
+        "--goal-pass",
+        type=float,
+        default=0.95,
+        help="NCE threshold: the lowest in [0.5, 0.95] that calls this fraction of the "
+        "validation pairs' stable poses free (0: keep 0.5)",
+    )
     parser.add_argument("--eval-labels", type=int, default=20000, help="held-out labels scored")
     parser.add_argument("--threshold-labels", type=int, default=20000, help="training labels")
+    parser.add_argument(
+        "--threshold-pairs", type=int, default=400, help="HCE thresholds: of these first pairs"
+    )
+    parser.add_argument(
+        "--derived-dir", default=None, help="pair files (default: DATA/derived/collision)"
+    )
     parser.add_argument("--workers", type=int, default=1, help="derive processes (0 = all cores)")
     parser.add_argument("--resume", action="store_true", help="start from the weights in OUT")
     parser.add_argument("--derive-only", action="store_true", help="derive the pairs, then stop")
@@ -575,9 +798,14 @@ def main(argv=None) -> dict:
         {"test": args.test_pairs, "train": args.train_pairs},  # held-out first: a cut-short
         workers,  # derive still has them all
         progress,
+        out_dir=args.derived_dir,
         existing_only=args.existing_only,
     )
     train_files, test_files = files["train"], files["test"]
+    val_files = []
+    if args.val_every > 0:
+        val_files = [f for f in train_files if int(f.stem.split("_")[0]) % args.val_every == 0]
+        train_files = [f for f in train_files if f not in set(val_files)]
     derive_s = time.time() - t0
     if args.derive_only:
         print(
@@ -585,18 +813,27 @@ def main(argv=None) -> dict:
         )
         return {"train_files": len(train_files), "test_files": len(test_files)}
     train = load_collision_data(
-        train_files, far_per_pair=args.far_per_pair, stable_free=bool(args.stable_free)
+        train_files,
+        far_per_pair=args.far_per_pair,
+        stable_free=bool(args.stable_free),
+        near_train=bool(args.near),
     )
     test = load_collision_data(test_files)
+    val = load_collision_data(val_files) if val_files else None
     held_out = {m["pair_index"] for m in test.meta}
+    if val is not None:
+        held_out |= {m["pair_index"] for m in val.meta}
     if held_out & {m["pair_index"] for m in train.meta} or any(
         m["split"] != "train" for m in train.meta
     ):
-        raise RuntimeError("a held-out pair reached the training set")
+        raise RuntimeError("a held-out (or validation) pair reached the training set")
     print(
         f"pairs: {len(train.meta)} train ({len(train.labels)} labels, "
         f"{train.labels.mean():.1%} colliding), {len(test.meta)} held out "
-        f"({len(test.labels)} labels); {args.far_per_pair} far free poses per training pair; "
+        f"({len(test.labels)} labels), {len(val_files)} validation pairs; "
+        f"{0 if train.far_labels is None else len(train.far_labels)} extra training poses "
+        f"({args.far_per_pair} far free per pair, stable free {args.stable_free}, near "
+        f"{args.near}); "
         f"derived in {derive_s:.0f} s; device {jax.devices()[0]}"
     )
 
@@ -610,28 +847,53 @@ def main(argv=None) -> dict:
         train, nce_cfg, args.steps, budgets["nce"], args.batch, args.lr, params=nce_params,
         progress=progress,
     )  # fmt: skip
+    collision.save_estimator(out / "nce", nce_cfg, nce_params, train=nce_log, evaluated=False)
     normal_params, normal_log = train_normals(
         train, normal_cfg, args.steps, budgets["normals"], args.normal_batch, args.lr,
         params=normal_params, progress=progress,
     )  # fmt: skip
+    collision.save_estimator(
+        out / "hce_normals", normal_cfg, normal_params, train=normal_log, evaluated=False
+    )
 
     # thresholds on training labels, metrics on held-out labels
     n_obj, n_sup = nce_cfg.object_points, nce_cfg.support_points
     h_obj, h_sup = nce_cfg.object_points, normal_cfg.points
     hce_train, y_train = estimator_scores(
         train, hce_score_fn(normal_cfg, normal_params), h_obj, h_sup,
-        args.threshold_labels,
+        args.threshold_labels, max_pairs=args.threshold_pairs,
     )  # fmt: skip
     hce_threshold = collision.balanced_threshold(hce_train, y_train)
     true_train, y_true_train = estimator_scores(
-        train, true_normals_score_fn(train, h_sup), h_obj, h_sup, args.threshold_labels
-    )
+        train, true_normals_score_fn(train, h_sup), h_obj, h_sup, args.threshold_labels,
+        max_pairs=args.threshold_pairs,
+    )  # fmt: skip
     true_threshold = collision.balanced_threshold(true_train, y_true_train)
     normal_cfg = dataclasses.replace(normal_cfg, threshold=hce_threshold)
 
+    # the NCE threshold: stable goals of validation pairs pass (near_metrics, --goal-pass)
+    nce_fn = nce_score_fn(nce_cfg, nce_params)
+    validation = {}
+    if val is not None and args.goal_pass > 0 and val.near_poses is not None:
+        s = score_poses(val, val.near_pair, val.near_poses, nce_fn, n_obj, n_sup)
+        threshold = goal_pass_threshold(s, val, args.goal_pass)
+        validation = {
+            "at_0.5": near_metrics(s, val, 0.5),
+            "chosen": near_metrics(s, val, threshold),
+        }
+        nce_cfg = dataclasses.replace(nce_cfg, threshold=threshold)
+
     metrics = {}
-    s, y = estimator_scores(test, nce_score_fn(nce_cfg, nce_params), n_obj, n_sup, args.eval_labels)
+    s, y = estimator_scores(test, nce_fn, n_obj, n_sup, args.eval_labels)
     metrics["nce"] = collision.binary_metrics(s > nce_cfg.threshold, y)
+    metrics["nce_at_0.5"] = collision.binary_metrics(s > 0.5, y)
+    near_held_out = {}
+    if test.near_poses is not None:
+        s = score_poses(test, test.near_pair, test.near_poses, nce_fn, n_obj, n_sup)
+        near_held_out = {
+            "nce": near_metrics(s, test, nce_cfg.threshold),
+            "nce_at_0.5": near_metrics(s, test, 0.5),
+        }
     s, y = estimator_scores(
         test, hce_score_fn(normal_cfg, normal_params), h_obj, h_sup, args.eval_labels
     )
@@ -654,9 +916,14 @@ def main(argv=None) -> dict:
         normals=normal_log,
         hce_threshold=hce_threshold,
         hce_true_normals_threshold=true_threshold,
+        nce_threshold=nce_cfg.threshold,
+        near_training=bool(args.near),
+        validation_pairs=len(val_files),
+        validation=validation,
         held_out=metrics,
+        held_out_near=near_held_out,
     )
-    extra = dict(train_pairs=len(train.meta), held_out=metrics)
+    extra = dict(train_pairs=len(train.meta), held_out=metrics, held_out_near=near_held_out)
     collision.save_estimator(out / "nce", nce_cfg, nce_params, train=nce_log, **extra)
     collision.save_estimator(
         out / "hce_normals", normal_cfg, normal_params, train=normal_log, **extra
@@ -669,6 +936,15 @@ def main(argv=None) -> dict:
         print(
             f"held-out {name}: accuracy {m['accuracy']:.3f} precision {m['precision']:.3f} "
             f"recall {m['recall']:.3f} balanced {m['balanced_accuracy']:.3f} (n={m['n']})"
+        )
+    for name, m in near_held_out.items():
+        print(
+            f"held-out near {name} (threshold {m['threshold']:.2f}): goal pass "
+            f"{m['goal_pass']:.3f} of {m['stable_poses']} stable poses; near-contact accuracy "
+            f"{m['near']['accuracy']:.3f} precision {m['near']['precision']:.3f} recall "
+            f"{m['near']['recall']:.3f} free precision {m['near']['free_precision']:.3f} "
+            f"(n={m['near']['n']}); jitter P/R {m['jitter']['precision']:.3f}/"
+            f"{m['jitter']['recall']:.3f}"
         )
     return summary
 

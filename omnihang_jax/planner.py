@@ -41,13 +41,20 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
-import mujoco
 import numpy as np
 from ompl import base as ob
 from ompl import geometric as og
 from ompl import util as ou
 
+from omnihang_jax.collision import (  # re-exported: the planner's ground truth and geometry
+    MeshChecker,
+    default_bounds,
+    object_radius,
+    start_pose,
+)
+
 __all__ = [
+    "object_radius",
     "PlannerConfig",
     "PlanResult",
     "MeshChecker",
@@ -87,43 +94,6 @@ class PlanResult(NamedTuple):
 
 # ----------------------------------------------------------------------------------------------
 # Checkers: poses [B, 7] -> colliding [B]
-
-
-class MeshChecker:
-    """Full-mesh collision through MuJoCo: colliding when any object geom penetrates a
-    support (or wall) geom deeper than ``tolerance``. Host CPU, one state at a time."""
-
-    def __init__(self, scene, tolerance: float = 1e-3):
-        self.scene = scene
-        self.model = scene.model
-        self.data = mujoco.MjData(self.model)
-        self.tolerance = tolerance
-        self.object_geoms = set(int(g) for g in scene.object_geoms)
-        others = list(scene.support_geoms) + ([scene.wall_geom] if scene.wall_geom >= 0 else [])
-        self.other_geoms = set(int(g) for g in others)
-
-    def penetration(self, poses: np.ndarray) -> np.ndarray:
-        """[B, 7] -> [B] deepest object-support penetration in metres (0 if none)."""
-        poses = np.asarray(poses, float).reshape(-1, 7)
-        out = np.zeros(len(poses))
-        m, d = self.model, self.data
-        for i, pose in enumerate(poses):
-            d.qpos[:7] = pose
-            mujoco.mj_kinematics(m, d)
-            mujoco.mj_collision(m, d)
-            deepest = 0.0
-            for j in range(d.ncon):
-                con = d.contact[j]
-                g1, g2 = int(con.geom1), int(con.geom2)
-                if (g1 in self.object_geoms and g2 in self.other_geoms) or (
-                    g2 in self.object_geoms and g1 in self.other_geoms
-                ):
-                    deepest = max(deepest, -float(con.dist))
-            out[i] = deepest
-        return out
-
-    def __call__(self, poses: np.ndarray) -> np.ndarray:
-        return self.penetration(poses) > self.tolerance
 
 
 class EstimatorChecker:
@@ -211,29 +181,6 @@ def interpolate_path(path: np.ndarray, resolution: float, rotation_weight: float
         n = max(1, int(np.ceil(pose_distance(a, b, rotation_weight) / resolution)))
         out.append(interpolate_segment(np.asarray(a, float), np.asarray(b, float), n))
     return np.concatenate(out)
-
-
-def object_radius(scene) -> float:
-    """Half the object's largest extent (m): the rotation weight of the planner's metric."""
-    return 0.5 * float(np.max(scene.obj.extents))
-
-
-def default_bounds(scene) -> tuple[np.ndarray, np.ndarray]:
-    """The support's box grown by the object's largest extent on every side, and on +y up
-    to half an extent beyond :func:`start_pose`."""
-    grow = float(np.max(scene.obj.extents))
-    lo, hi = np.asarray(scene.support_bounds, float)
-    lo, hi = lo - grow, hi + grow
-    hi[1] += 1.0 * grow
-    return lo, hi
-
-
-def start_pose(scene, goal: np.ndarray) -> np.ndarray:
-    """In front of the support (+y), clear of its box by the object's largest extent (the
-    centre 1.5 extents beyond it), at the goal's x and height, in the goal's orientation."""
-    size = float(np.max(scene.obj.extents))
-    hi = np.asarray(scene.support_bounds, float)[1]
-    return np.array([goal[0], hi[1] + 1.5 * size, goal[2], *goal[3:]], float)
 
 
 # ----------------------------------------------------------------------------------------------
