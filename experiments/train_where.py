@@ -8,7 +8,13 @@ Each stage trains into OUT/stage<name>/ (config.json, orbax checkpoints, metrics
 loss.png) and resumes from its latest checkpoint: run the same command again to continue or
 raise --steps. Stage 2b starts from Stage 2a's parameters. --data synthetic trains on generated
 ring-on-peg pairs (a dry run of the whole pipeline); a directory is read with
-omnihang_jax.data.load_hang_dataset (one .npz per pair, keys = HangSample fields).
+omnihang_jax.data.load_hang_dataset (one .npz per pair, keys = HangSample fields), or, if it
+holds a pack.json, as a packed split (experiments.pack_dataset; the fast path on a GPU).
+
+Pairs of a fixed 10 % of the training OBJECTS are held out for validation (--val-fraction):
+val_metrics.jsonl every --eval-every steps, the best parameters under stage<name>/best/;
+--export DIR writes the small weights folder (--export-which best|latest). The learning
+rate warms up and decays (cosine) over --steps, so give the run's total steps.
 """
 
 from __future__ import annotations
@@ -19,7 +25,13 @@ import dataclasses
 from experiments import _cli
 from omnihang_jax import train
 
-STAGE_CHOICES = {"1": ("1",), "2a": ("2a",), "2b": ("2b",), "all": train.STAGES}
+STAGE_CHOICES = {
+    "1": ("1",),
+    "2a": ("2a",),
+    "2b": ("2b",),
+    "2": ("2a", "2b"),
+    "all": train.STAGES,
+}
 
 
 def stage2_overrides(stage2, items):
@@ -96,6 +108,18 @@ def main(argv=None) -> dict:
         help="keep every pair in device memory and gather batches there (GPU; ~1.8 MB per "
         "paper-scale pair) instead of stacking batches on the host",
     )
+    parser.add_argument(
+        "--schedule", choices=["cosine", "constant"], default=None, help="lr schedule"
+    )
+    parser.add_argument("--warmup", type=int, default=None, help="lr warm-up steps")
+    parser.add_argument("--clip-norm", type=float, default=None, help="0 = no clipping")
+    parser.add_argument(
+        "--val-fraction", type=float, default=None, help="fraction of objects held out (0.1)"
+    )
+    parser.add_argument("--eval-every", type=int, default=None, help="steps between val checks")
+    parser.add_argument("--checkpoint-every", type=int, default=None)
+    parser.add_argument("--export", default=None, metavar="DIR", help="export weights here")
+    parser.add_argument("--export-which", choices=["best", "latest"], default="best")
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     budget = None
@@ -122,6 +146,16 @@ def main(argv=None) -> dict:
         overrides["lr_stage2"] = args.lr_stage2
     if args.synthetic_pairs is not None:
         overrides["synthetic_pairs"] = args.synthetic_pairs
+    for name, value in (
+        ("schedule", args.schedule),
+        ("warmup_steps", args.warmup),
+        ("clip_norm", args.clip_norm),
+        ("val_fraction", args.val_fraction),
+        ("eval_every", args.eval_every),
+        ("checkpoint_every", args.checkpoint_every),
+    ):
+        if value is not None:
+            overrides[name] = value
     config = dataclasses.replace(config, train=dataclasses.replace(config.train, **overrides))
     if args.stage2:
         config = dataclasses.replace(config, stage2=stage2_overrides(config.stage2, args.stage2))
@@ -137,6 +171,11 @@ def main(argv=None) -> dict:
     )
     summary = {stage: int(state.step) for stage, state in states.items()}
     print(f"trained steps per stage: {summary}; outputs in {args.out}")
+    if args.export:
+        exported = train.export_weights(
+            args.out, args.export, STAGE_CHOICES[args.stage], which=args.export_which
+        )
+        print(f"exported ({args.export_which}) {exported} to {args.export}")
     return summary
 
 

@@ -97,6 +97,19 @@ class TrainConfig:
     max_to_keep: int = 3
     seed: int = 0
     synthetic_pairs: int = 256  # size of the synthetic pool for --data synthetic dry runs
+    # Learning-rate schedule (ours; the facts give a constant Adam lr): linear warm-up over
+    # ``warmup_steps`` (at most a tenth of the run), then "cosine" decay to
+    # ``final_lr_ratio`` x lr at ``steps``, or "constant" (the original's setting).
+    schedule: str = "cosine"
+    warmup_steps: int = 1000
+    final_lr_ratio: float = 0.05
+    clip_norm: float = 1.0  # global gradient-norm clip (0 = off)
+    # Validation on pairs whose OBJECT is in a fixed subset of the training objects
+    # (``data.validation_objects``, the same subset as Stage 3's): losses and the Stage-1
+    # pose-error proxy every ``eval_every`` steps over ``val_batches`` fixed batches.
+    val_fraction: float = 0.1
+    eval_every: int = 1000
+    val_batches: int = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,7 +130,17 @@ WHERE_ORIGINAL = WhereConfig()
 WHERE_TINY = WhereConfig(
     stage1=STAGE1_TINY,
     stage2=STAGE2_TINY,
-    train=TrainConfig(batch_size=8, log_every=10, checkpoint_every=100, synthetic_pairs=32),
+    # constant lr, no clipping: the tests memorise a few pairs in a few hundred steps
+    train=TrainConfig(
+        batch_size=8,
+        log_every=10,
+        checkpoint_every=100,
+        synthetic_pairs=32,
+        schedule="constant",
+        clip_norm=0.0,
+        eval_every=10,
+        val_batches=2,
+    ),
     preset="tiny",
 )
 WHERE_SMALL = WhereConfig(
@@ -319,9 +342,31 @@ def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
 # Train state and step
 
 
+def learning_rate_schedule(stage: str, config: WhereConfig) -> optax.Schedule:
+    """The stage's learning rate per step (``TrainConfig.schedule``, warm-up + cosine)."""
+    cfg = config.train
+    lr = cfg.lr_stage1 if stage == "1" else cfg.lr_stage2
+    if cfg.schedule == "constant":
+        return optax.constant_schedule(lr)
+    if cfg.schedule != "cosine":
+        raise ValueError(f"unknown schedule {cfg.schedule!r}; expected 'cosine' or 'constant'")
+    total = max(int(cfg.steps), 2)
+    warmup = min(int(cfg.warmup_steps), total // 10)
+    return optax.warmup_cosine_decay_schedule(
+        init_value=lr * (0.0 if warmup else 1.0),
+        peak_value=lr,
+        warmup_steps=warmup,
+        decay_steps=total,
+        end_value=lr * cfg.final_lr_ratio,
+    )
+
+
 def make_optimizer(stage: str, config: WhereConfig) -> optax.GradientTransformation:
-    lr = config.train.lr_stage1 if stage == "1" else config.train.lr_stage2
-    return optax.adam(lr)
+    """Adam on the stage's schedule, after global-norm clipping (``clip_norm`` > 0)."""
+    adam = optax.adam(learning_rate_schedule(stage, config))
+    if config.train.clip_norm > 0:
+        return optax.chain(optax.clip_by_global_norm(config.train.clip_norm), adam)
+    return adam
 
 
 def make_init_state(stage: str, config: WhereConfig) -> Callable[..., TrainState]:
@@ -349,10 +394,21 @@ def make_train_step(stage: str, config: WhereConfig) -> Callable:
         grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, batch, key)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
-        metrics = dict(metrics, grad_norm=optax.global_norm(grads))
+        metrics = dict(metrics, grad_norm=optax.global_norm(grads), lr=schedule(state.step))
         return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
+    schedule = learning_rate_schedule(stage, config)
     return train_step
+
+
+def make_eval_step(stage: str, config: WhereConfig) -> Callable:
+    """``eval_step(params, batch, key) -> metrics``: the stage's loss and metrics, no update."""
+    loss_fn = make_loss_fn(stage, config)
+
+    def eval_step(params, batch: HangSample, key):
+        return loss_fn(params, batch, key)[1]
+
+    return eval_step
 
 
 # ----------------------------------------------------------------------------------------------
@@ -360,9 +416,13 @@ def make_train_step(stage: str, config: WhereConfig) -> Callable:
 
 
 @functools.lru_cache(maxsize=16)
-def _jitted(stage: str, config: WhereConfig) -> tuple[Callable, Callable]:
+def _jitted(stage: str, config: WhereConfig) -> tuple[Callable, Callable, Callable]:
     """Jit init and step once per (stage, config): resuming in one process does not recompile."""
-    return jax.jit(make_init_state(stage, config)), jax.jit(make_train_step(stage, config))
+    return (
+        jax.jit(make_init_state(stage, config)),
+        jax.jit(make_train_step(stage, config)),
+        jax.jit(make_eval_step(stage, config)),
+    )
 
 
 def _stage_dir(workdir: str, stage: str) -> str:
@@ -431,17 +491,29 @@ def restore_stage(stage_dir: str, step: int | None = None) -> tuple[WhereConfig,
 WEIGHTS_FILE = "params.msgpack"
 
 
-def export_weights(run_dir: str, out_dir: str, stages: Sequence[str] = STAGES) -> dict[str, int]:
-    """Copy a training folder's latest parameters (no optimiser state, no checkpoint history)
+def export_weights(
+    run_dir: str, out_dir: str, stages: Sequence[str] = STAGES, which: str = "latest"
+) -> dict[str, int]:
+    """Copy a training folder's parameters (no optimiser state, no checkpoint history)
     to ``out_dir/stage<name>/{config.json, params.msgpack}``: a few MB that
     :func:`restore_stage` and ``predict.load_predictor`` read like the full folder.
+    which: "latest" checkpoint, or "best" (lowest validation loss, ``best/``; the latest
+    where a stage has no validation record).
     Returns the exported step per stage; stages without a trained folder are skipped."""
+    if which not in ("latest", "best"):
+        raise ValueError(f"which must be 'latest' or 'best', got {which!r}")
     steps = {}
     for stage in stages:
         src = _stage_dir(run_dir, stage)
         if not os.path.exists(os.path.join(src, "config.json")):
             continue
         config, params, step = restore_stage(src)
+        best_json = os.path.join(src, "best", "best.json")
+        if which == "best" and os.path.exists(best_json):
+            with open(best_json) as f:
+                step = int(json.load(f)["step"])
+            with open(os.path.join(src, "best", WEIGHTS_FILE), "rb") as f:
+                params = flax.serialization.from_bytes(jax.device_get(params), f.read())
         dst = _stage_dir(out_dir, stage)
         os.makedirs(dst, exist_ok=True)
         with open(os.path.join(src, "config.json")) as f:
@@ -473,13 +545,22 @@ def plot_metrics(metrics_path: str, png_path: str) -> None:
         rows = [json.loads(line) for line in f if line.strip()]
     if not rows:
         return
+    val_path = os.path.join(os.path.dirname(metrics_path), "val_metrics.jsonl")
+    val_rows = []
+    if os.path.exists(val_path):
+        with open(val_path) as f:
+            val_rows = [json.loads(line) for line in f if line.strip()]
     steps = [r["step"] for r in rows]
+    skip = ("step", "grad_norm", "lr")
     loss_keys = [k for k in rows[-1] if k in _LOSS_KEYS]
-    other_keys = [k for k in rows[-1] if k not in _LOSS_KEYS and k not in ("step", "grad_norm")]
+    other_keys = [k for k in rows[-1] if k not in _LOSS_KEYS and k not in skip]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, keys, scale in ((axes[0], loss_keys, "log"), (axes[1], other_keys, "linear")):
         for k in keys:
-            ax.plot(steps, [r.get(k, np.nan) for r in rows], label=k)
+            (line,) = ax.plot(steps, [r.get(k, np.nan) for r in rows], label=k, alpha=0.7)
+            if val_rows and f"val_{k}" in val_rows[-1]:
+                ax.plot([r["step"] for r in val_rows], [r.get(f"val_{k}", np.nan) for r in val_rows],
+                        "--o", ms=3, color=line.get_color(), label=f"val {k}")  # fmt: skip
         ax.set_yscale(scale)
         ax.set_xlabel("step")
         if keys:
@@ -500,8 +581,14 @@ def train_stage(
     init_params: Any = None,
     progress: bool = True,
     time_budget_s: float | None = None,
+    val_dataset: data_lib.HangDataset | None = None,
 ) -> TrainState:
     """Train one stage to ``steps`` total steps, resuming from ``workdir/stage<stage>``.
+
+    val_dataset: pairs of held-out training objects; every ``eval_every`` steps (and at the
+    end) the stage's metrics over ``val_batches`` fixed batches go to ``val_metrics.jsonl``
+    (keys ``val_*``), and the parameters with the lowest validation loss so far to
+    ``best/params.msgpack`` (+ ``best/best.json``; :func:`export_weights` can take them).
 
     time_budget_s: stop earlier, after the step that passes this many seconds (a checkpoint
     is saved there; rerun to continue). The next batch is read in a background thread
@@ -523,7 +610,7 @@ def train_stage(
 
     seed, stage_id = config.train.seed, STAGES.index(stage)
     init_key, base_key = jax.random.split(jax.random.fold_in(jax.random.key(seed), stage_id))
-    init_state, train_step = _jitted(stage, config)
+    init_state, train_step, eval_step = _jitted(stage, config)
     state = init_state(init_key, init_params)
     manager = _checkpoint_manager(stage_dir, config)
     if manager.latest_step() is not None:
@@ -540,6 +627,7 @@ def train_stage(
         return dataset.sample_batch(np.random.default_rng([seed, stage_id, step]), batch_size)
 
     batch_size = config.train.batch_size
+    validate = _make_validator(stage, config, val_dataset, eval_step, stage_dir)
     t_start = time.perf_counter()
     t_first = None  # after the first step (compilation) has finished
     done = start
@@ -563,6 +651,9 @@ def train_stage(
                 with open(metrics_path, "a") as f:
                     f.write(json.dumps(row) + "\n")
                 bar.set_postfix(loss=f"{row['loss']:.4g}")
+            eval_every = config.train.eval_every
+            if validate and (done % eval_every == 0 or done == steps or out_of_time):
+                validate(state.params, done)
             if done % ckpt_every == 0 or done == steps or out_of_time:
                 manager.save(
                     done, args=ocp.args.StandardSave(flax.serialization.to_state_dict(state))
@@ -594,18 +685,92 @@ def train_stage(
     return state
 
 
+def _make_validator(stage, config, val_dataset, eval_step, stage_dir):
+    """``validate(params, step)`` for :func:`train_stage`, or None without validation pairs.
+
+    The batches are fixed (same pairs, same noise keys every time), so the curve measures the
+    parameters, not the sampling; the best parameters so far are kept under ``best/``."""
+    if val_dataset is None or len(val_dataset) == 0 or config.train.val_batches <= 0:
+        return None
+    val_path = os.path.join(stage_dir, "val_metrics.jsonl")
+    best_dir = os.path.join(stage_dir, "best")
+    best_json = os.path.join(best_dir, "best.json")
+    best = {"val_loss": float("inf")}
+    if os.path.exists(best_json):
+        with open(best_json) as f:
+            best = json.load(f)
+    batches = [
+        val_dataset.sample_batch(
+            np.random.default_rng([config.train.seed, 777, i]), config.train.batch_size
+        )  # fmt: skip
+        for i in range(config.train.val_batches)
+    ]
+    key = jax.random.key(config.train.seed + 777)
+
+    def validate(params, step: int) -> dict:
+        rows = [_to_float(eval_step(params, b, jax.random.fold_in(key, i)))
+                for i, b in enumerate(batches)]  # fmt: skip
+        row = {"step": int(step), "val_pairs": len(val_dataset)}
+        row.update({f"val_{k}": float(np.mean([r[k] for r in rows])) for k in rows[0]})
+        with open(val_path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        if row["val_loss"] < best["val_loss"]:
+            best.clear()
+            best.update(step=int(step), val_loss=row["val_loss"])
+            os.makedirs(best_dir, exist_ok=True)
+            with open(os.path.join(best_dir, WEIGHTS_FILE), "wb") as f:
+                f.write(flax.serialization.to_bytes(jax.device_get(params)))
+            with open(best_json, "w") as f:
+                json.dump(best, f, indent=1)
+        return row
+
+    return validate
+
+
+STAGE1_FIELDS = ("object_points", "support_points", "stable_poses", "pose_mask")
+
+
 def make_dataset(
-    data: str, config: WhereConfig, split: str = "train", on_device: bool = False
-) -> data_lib.HangDataset:
-    """``"synthetic"`` -> an in-memory pool of ring-on-peg pairs; else a dataset directory
-    (``data.load_hang_dataset``; ``on_device``: all pairs in device memory)."""
+    data: str,
+    config: WhereConfig,
+    split: str = "train",
+    on_device: bool = False,
+    fields: Sequence[str] | None = None,
+) -> tuple[data_lib.HangDataset, data_lib.HangDataset | None]:
+    """(fit, validation) datasets.
+
+    ``"synthetic"`` -> an in-memory pool of ring-on-peg pairs (no validation set); a folder
+    with ``pack.json`` (``data.pack_dataset``) -> :class:`data.PackedDataset` on the device
+    (``fields``: only these on the device); else a dataset directory
+    (``data.load_hang_dataset``; ``on_device``: all pairs in device memory). Pairs whose
+    object is in the fixed validation subset of objects (``TrainConfig.val_fraction``) form
+    the validation set, never trained on.
+    """
     if data == "synthetic":
         n = config.num_object_points
         pool = data_lib.synthetic_batch(
             jax.random.key(config.train.seed + 12345), config.train.synthetic_pairs, n
         )
-        return data_lib.ArrayDataset(pool)
-    return data_lib.load_hang_dataset(data, split=split, cache=True, on_device=on_device)
+        return data_lib.ArrayDataset(pool), None
+    fraction = config.train.val_fraction
+    if os.path.exists(os.path.join(data, data_lib.PACK_FILE)):
+        with open(os.path.join(data, data_lib.PACK_FILE)) as f:
+            names = json.load(f)["object_names"]
+        fit, val = data_lib.split_by_object(names, fraction)
+        return (
+            data_lib.PackedDataset(data, fit, fields),
+            data_lib.PackedDataset(data, val, fields) if len(val) else None,
+        )
+    full = data_lib.load_hang_dataset(data, split=split, cache=True)
+    fit, val = data_lib.split_by_object([data_lib.object_name_of(f) for f in full.files], fraction)
+
+    def subset(idx):
+        files = [full.files[i] for i in idx]
+        if on_device:
+            return data_lib.DeviceDataset(files, max_contacts=full.max_contacts)
+        return data_lib.NpzDirectoryDataset(files, max_contacts=full.max_contacts, cache=True)
+
+    return subset(fit), (subset(val) if len(val) else None)
 
 
 def train_where(
@@ -623,7 +788,10 @@ def train_where(
     2b starts from 2a's latest parameters when it has no checkpoint of its own.
     Returns the final TrainState per stage.
     """
-    dataset = make_dataset(data, config, on_device=data_on_device)
+    if steps is not None:  # the schedule decays over the run's total steps
+        config = dataclasses.replace(config, train=dataclasses.replace(config.train, steps=steps))
+    fields = STAGE1_FIELDS if tuple(stages) == ("1",) else None
+    dataset, val_dataset = make_dataset(data, config, on_device=data_on_device, fields=fields)
     states = {}
     for stage in STAGES:
         if stage not in stages:
@@ -636,6 +804,7 @@ def train_where(
                 init_params = restore_stage(_stage_dir(out, "2a"))[1]
         budget = (time_budget_s or {}).get(stage)
         states[stage] = train_stage(
-            stage, config, dataset, out, steps, init_params, progress, time_budget_s=budget
-        )
+            stage, config, dataset, out, steps, init_params, progress, time_budget_s=budget,
+            val_dataset=val_dataset,
+        )  # fmt: skip
     return states

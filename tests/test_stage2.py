@@ -195,7 +195,7 @@ def test_small_preset_trains_a_step_with_pair_offsets():
     )
     assert config.stage2.pair_offset_scale > 0
     batch = data.synthetic_batch(jax.random.key(0), 2, 256)
-    init, step = train._jitted("2b", config)
+    init, step, _ = train._jitted("2b", config)
     state = init(jax.random.key(1))
     state, metrics = step(state, batch, jax.random.key(2))
     assert all(np.isfinite(float(v)) for v in metrics.values())

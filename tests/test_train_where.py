@@ -8,7 +8,7 @@ import jax
 import numpy as np
 import pytest
 
-from experiments import predict_where, train_where
+from experiments import pack_dataset, predict_where, train_where
 from omnihang_jax import data, predict, train
 from omnihang_jax.config import config_from_dict, config_to_dict
 
@@ -256,3 +256,103 @@ def test_original_preset_forward_and_train_step():
     out = predictor(batch.object_points, batch.support_points, num_proposals=5)
     assert out.stage2_poses.shape == (2, 5, 7) and np.all(np.isfinite(out.stage2_poses))
     assert out.object_indices.shape == (2, 5, 3)
+
+
+def test_learning_rate_schedule_warms_up_and_decays():
+    cfg = dataclasses.replace(
+        train.WHERE_SMALL,
+        train=dataclasses.replace(
+            train.WHERE_SMALL.train, steps=1000, warmup_steps=50, final_lr_ratio=0.1
+        ),
+    )
+    lr = train.learning_rate_schedule("1", cfg)
+    peak = cfg.train.lr_stage1
+    assert float(lr(0)) == 0.0
+    assert float(lr(25)) == pytest.approx(peak / 2, rel=1e-5)
+    assert float(lr(50)) == pytest.approx(peak, rel=1e-5)
+    assert peak * 0.1 < float(lr(500)) < peak
+    assert float(lr(1000)) == pytest.approx(peak * 0.1, rel=1e-4)
+    const = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, schedule="constant"))
+    assert float(train.learning_rate_schedule("2a", const)(999)) == const.train.lr_stage2
+    bad = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, schedule="step"))
+    with pytest.raises(ValueError, match="unknown schedule"):
+        train.learning_rate_schedule("1", bad)
+
+
+def _write_named_pairs(folder, objects, pairs_per_object=2):
+    os.makedirs(folder, exist_ok=True)
+    batch = data.synthetic_batch(jax.random.key(3), len(objects) * pairs_per_object, 128)
+    files, k = [], 0
+    for name in objects:
+        for j in range(pairs_per_object):
+            one = {f: np.asarray(x[k]) for f, x in batch._asdict().items()}
+            path = os.path.join(folder, f"{k:05d}_{name}__peg_{j:04d}.npz")
+            np.savez(path, **one)
+            files.append(path)
+            k += 1
+    return files
+
+
+def test_object_split_pack_and_validation_curve(tmp_path):
+    objects = [f"mug_{i:04d}" for i in range(12)]
+    files = _write_named_pairs(str(tmp_path / "derived" / "train"), objects)
+    names = [data.object_name_of(f) for f in files]
+    assert names[0] == "mug_0000" and data.object_name_of("a/pair.npz") == "pair"
+    fit, val = data.split_by_object(names, 0.3)
+    assert len(val) and len(fit) and len(fit) + len(val) == len(files)
+    # whole objects: no object on both sides, and the split does not depend on order
+    assert not {names[i] for i in fit} & {names[i] for i in val}
+    assert data.validation_objects(objects[::-1], 0.3) == {names[i] for i in val}
+
+    # a broken file is skipped with its reason, the rest is packed
+    with open(tmp_path / "derived" / "train" / "99999_bad_0000__peg_0000.npz", "wb") as f:
+        f.write(b"not an npz")
+    pack = str(tmp_path / "pack")
+    summary = pack_dataset.main(
+        ["--data", str(tmp_path), "--out", pack, "--threads", "2", "--no-progress"]
+    )
+    assert summary["packed"] == len(files) and summary["skipped"] == 1
+    packed = data.PackedDataset(pack)
+    ref = data.NpzDirectoryDataset(files, max_contacts=packed.meta["max_contacts"])
+    rng_a, rng_b = np.random.default_rng(5), np.random.default_rng(5)
+    a, b = packed.sample_batch(rng_a, 3), ref.sample_batch(rng_b, 3)
+    np.testing.assert_array_equal(np.asarray(a.object_points), b.object_points)
+    np.testing.assert_array_equal(np.asarray(a.contact_pairs), b.contact_pairs)
+    np.testing.assert_allclose(np.asarray(a.object_contact_maps), b.object_contact_maps, atol=2e-3)
+    lean = data.PackedDataset(pack, fields=train.STAGE1_FIELDS)
+    assert lean.sample_batch(rng_a, 2).object_contact_maps.shape == (2, 1)
+
+    # training from the pack: validation rows, best parameters, export of the best
+    out = str(tmp_path / "run")
+    train_where.main(
+        [
+            "--data",
+            pack,
+            "--out",
+            out,
+            "--preset",
+            "tiny",
+            "--stage",
+            "1",
+            "--steps",
+            "20",
+            "--batch",
+            "2",
+            "--val-fraction",
+            "0.3",
+            "--eval-every",
+            "10",
+            "--export",
+            str(tmp_path / "w"),
+            "--no-progress",
+        ]  # fmt: skip
+    )
+    with open(os.path.join(out, "stage1", "val_metrics.jsonl")) as f:
+        rows = [json.loads(line) for line in f]
+    assert [r["step"] for r in rows] == [10, 20]
+    assert rows[0]["val_pairs"] == len(val) and np.isfinite(rows[-1]["val_loss"])
+    with open(os.path.join(out, "stage1", "best", "best.json")) as f:
+        best = json.load(f)
+    assert best["val_loss"] == min(r["val_loss"] for r in rows)
+    with open(tmp_path / "w" / "stage1" / "config.json") as f:
+        assert json.load(f)["step"] == best["step"]
