@@ -51,8 +51,10 @@ FORMAT = 2
 # Version of the physics behind the labels. Shards of another version are never mixed in:
 # 1 = take-off with a changed object mass but stale constraint weights (objects could pass
 # through closed supports at masses other than 0.5 kg); 2 = kernels.with_material runs
-# mj_setConst (2026-11-21).
-LABELS_VERSION = 2
+# mj_setConst (2026-11-21); 3 = the wall is a solid 0.5 m block (sim.scene
+# PhysicsConfig.wall_thickness), not a 2 cm slab a strap could pass through (issue 16,
+# 2026-11-23; the paper dataset was relabelled pair by pair with experiments.relabel).
+LABELS_VERSION = 3
 POSITION_STEP = 1e-4  # m: stored positions are int16 multiples of 0.1 mm (range +-3.27 m)
 QUAT_SCALE = 32767  # stored quaternions are int16 of q * 32767 (error < 3e-5)
 

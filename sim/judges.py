@@ -86,8 +86,10 @@ def mujoco_variant(scene: Scene, **changes) -> Scene:
     """A copy of ``scene`` whose MuJoCo model differs in one or more contact settings:
     ``condim`` (3: no torsional friction), ``cone`` ("pyramidal" / "elliptic"),
     ``timeconst`` (solref time constant, s), ``timestep`` (s), ``friction`` (sliding
-    coefficient of every geom), ``torsional`` (m), ``thick_wall`` (m: the wall slab
-    becomes a block this thick behind the same wall plane)."""
+    coefficient of every geom), ``torsional`` (m), ``thick_wall`` (m: the wall becomes
+    a block this thick behind the same wall plane; the scene's own is
+    ``PhysicsConfig.wall_thickness`` = 0.5 m since labels version 3, ``thick_wall=0.02``
+    rebuilds the 2 cm slab of versions 1-2)."""
     model = copy.copy(scene.model)
     for key, value in changes.items():
         if key == "condim":
@@ -107,8 +109,8 @@ def mujoco_variant(scene: Scene, **changes) -> Scene:
             model.geom_friction[:, 1] = value
         elif key == "thick_wall":
             if value and scene.wall_geom >= 0:
-                # the 2 cm wall slab -> a block ``value`` m thick behind the same wall plane:
-                # MuJoCo's capsule-box collision lets a strap pierce the thin slab
+                # the wall -> a block ``value`` m thick behind the same wall plane:
+                # MuJoCo's capsule-box collision lets a strap pierce a thin slab
                 w = scene.wall_geom
                 half = np.array([model.geom_size[w][0], 0.5 * value, model.geom_size[w][2]])
                 model.geom_size[w] = half
@@ -148,7 +150,8 @@ MUJOCO_VARIANTS = {
     "solref0.02": {"timeconst": 0.02},
     "dt0.5ms": {"timestep": 0.0005, "timeconst": 0.004},
     "friction0.25": {"friction": 0.25},
-    "thick_wall": {"thick_wall": 0.5},
+    "thick_wall": {"thick_wall": 0.5},  # = the scene since labels version 3
+    "thin_wall": {"thick_wall": 0.02},  # the 2 cm slab of labels versions 1-2
 }
 
 
@@ -270,9 +273,9 @@ def hangs(kind: str, poses: np.ndarray, res: StabilityResult, dataset_config) ->
 def behind_wall_depth(obj, poses: np.ndarray, wall_y: float | None) -> np.ndarray:
     """[B] m, how far the object at ``poses`` [B, 7] reaches behind the wall plane
     ``y = wall_y`` (0 when it stays in front, or without a wall): exact for capsules
-    (endpoints minus radius), boxes and hulls (vertices). The scene's wall is a 2 cm slab,
-    which MuJoCo's capsule-box collision lets a strap pass through (docs/judges.md); a
-    real wall is a half-space."""
+    (endpoints minus radius), boxes and hulls (vertices). Up to labels version 2 the
+    scene's wall was a 2 cm slab, which MuJoCo's capsule-box collision let a strap pass
+    through (docs/judges.md); a real wall is a half-space, and the scene's is a 0.5 m block."""
     from sim.geometry import Capsule
 
     poses = kernels.check_poses(poses)

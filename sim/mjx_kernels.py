@@ -61,7 +61,7 @@ from sim.kernels import (
     TakeoffConfig,
     TakeoffResult,
 )
-from sim.scene import Scene, _fmt, _geom_xml
+from sim.scene import Scene, _fmt, _geom_xml, wall_box, wall_geom_xml
 
 COMPILES: collections.Counter = collections.Counter()  # function name -> compilations
 FAR = 1000.0  # m; unused template slots are parked this far away
@@ -170,8 +170,7 @@ def template_xml(scene: Scene, support_counts, object_counts, settings: MJXSetti
     sup = lines(s_parts, s_src, "slot_s", 2, False)
     ob = lines(o_parts, o_src, "slot_o", 1, True)
     if support.wall_y is not None:
-        h = physics.wall_half_size
-        wall = f'<geom name="wall" type="box" pos="0 {support.wall_y - 0.01:.7g} 0" size="{h} 0.01 {h}"/>'
+        wall = wall_geom_xml(support.wall_y, physics)  # the CPU scene's wall block
     else:
         wall = f'<geom name="wall" type="box" pos="0 0 {-2 * FAR}" size="0.01 0.01 0.01"/>'
     pairs = [
@@ -813,7 +812,6 @@ def union_xml(scenes: Sequence[Scene], settings: MJXSettings):
                     maps[p][mesh_names[key]] = f"{prefix}{i}"
         if scene.support.wall_y is not None:
             maps[p]["wall"] = "wall"
-    h = physics.wall_half_size
     it = settings.iterations or physics.iterations
     ls = settings.ls_iterations or physics.ls_iterations
     xml = f"""<mujoco model="union">
@@ -828,7 +826,7 @@ def union_xml(scenes: Sequence[Scene], settings: MJXSettings):
   </asset>
   <worldbody>
     <body name="support" mocap="true">
-      <geom name="wall" type="box" size="{h} 0.01 {h}" {sup_attr}/>
+      <geom name="wall" type="box" size="{_fmt(wall_box(0.0, physics)[1])}" {sup_attr}/>
       {chr(10).join(sup)}
     </body>
     <body name="object" pos="0 0 {FAR}">

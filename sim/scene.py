@@ -1,6 +1,6 @@
 """MJCF scenes for one (object, supporting item) pair.
 
-The supporting item is static (its geoms live in the world body), mounted on a wall slab or
+The supporting item is static (its geoms live in the world body), mounted on a wall or
 standing on the floor; the object is one free body made of its convex parts. The same XML
 is what the CPU kernels load, what :func:`write_scene` puts on disk for MuJoCo's viewer,
 and (later) what the MJX backend pads into a template.
@@ -26,6 +26,13 @@ Physical settings (:class:`PhysicsConfig`) and why:
   passes through an 11 mm post in the take-off test (measured); at 0.004 s it stops.
 - ``cone = elliptic``: friction cones without the pyramidal approximation's anisotropy, so
   a mug on a round rod does not prefer the rod's axes.
+- ``wall_thickness = 0.5 m``: the wall is a block whose front face is the plane
+  ``y = wall_y`` and which reaches 50 cm behind it, i.e. solid for anything an object can
+  push into it. Up to labels version 2 it was a 2 cm slab; MuJoCo's capsule-box collision
+  reports depth ~0 for a capsule that crosses a slab entirely, so a bag strap or a hanger
+  hook could pass through it and 7,479 of the paper dataset's 931,512 stable poses hung
+  behind the wall (docs/judges.md, issue 16). The front face, and so every contact in front
+  of the wall, is unchanged.
 - The object's default (qpos0) position is parked 50 m up. MuJoCo resets a diverging world
   to qpos0; a reset world therefore shows up as "flew away" and is labelled a failure
   rather than silently restarting at a plausible pose.
@@ -60,7 +67,9 @@ class PhysicsConfig:
     contact_timeconst: float = 0.004  # s, solref time constant = 2 x timestep (stiffest stable)
     object_mass: float = 0.5  # kg, the original URDF mass
     gravity: float = -9.81
-    wall_half_size: float = 1.0  # m, half width/height of the wall slab
+    wall_half_size: float = 1.0  # m, half width/height of the wall
+    # m, depth of the wall block behind its front face y = wall_y (see the module docstring)
+    wall_thickness: float = 0.5
 
 
 @dataclasses.dataclass
@@ -112,6 +121,22 @@ def _geom_xml(part, name: str, group: int, extra: str, mesh_ref: dict[str, str])
     if isinstance(part, ConvexMesh):
         return f'<geom name="{name}" type="mesh" mesh="{mesh_ref[name]}" group="{group}" {extra}/>'
     raise TypeError(f"unknown part type {type(part)}")
+
+
+def wall_box(wall_y: float, physics: PhysicsConfig = PhysicsConfig()):
+    """(centre [3], half sizes [3]) of the wall block: front face on ``y = wall_y``,
+    ``physics.wall_thickness`` deep behind it, ``2 * wall_half_size`` wide and high."""
+    h, t = physics.wall_half_size, 0.5 * physics.wall_thickness
+    return np.array([0.0, wall_y - t, 0.0]), np.array([h, t, h])
+
+
+def wall_geom_xml(wall_y: float, physics: PhysicsConfig = PhysicsConfig(), extra: str = "") -> str:
+    """The wall's ``<geom>`` (name "wall"), shared by every MJCF writer (CPU scene, MJX
+    template) so all backends collide with the same block."""
+    pos, half = wall_box(wall_y, physics)
+    return f'<geom name="wall" type="box" pos="{_fmt(pos)}" size="{_fmt(half)}" {extra}/>'.replace(
+        " />", "/>"
+    )
 
 
 def scene_xml(
@@ -166,10 +191,8 @@ def scene_xml(
         f'group="{ENV_GROUP}" rgba=".8 .8 .8 1"/>'
     ]
     if support.wall_y is not None:
-        h = physics.wall_half_size
         env.append(
-            f'<geom name="wall" type="box" pos="0 {support.wall_y - 0.01:.7g} 0" '
-            f'size="{h} 0.01 {h}" group="{ENV_GROUP}" rgba=".9 .9 .85 1"/>'
+            wall_geom_xml(support.wall_y, physics, f'group="{ENV_GROUP}" rgba=".9 .9 .85 1"')
         )
     sensors = [
         f'<contact name="ground_{j}" geom1="{gname}" body2="object" num="1" data="found" />'
