@@ -1,0 +1,159 @@
+#!/usr/bin/env bash
+# The seventh session's GPU job as a chain of back-to-back device calls on ONE warm machine
+# (issues 14, 12, 13): derive every training pair once, pack it, and train Stages 1-2, V and
+# the NCE side by side on the GPU while the CPU derives; then evaluate on the held-out pairs.
+#
+#   run(carry=[".whl_min", ".whl_train"], timeout_s=600, command="bash scripts/device_chain.sh CALL")
+#
+# CALL (one foreground device call each, <= 10 min; /tmp/chain persists only while the next
+# call lands within the machine's 30-s warm window; every step resumes from what exists, so
+# a call on a bare machine redoes the missing derive and continues from the carried state):
+#   1      install; derive the train split (DERIVE_W workers) + the NCE part; profile the train
+#          step (experiments.profile_where); pack what is derived; start Stage 1 (small and
+#          original presets side by side, the preset comparison) until the call ends
+#   2, 3   derive on (until complete), re-pack, resume Stage 1 (both presets) and Stage 2
+#          (STAGE2: 2a in call 2, 2b in call 3), the Stage-3 part (V) and the NCE part
+#   eval   derive the held-out pairs (results/hanging_success.pairs.jsonl), export the best
+#          Stage 1-2 weights, eval_stage3 with them and the new V on all held-out pairs
+# Back in $OUT (<= 8 files): chain.log, where.tgz (exported weights best+latest, metrics, val
+# curves, throughput, logs), nce.tgz, stage3.tgz, profile_where.json, eval outputs.
+# Knobs: END_S (575), DERIVE_W (10 in call 1, 8 later), STEPS1 (Stage 1 total steps),
+# STEPS2 (2a / 2b), BATCH1 (64), BATCH2 (32), PRESETS1 ("small original"), STAGE2,
+# NO_NCE=1 / NO_S3=1 (skip a part), SKIP_INSTALL=1 (dry run here, .venv first on PATH),
+# CHAIN_TINY=1 (tiny presets and sizes for a local dry run).
+set -uo pipefail
+CALL=${1:?usage: device_chain.sh 1|2|3|eval}
+T0=$(date +%s)
+OUT=${OUT:-/tmp/out}
+C=/tmp/chain
+END_S=${END_S:-575}
+mkdir -p "$OUT" "$C/logs"
+log() { echo "[$(($(date +%s) - T0)) s] $*" | tee -a "$OUT/chain.log"; }
+left() { echo $((END_S - $(date +%s) + T0)); }
+PY=${PY:-python3}
+
+if [ -z "${SKIP_INSTALL:-}" ] && [ ! -e /tmp/site/mujoco ]; then
+    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
+        .whl_min/*.whl .whl_train/*.whl || { log "wheel install failed"; exit 5; }
+fi
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+log "call $CALL; earlier calls on this machine: $(tr '\n' ' ' <"$C/calls" 2>/dev/null)"
+echo "$CALL" >>"$C/calls"
+command -v nvidia-smi >/dev/null && nvidia-smi -L | tee -a "$OUT/chain.log"
+if [ ! -e "$C/ds/recipe.json" ]; then
+    mkdir -p "$C/ds" && cp -r datasets/paper/recipe.json datasets/paper/shards "$C/ds/"
+fi
+
+TINY=${CHAIN_TINY:-}
+PRESETS1=${PRESETS1:-small original}
+[ -n "$TINY" ] && PRESETS1=tiny
+n_train() { ls "$C/ds/derived/train" 2>/dev/null | wc -l; }
+derive_bg() {  # workers split extra...: resumable, stops 25 s before the end of the call
+    local w=$1 split=$2
+    shift 2
+    timeout -k 5 $(($(left) - 25)) $PY -m experiments.derive_dataset --data "$C/ds" \
+        --split "$split" --workers "$w" --no-progress "$@" >>"$C/logs/derive_$split.log" 2>&1
+}
+pack() {
+    $PY -m experiments.pack_dataset --data "$C/ds" --split train --out "$C/pack_new" \
+        --threads 12 --no-progress >"$C/logs/pack.log" 2>&1 &&
+        rm -rf "$C/pack" && mv "$C/pack_new" "$C/pack"
+    log "packed: $(tr -d '\n ' <"$C/logs/pack.log" | cut -c1-160)"
+}
+where_train() {  # preset stage steps batch budget_s
+    local p=$1 st=$2 steps=$3 b=$4 budget=$5 tb
+    case $st in 2a) tb="2a=$budget" ;; 2b) tb="2b=$budget" ;; *) tb="1=$budget" ;; esac
+    $PY -m experiments.train_where --data "$C/pack" --out "$C/where_$p" --preset "$p" \
+        --stage "$st" --steps "$steps" --batch "$b" --time-budget "$tb" \
+        --eval-every "${EVAL_EVERY:-500}" --checkpoint-every 1000 --no-progress \
+        >>"$C/logs/where_${p}_$st.log" 2>&1
+    log "where $p stage $st: exit $? ($(tail -1 "$C/logs/where_${p}_$st.log" | cut -c1-120))"
+}
+bring_back_where() {
+    mkdir -p "$C/export"
+    for p in $PRESETS1; do
+        [ -d "$C/where_$p" ] || continue
+        $PY -c "from omnihang_jax import train; print('best', train.export_weights('$C/where_$p', '$C/export/$p/best', which='best')); print('latest', train.export_weights('$C/where_$p', '$C/export/$p/latest'))" \
+            >>"$C/logs/export.log" 2>&1
+    done
+    (cd "$C" && tar -czf "$OUT/where.tgz" export logs \
+        $(ls -d where_*/stage*/{config.json,metrics.jsonl,val_metrics.jsonl,throughput.json,loss.png,best/best.json} 2>/dev/null))
+}
+
+NCE_PID= S3_PID=
+start_parts() {  # NCE and Stage-3 parts in the background, each with its own tarball
+    local budget=$(($(left) - 15))
+    if [ -z "${NO_NCE:-}" ] && [ -e scripts/chain/nce.sh ]; then
+        CHAIN_WORKERS=${NCE_W:-3} bash scripts/chain/nce.sh "$budget" "$OUT/nce.tgz" \
+            >>"$C/logs/nce_part.log" 2>&1 &
+        NCE_PID=$!
+    fi
+    if [ -z "${NO_S3:-}" ] && [ -e scripts/chain/stage3.sh ]; then
+        CHAIN_WORKERS=${S3_W:-4} bash scripts/chain/stage3.sh "$budget" "$OUT/stage3.tgz" \
+            >>"$C/logs/stage3_part.log" 2>&1 &
+        S3_PID=$!
+    fi
+}
+wait_parts() {
+    [ -n "$NCE_PID" ] && { wait "$NCE_PID"; log "NCE part: exit $?"; }
+    [ -n "$S3_PID" ] && { wait "$S3_PID"; log "Stage-3 part: exit $?"; }
+}
+
+if [ "$CALL" = eval ]; then
+    derive_bg 16 test --pairs-from results/hanging_success.pairs.jsonl
+    log "held-out pairs derived: $(ls "$C/ds/derived/test" | wc -l)"
+    bring_back_where
+    P=${EVAL_PRESET:-small}
+    W=$C/export/$P/best
+    V=${VALUE:-$C/stage3/run/value}
+    [ -d "$V" ] || V=weights/value_small_paper
+    log "eval: Stages 1-2 $W, V $V"
+    timeout $(($(left) - 10)) $PY -m experiments.eval_stage3 --data "$C/ds" --weights "$W" \
+        --value "$V" --pairs-from results/hanging_success.pairs.jsonl --workers 15 --batch 16 \
+        --out "$OUT/hanging_success_stage3.json" --label "${LABEL:-seventh session, held-out}" \
+        --no-progress 2>&1 | tail -30 | tee -a "$OUT/chain.log"
+    gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
+    log "done"
+    exit 0
+fi
+
+# ---- calls 1-3: derive + train
+DW=${DERIVE_W:-$([ "$CALL" = 1 ] && echo 10 || echo 8)}
+[ -n "$TINY" ] && DW=1
+derive_bg "$DW" train ${DERIVE_LIMIT:+--limit $DERIVE_LIMIT} &
+DERIVE_PID=$!
+start_parts
+if [ "$CALL" = 1 ]; then
+    if [ -n "$TINY" ]; then
+        $PY -m experiments.profile_where --presets tiny --batches 2 --stages 1 --repeat 2 \
+            --out "$OUT/profile_where.json" >"$C/logs/profile.log" 2>&1
+    else
+        timeout 260 $PY -m experiments.profile_where --presets small,original --batches 32,64,128 \
+            --stages 1,2a --repeat 10 --out "$OUT/profile_where.json" >"$C/logs/profile.log" 2>&1
+    fi
+    log "profile: exit $?"
+    cat "$C/logs/profile.log" >>"$OUT/chain.log"
+else
+    sleep "${PACK_WAIT_S:-0}"
+fi
+pack
+BUDGET=$(($(left) - ${TRAIN_MARGIN_S:-110}))
+[ -n "$TINY" ] && BUDGET=20
+log "training for ${BUDGET} s on $(n_train) derived pairs"
+PIDS=()
+for p in $PRESETS1; do
+    where_train "$p" 1 "${STEPS1:-40000}" "${BATCH1:-64}" "$BUDGET" &
+    PIDS+=($!)
+done
+if [ -n "${STAGE2:-}" ]; then
+    P2=$([ -n "$TINY" ] && echo tiny || echo small)
+    where_train "$P2" "$STAGE2" "${STEPS2:-15000}" "${BATCH2:-32}" "$BUDGET" &
+    PIDS+=($!)
+fi
+for pid in "${PIDS[@]}"; do wait "$pid"; done
+bring_back_where
+wait "$DERIVE_PID"
+log "derive: $(n_train) train pairs; $(tail -c 300 "$C/logs/derive_train.log" | tr '\n' ' ')"
+wait_parts
+ls -la "$OUT" | tee -a "$OUT/chain.log"
+log "done"
