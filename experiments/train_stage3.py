@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import signal
+import sys
 
 from experiments import _cli
 from omnihang_jax import stage3
@@ -60,6 +62,7 @@ PRESETS = {
         ingest_min=200,
         seed_chunk=1500,
         bank_capacity=16384,
+        cem_batch=16,
     ),
     # the same at CPU scale (tests, CHAIN_TINY=1)
     "hardneg_tiny": RLConfig(
@@ -120,6 +123,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--perturb-tight", type=int, default=None)
     parser.add_argument("--init-value", default=None, help="start V from this value/ folder")
     parser.add_argument("--min-pairs", type=int, default=None, help="wait for this many pairs")
+    parser.add_argument("--cem-batch", type=int, default=None, help="pairs per jitted CEM call")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     config = PRESETS[args.preset]
@@ -138,12 +142,15 @@ def main(argv=None) -> dict:
         "perturb_tight": args.perturb_tight,
         "init_value": args.init_value,
         "min_pairs": args.min_pairs,
+        "cem_batch": args.cem_batch,
     }
     config = dataclasses.replace(config, **{k: v for k, v in over.items() if v is not None})
     if args.batch:
         config = dataclasses.replace(
             config, value=dataclasses.replace(config.value, batch_size=args.batch)
         )
+    # a guard timeout's SIGTERM ends the job through its `finally` (the simulation pool closed)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     # a missing dataset or weights folder is a user error: one line + exit 2 (experiments._cli)
     summary = train_stage3(config, args.out, args.data, args.weights, progress=not args.no_progress)
     print(json.dumps(summary, indent=1))

@@ -80,6 +80,7 @@ class RLConfig:
     ingest_min: int = 1  # ingest when at least this many new pairs are there
     seed_chunk: int = 2000  # pairs seeded per chunk (buffer saved after each)
     bank_capacity: int = 0  # device bank padded to at least this many pairs (one shape)
+    cem_batch: int = 32  # pairs per jitted CEM call (B x K x population states at once)
 
 
 def validation_objects(names, fraction: float) -> set[str]:
@@ -303,6 +304,9 @@ def train_stage3(
     buffer_path = job.dir / "buffer.npz"
     buffer = ReplayBuffer.load(buffer_path) if buffer_path.exists() else ReplayBuffer()
     timings = {"seed_per_pair": None, "round": None}
+    # what each phase keeps free for the ones after it (saving, packing): 45 s of a long
+    # budget, a tenth of a short one
+    reserve = min(45.0, 0.1 * config.time_budget) if config.time_budget else 0.0
 
     labeller = Labeller(dataset_dir, config.workers)
     try:
@@ -362,7 +366,7 @@ def train_stage3(
                 job.log("rounds.jsonl", {"phase": "seed", "pairs": [int(lo), int(chunk[-1]) + 1],
                                          "s": dt, **buffer.stats()})  # fmt: skip
 
-        seed_pending(min_left=60.0)
+        seed_pending(min_left=1.5 * reserve)
 
         # 2. V ---------------------------------------------------------------------------------
         trainer = refine.make_value_trainer(config.value, _total_steps(config))
@@ -406,12 +410,14 @@ def train_stage3(
         def train(state, steps: int, tag: str):
             fit = buffer.select(np.isin(buffer.data["slot"], pairs.fit_slots))
             if not len(fit):
+                print(f"train V ({tag}): no transitions of fit pairs yet ({len(pairs)} pairs, "
+                      f"{len(pairs.val_slots)} of them validation pairs): skipped", flush=True)  # fmt: skip
                 return state
             bank_dev = pairs.device()
             bar = tqdm(range(steps), desc=f"train V ({tag})", disable=not progress)
             t0 = time.time()
             for i in bar:
-                if time_left() < 30:
+                if time_left() < 0.5 * reserve:
                     break
                 idx = fit.sample(rng, config.value.batch_size, config.hard_fraction)
                 d = fit.data
@@ -430,7 +436,7 @@ def train_stage3(
                                     acc=f"{row['accuracy']:.2f}")  # fmt: skip
             return state
 
-        if job.state["pretrain_step"] < config.pretrain_steps and time_left() > 60:
+        if job.state["pretrain_step"] < config.pretrain_steps and time_left() > reserve:
             state = train(state, config.pretrain_steps - job.state["pretrain_step"], "pretrain")
             job.state["pretrain_step"] = int(state.step)
             save(state)
@@ -443,7 +449,8 @@ def train_stage3(
             pipeline's output, the per-source (slots, poses, rewards) and figures."""
             k, mt = config.num_proposals, config.keep_top
             out = run_pipeline_on_pairs(predictor, refine_fn, state.params, pairs.bank, slots,
-                                        jax.random.fold_in(key, tag_key), k)  # fmt: skip
+                                        jax.random.fold_in(key, tag_key), k,
+                                        batch=config.cem_batch)  # fmt: skip
             n = len(slots)
             refined = out["refined"].reshape(-1, 7)
             parts = {"cem": (np.repeat(slots, k), refined)}
@@ -473,15 +480,18 @@ def train_stage3(
             return out, labelled, figs
 
         # 3. RL rounds -------------------------------------------------------------------------
-        while job.state["round"] < config.rounds and time_left() > 60:
+        while job.state["round"] < config.rounds and time_left() > reserve:
             r = job.state["round"] + 1
             if config.ingest_every and r % config.ingest_every == 0:
                 new = pairs.new_files()
                 if len(new) >= config.ingest_min:
                     pairs.ingest(new)
-            seed_pending(min_left=90.0)
-            est = timings["round"] or 0.0
-            if time_left() < 45 + 1.3 * est:
+            seed_pending(min_left=2 * reserve)
+            # the first round of a call also compiles: the last call's round time x 1.5, at
+            # least a tenth of the budget
+            est = timings["round"] or max(1.5 * job.state.get("round_s", 0.0),
+                                          0.1 * config.time_budget)  # fmt: skip
+            if time_left() < reserve + 1.3 * est:
                 break
             t0 = time.time()
             slots = rng.choice(pairs.fit_slots, min(config.round_pairs, len(pairs.fit_slots)),
@@ -510,14 +520,14 @@ def train_stage3(
                                **{f"val_{k}": v for k, v in vf.items() if k != "chosen_success"})  # fmt: skip
             row["s"] = time.time() - t0
             row.update(validate(state))
-            timings["round"] = row["s"]
+            timings["round"] = job.state["round_s"] = row["s"]
             job.log("rounds.jsonl", row)
             job.state["round"] = r
             save(state)
             job.save_state()
             if progress:
                 print(json.dumps(row))
-        if job.state["pretrain_step"] < config.pretrain_steps and time_left() > 45:
+        if job.state["pretrain_step"] < config.pretrain_steps and time_left() > reserve:
             # pairs that arrived late: whatever pretraining the budget left undone
             state = train(state, config.pretrain_steps - job.state["pretrain_step"], "pretrain")
             job.state["pretrain_step"] = int(state.step)

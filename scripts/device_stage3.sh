@@ -13,7 +13,11 @@
 #             all of them with VALUE (default weights/value_small_paper), bench_stage3
 #   curve     the refinement-learning curve + CEM_ROUNDS-round CEM on a balanced subset
 #   variants  eval again (with the separated answer) + K = 10 proposals on a balanced subset
-# Knobs: NTRAIN (3000), TRAIN_S (360), PRETRAIN (6000), ROUNDS (8), VALUE, CEM_ROUNDS, PER_CAT.
+# Knobs: NTRAIN (3000), TRAIN_S (360), PRETRAIN (6000), ROUNDS (8), VALUE (the V weights folder of
+# eval / curve / variants: weights/value_small_paper; issue 12's chain-trained V:
+# VALUE=weights/value_small_paper_v2), LABEL, CEM_ROUNDS, PER_CAT.
+# Issue 12's V on ALL training pairs with hard-negative rounds is the chain part
+# scripts/chain/stage3.sh (2-3 calls, resumable), not a mode here.
 set -uo pipefail
 MODE=${1:?usage: device_stage3.sh train|eval|curve|variants}
 OUT=${OUT:-/tmp/out}
@@ -53,11 +57,11 @@ if [ "$MODE" = variants ]; then
     nvidia-smi -L | tee "$OUT/variants.log"
     python3 -m experiments.derive_dataset --data datasets/paper --split test \
         --pairs-from results/hanging_success.pairs.jsonl --workers 16 --no-progress >/dev/null 2>&1
-    timeout 300 python3 -m experiments.eval_stage3 --pairs-from results/hanging_success.pairs.jsonl \
+    timeout 300 python3 -m experiments.eval_stage3 --value "${VALUE:-weights/value_small_paper}" --pairs-from results/hanging_success.pairs.jsonl \
         --workers 15 --batch 16 --out "$OUT/hanging_success_stage3.json" \
         --label "the 1,814 held-out pairs" --no-progress 2>&1 | tail -9 | tee -a "$OUT/variants.log"
     echo "[$(($(date +%s) - T0)) s] K=5 done" | tee -a "$OUT/variants.log"
-    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 \
+    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 --value "${VALUE:-weights/value_small_paper}" \
         --pairs-from results/hanging_success.pairs.jsonl --per-category 60 --proposals 10 \
         --workers 15 --batch 8 --out "$OUT/hanging_success_k10.json" \
         --label "K = 10 proposals, balanced subset" --no-progress 2>&1 | tail -9 | tee -a "$OUT/variants.log"
@@ -79,7 +83,7 @@ if [ "$MODE" = curve ]; then
         --out "$OUT/refinement_learning.json" --no-progress 2>&1 | tail -3 | tee -a "$OUT/curve.log"
     echo "[$(($(date +%s) - T0)) s] curve" | tee -a "$OUT/curve.log"
     while [ ! -e /tmp/test_derived ]; do sleep 2; done
-    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 \
+    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 --value "${VALUE:-weights/value_small_paper}" \
         --pairs-from results/hanging_success.pairs.jsonl --per-category ${PER_CAT:-60} \
         --rounds ${CEM_ROUNDS:-2} --workers 15 --batch 16 --out "$OUT/hanging_success_cem2.json" \
         --label "CEM ${CEM_ROUNDS:-2} rounds, balanced subset" --no-progress 2>&1 | tail -12 | tee -a "$OUT/curve.log"

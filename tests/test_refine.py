@@ -150,3 +150,155 @@ def test_train_stage3_tiny_runs_and_resumes(tmp_path):
     assert second["buffer"]["transitions"] > n1
     rounds = [json.loads(x) for x in (out / "rounds.jsonl").read_text().splitlines()]
     assert [r.get("round") for r in rounds if "round" in r] == [1, 2]
+
+
+def test_buffer_hard_stream_is_balanced_and_weighted():
+    """hard_fraction f: round(f * batch) indices from the hard sources (CEM's answers and its
+    top-scored members), half successes / half failures there, the rest 50/50 overall."""
+    buf = ReplayBuffer()
+    pose = np.float32([0, 0, 0, 1, 0, 0, 0])
+    buf.add(np.zeros(1000), np.tile(pose, (1000, 1)), np.arange(1000) % 2, "perturbed")
+    buf.add(np.zeros(20), np.tile(pose, (20, 1)), np.arange(20) < 5, "cem_top")  # 5 hang
+    rng = np.random.default_rng(0)
+    idx = buf.sample(rng, 64, hard_fraction=0.25)
+    src, rew = buf.data["source"][idx], buf.data["reward"][idx]
+    hard = src == refine.SOURCES.index("cem_top")
+    # 16 drawn from the hard stream (8 + 8); the other 48 may hit them only by their 2 % share
+    assert hard.sum() >= 16 and rew[hard].sum() >= 8 and (~rew[hard].astype(bool)).sum() >= 8
+    assert rew.sum() == 32  # the batch stays balanced
+    assert (buf.sample(rng, 64) >= 1000).sum() < 8  # without: their share (2 %)
+    only_neg = ReplayBuffer()
+    only_neg.add(np.zeros(10), np.tile(pose, (10, 1)), np.arange(10) % 2, "perturbed")
+    only_neg.add(np.zeros(4), np.tile(pose, (4, 1)), np.zeros(4), "cem")  # no hard success
+    idx = only_neg.sample(rng, 16, hard_fraction=0.5)
+    assert (idx >= 10).sum() >= 8 and len(idx) == 16
+
+
+def test_pair_bank_light_read_extend_and_cache(tmp_path):
+    """The bank reads only what V needs, equal to subsample_clouds of the full pair; extend
+    keeps slots; the .npz cache round-trips."""
+    from omnihang_jax import dataset_bridge
+
+    files = sorted(dataset_bridge.derived_files(f"{DATA}/derived", "train"))[:3]
+    cfg = stage3.VALUE_TINY
+    bank = PairBank.from_files(files[:2], cfg, progress=False)
+    bank.extend(PairBank.from_files(files[2:], cfg, progress=False))
+    sample, meta = dataset_bridge.load_pair_file(files[2])
+    full = PairClouds(sample.object_points, sample.object_normals, sample.support_points,
+                      sample.support_normals)  # fmt: skip
+    ref = stage3.subsample_clouds(full, cfg)
+    for a, b in zip(ref, bank.clouds, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), b[2])
+    assert bank.meta[2]["object_name"] == meta["object_name"] and len(bank) == 3
+    np.testing.assert_array_equal(bank.stable_poses[2], sample.stable_poses[sample.pose_mask])
+    bank.save(tmp_path / "bank.npz")
+    again = PairBank.load(tmp_path / "bank.npz")
+    assert again.meta == bank.meta
+    np.testing.assert_array_equal(again.clouds.support_points, bank.clouds.support_points)
+    for a, b in zip(again.stable_poses, bank.stable_poses, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_hard_negatives_teach_v_the_boundary():
+    """The point of the hard stream: V trained on many easy cases (deep penetration, clear
+    hangs) and a few hard negatives just past the boundary separates the boundary better
+    when a share of every batch comes from those hard cases."""
+    cfg = stage3.VALUE_TINY
+    bank = _plane_bank()
+
+    def poses_at(z, rng):
+        p = np.zeros((len(z), 7), np.float32)
+        p[:, 2], p[:, 3] = z, 1.0
+        p[:, :2] = rng.uniform(-0.01, 0.01, (len(z), 2))
+        return p
+
+    def buffer(rng):
+        buf = ReplayBuffer()
+        easy_neg = rng.uniform(0.0, 0.008, 1500)  # far inside the plane
+        pos = rng.uniform(0.017, 0.03, 1500)  # resting on it or above
+        hard_neg = rng.uniform(0.011, 0.017, 60)  # 3-9 mm inside: V's false positives
+        hard_pos = rng.uniform(0.017, 0.021, 60)
+        for z, r, src in ((easy_neg, 0, "perturbed"), (pos, 1, "perturbed"),
+                          (hard_neg, 0, "cem_top"), (hard_pos, 1, "cem_top")):  # fmt: skip
+            buf.add(rng.integers(len(bank), size=len(z)), poses_at(z, rng), np.full(len(z), r), src)
+        return buf
+
+    dev = jax.tree.map(jax.numpy.asarray, bank.clouds)
+    trng = np.random.default_rng(7)
+    tz = np.concatenate([trng.uniform(0.011, 0.017, 200), trng.uniform(0.017, 0.021, 200)])
+    ts, tp, tr = (
+        trng.integers(len(bank), size=400),
+        poses_at(tz, trng),
+        (tz > 0.017).astype(np.uint8),
+    )
+    acc = {}
+    for f in (0.0, 0.5):
+        rng = np.random.default_rng(1)
+        buf = buffer(rng)
+        trainer = refine.make_value_trainer(cfg, 200)
+        state = trainer.init(jax.random.key(0))
+        for i in range(200):
+            idx = buf.sample(rng, cfg.batch_size, hard_fraction=f)
+            d = buf.data
+            state, _ = trainer.step(state, dev, d["slot"][idx], d["pose"][idx], d["reward"][idx],
+                                    jax.random.key(i))  # fmt: skip
+        prob = refine.predict_in_batches(trainer, state.params, dev, ts, tp, 128)
+        acc[f] = refine.classification_metrics(prob, tr)["balanced_accuracy"]
+    assert acc[0.5] > acc[0.0] + 0.05, acc
+
+
+@pytest.mark.slow
+def test_hardneg_job_labels_the_top_members_and_takes_arriving_pairs(tmp_path):
+    """The hard-negative job (preset hardneg_tiny) on 8 derived pairs, then on 12 after 4
+    more "arrive" (the chain's background derive): slots keep their pairs, only the new
+    pairs are seeded, rounds continue; every round adds K x keep_top top-scored members per
+    pair, and their rewards are what the physics says when the poses are labelled again."""
+    import dataclasses
+    import json
+    import os
+
+    from experiments.train_stage3 import PRESETS
+    from omnihang_jax import dataset_bridge, rl
+
+    dataset_bridge.derive_dataset(DATA, splits=("train",), limit=12, progress=False)
+    files = sorted(dataset_bridge.derived_files(f"{DATA}/derived", "train"))
+    files = files[:: max(1, len(files) // 12)][:12]  # several objects: fit and val pairs
+    ds = tmp_path / "ds"
+    (ds / "derived" / "train").mkdir(parents=True)
+    os.symlink(os.path.abspath(f"{DATA}/recipe.json"), ds / "recipe.json")
+    os.symlink(os.path.abspath(f"{DATA}/shards"), ds / "shards")
+
+    def arrive(fs):
+        for f in fs:
+            os.symlink(os.path.abspath(f), ds / "derived" / "train" / f.name)
+
+    arrive(files[:8])
+    cfg = dataclasses.replace(PRESETS["hardneg_tiny"], rounds=1, val_every=0, round_pairs=3)
+    out = tmp_path / "job"
+    first = rl.train_stage3(cfg, out, ds, "weights/where_small_paper", progress=False)
+    split1 = json.loads((out / "split.json").read_text())["files"]
+    assert first["pairs"] == 8 and first["state"]["seeded_pairs"] == 8
+    assert first["state"]["round"] == 1
+    n_stable = first["buffer"]["stable"]["n"]
+    arrive(files[8:])
+    second = rl.train_stage3(dataclasses.replace(cfg, rounds=2), out, ds,
+                             "weights/where_small_paper", progress=False)  # fmt: skip
+    split2 = json.loads((out / "split.json").read_text())["files"]
+    assert second["pairs"] == 12 and split2[:8] == split1  # slots never move
+    assert second["state"]["seeded_pairs"] == 12 and second["state"]["round"] == 2
+    assert second["buffer"]["stable"]["n"] > n_stable  # the new pairs seeded, once
+    buf = ReplayBuffer.load(out / "buffer.npz")
+    d = buf.data
+    top = d["source"] == refine.SOURCES.index("cem_top")
+    for r in (1, 2):
+        k, m = cfg.num_proposals, cfg.keep_top
+        pairs_r = len(np.unique(d["slot"][top & (d["round"] == r)]))
+        assert (top & (d["round"] == r)).sum() == pairs_r * k * m > 0
+    rows = [json.loads(x) for x in (out / "rounds.jsonl").read_text().splitlines()]
+    assert all("top_precision" in x for x in rows if "round" in x)
+    # the labels are the physics': label the stored top members again
+    bank = PairBank.load(out / "bank.npz")
+    idx = np.flatnonzero(top)
+    with refine.Labeller(ds, workers=0) as lab:
+        again, _ = refine.label_poses(lab, bank, d["slot"][idx], d["pose"][idx])
+    np.testing.assert_array_equal(again, d["reward"][idx])

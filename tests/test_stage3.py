@@ -138,3 +138,26 @@ def test_value_loss_prefers_the_label(reward):
     loss, m = stage3.value_loss(logits, rewards)
     assert float(m["accuracy"]) == 0.5
     assert np.isfinite(float(loss))
+
+
+def test_cem_keeps_the_top_of_its_final_population():
+    """keep_top M: the M best members of the last iteration's population, best first, scored
+    as score_fn scores them, inside the box; M = 0 (default) keeps none; M > population fails."""
+    start = jnp.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    target = jnp.array([0.01, -0.005, 0.0, 1.0, 0.0, 0.0, 0.0])
+    score = _bowl(target)
+    cfg = CEMConfig()
+    res = jax.jit(stage3.make_cem(score, cfg, keep_top=8))(jax.random.key(0), start, start[:3])
+    assert res.top_poses.shape == (8, 7) and res.top_scores.shape == (8,)
+    s = np.asarray(res.top_scores)
+    assert np.all(np.diff(s) <= 0)  # best first
+    np.testing.assert_allclose(np.asarray(score(res.top_poses)), s, rtol=1e-4, atol=1e-3)
+    assert s[0] <= float(res.score) + 1e-4  # the answer is the best-so-far
+    assert np.all(np.abs(np.asarray(res.top_poses[:, :3])) <= cfg.clip_translation + 1e-6)
+    # the final population has converged near the optimum: its top members are close to it
+    assert np.median(np.linalg.norm(np.asarray(res.top_poses[:, :3] - target[:3]), axis=1)) < 5e-3
+    none = jax.jit(stage3.make_cem(score, cfg))(jax.random.key(0), start, start[:3])
+    assert none.top_poses.shape == (0, 7)
+    np.testing.assert_array_equal(np.asarray(none.pose), np.asarray(res.pose))  # same search
+    with pytest.raises(ValueError, match="keep_top"):
+        stage3.make_cem(score, cfg, keep_top=cfg.population + 1)
