@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# The device carries the working tree + carry in at most 64 MiB; the tree alone is ~57 MiB
+# and the wheels (.whl_min + .whl_train) ~12 MiB. Before a device call, move the committed
+# files no device job reads (older runs' records, CPU weights, variant pair files) aside;
+# after it, put them back (git shows them unchanged). Never commit while they are aside.
+#
+#   bash scripts/device_slim.sh out     # before run(...)
+#   bash scripts/device_slim.sh in      # after
+set -euo pipefail
+ASIDE=${ASIDE:-/tmp/device_aside}
+LIST=(
+    results/model_940pairs results/previous_model results/labels_v1 results/train_where_paper
+    results/hanging_success_select_penetration.pairs.jsonl results/hanging_success_demo.pairs.jsonl
+    results/hanging_success_stage3_k10.pairs.jsonl.gz results/hanging_success_stage3_separated.pairs.jsonl.gz
+    results/hanging_success_stage3_cem2rounds.pairs.jsonl.gz results/hanging_success_stage3.pairs.jsonl.gz
+    weights/collision_fast_cpu weights/collision_fast_cpu_far weights/collision_fast_cpu_stable
+)
+case ${1:-} in
+out)
+    mkdir -p "$ASIDE"
+    for p in "${LIST[@]}"; do
+        [ -e "$p" ] || continue
+        mkdir -p "$ASIDE/$(dirname "$p")" && mv "$p" "$ASIDE/$p"
+    done
+    (git ls-files -z; git ls-files -z --others --exclude-standard) | xargs -0 stat -c %s 2>/dev/null |
+        awk '{s+=$1} END {printf "tree now %.1f MiB\n", s/1048576}'
+    ;;
+in)
+    [ -d "$ASIDE" ] || { echo "nothing aside in $ASIDE"; exit 0; }
+    (cd "$ASIDE" && find . -type f -o -type l) | while read -r f; do
+        mkdir -p "$(dirname "$f")" && mv -n "$ASIDE/$f" "$f"
+    done
+    rm -rf "$ASIDE"
+    git status --short | head
+    ;;
+*)
+    echo "usage: device_slim.sh out|in" >&2
+    exit 2
+    ;;
+esac
