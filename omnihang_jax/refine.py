@@ -110,6 +110,7 @@ class PairBank:
         counts = np.array([len(p) for p in self.stable_poses], np.int64)
         atomic.savez(
             os.fspath(path),
+            compressed=False,  # ~0.7 GB at 15k pairs: compression would cost a minute
             **{f: getattr(self.clouds, f) for f in PairClouds._fields},
             meta=np.array(json.dumps(self.meta)),
             stable=np.concatenate(self.stable_poses) if len(self) else np.zeros((0, 7), np.float32),
@@ -159,6 +160,7 @@ class ReplayBuffer:
 
     def __init__(self):
         self.data = {k: np.zeros((0, 7) if k == "pose" else 0, t) for k, t in self.FIELDS.items()}
+        self._index = None  # (length, positives, negatives, hard positives, hard negatives)
 
     def __len__(self) -> int:
         return len(self.data["slot"])
@@ -178,10 +180,12 @@ class ReplayBuffer:
             "round": np.full(keep.sum(), round_index, np.int16),
         }
         self.data = {k: np.concatenate([self.data[k], new[k]]) for k in self.FIELDS}
+        self._index = None
 
     def select(self, mask: np.ndarray) -> ReplayBuffer:
         out = ReplayBuffer()
         out.data = {k: v[mask] for k, v in self.data.items()}
+        out._index = None
         return out
 
     def sample(
@@ -197,11 +201,14 @@ class ReplayBuffer:
         batch stays balanced while the poses V liked most, and the false positives among them,
         come far more often than their share of the buffer."""
         r = self.data["reward"]
+        if self._index is None or self._index[0] != len(r):  # once per buffer, not per batch
+            hard = np.isin(self.data["source"], [SOURCES.index(s) for s in HARD_SOURCES])
+            self._index = (len(r), np.flatnonzero(r == 1), np.flatnonzero(r == 0),
+                           np.flatnonzero(hard & (r == 1)), np.flatnonzero(hard & (r == 0)))  # fmt: skip
+        _, pos, neg, hp, hn = self._index
         n_hard = int(round(hard_fraction * batch)) if hard_fraction > 0 else 0
         out = []
         if n_hard:
-            hard = np.isin(self.data["source"], [SOURCES.index(s) for s in HARD_SOURCES])
-            hp, hn = np.flatnonzero(hard & (r == 1)), np.flatnonzero(hard & (r == 0))
             if len(hn):
                 h = n_hard // 2 if len(hp) else 0
                 out += [rng.choice(hp, h) if h else np.zeros(0, np.int64),
@@ -209,7 +216,6 @@ class ReplayBuffer:
             else:
                 n_hard = 0
         rest = batch - n_hard
-        pos, neg = np.flatnonzero(r == 1), np.flatnonzero(r == 0)
         if len(pos) == 0 or len(neg) == 0:
             out.append(rng.integers(len(r), size=rest))
         else:
@@ -229,7 +235,8 @@ class ReplayBuffer:
     def save(self, path: str | os.PathLike) -> None:
         from sim import atomic
 
-        atomic.savez(os.fspath(path), **self.data)
+        # uncompressed: saved after every round, millions of rows at full scale
+        atomic.savez(os.fspath(path), compressed=False, **self.data)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> ReplayBuffer:

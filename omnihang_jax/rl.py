@@ -417,7 +417,7 @@ def train_stage3(
             bar = tqdm(range(steps), desc=f"train V ({tag})", disable=not progress)
             t0 = time.time()
             for i in bar:
-                if time_left() < 0.5 * reserve:
+                if time_left() < (reserve if tag == "fill" else 0.5 * reserve):
                     break
                 idx = fit.sample(rng, config.value.batch_size, config.hard_fraction)
                 d = fit.data
@@ -531,6 +531,10 @@ def train_stage3(
             # pairs that arrived late: whatever pretraining the budget left undone
             state = train(state, config.pretrain_steps - job.state["pretrain_step"], "pretrain")
             job.state["pretrain_step"] = int(state.step)
+        elif job.state["round"] < config.rounds and time_left() > 1.5 * reserve:
+            # too little time for another round: train V on the buffer as it is (new pairs'
+            # seeds, the last round's hard cases) until the reserve
+            state = train(state, 2 * config.round_steps, "fill")
         save(state)
         job.save_state()
     finally:
