@@ -705,6 +705,45 @@ def true_normals_score_fn(data: CollisionData, n_support):
 # ----------------------------------------------------------------------------------------------
 
 
+def evaluate_only(out: Path, test: CollisionData, eval_labels: int) -> dict:
+    """Held-out metrics of the NCE already in ``out`` (``--eval-only``)."""
+    cfg, params, _ = collision.load_estimator(out / "nce")
+    fn = nce_score_fn(cfg, params)
+    n_obj, n_sup = cfg.object_points, cfg.support_points
+    s, y = estimator_scores(test, fn, n_obj, n_sup, eval_labels)
+    result = dict(test_pairs=len(test.meta), threshold=cfg.threshold)
+    for t in sorted({cfg.threshold, 0.5}):
+        result[f"labels_at_{t:g}"] = collision.binary_metrics(s > t, y)
+    if test.near_poses is not None:
+        s = score_poses(test, test.near_pair, test.near_poses, fn, n_obj, n_sup)
+        for t in sorted({cfg.threshold, 0.5, 0.7, 0.9}):
+            result[f"near_at_{t:g}"] = near_metrics(s, test, t)
+    with open(out / "metrics_eval.json", "w") as f:
+        json.dump(result, f, indent=2)
+    print(json.dumps(_brief(result)))
+    return result
+
+
+def _brief(result: dict) -> dict:
+    """The headline numbers of evaluate_only's result."""
+    out = {}
+    for k, v in result.items():
+        if k.startswith("labels_at_"):
+            out[k] = {x: round(v[x], 3) for x in ("accuracy", "precision", "recall")}
+        elif k.startswith("near_at_"):
+            out[k] = dict(
+                goal_pass=round(v["goal_pass"], 3),
+                near_recall=round(v["near"]["recall"], 3),
+                near_precision=round(v["near"]["precision"], 3),
+                free_precision=round(v["near"]["free_precision"], 3),
+                jitter_recall=round(v["jitter"]["recall"], 3),
+                jitter_specificity=round(v["jitter"]["specificity"], 3),
+                lift_specificity=round(v["lift"]["specificity"], 3),
+                approach_specificity=round(v["approach"]["specificity"], 3),
+            )
+    return out
+
+
 def _budgets(text: str) -> dict[str, float]:
     out = {"nce": 300.0, "normals": 60.0}
     for item in filter(None, text.split(",")):
@@ -779,6 +818,12 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--existing-only", action="store_true", help="use only pairs already derived"
     )
+    parser.add_argument(
+        "--eval-only",
+        action="store_true",
+        help="score the NCE in OUT on the held-out pairs (labels, goal pass, near contact) "
+        "at its threshold and at 0.5; writes OUT/metrics_eval.json",
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     progress = not args.no_progress
@@ -812,6 +857,8 @@ def main(argv=None) -> dict:
             f"derived: {len(train_files)} train, {len(test_files)} test pairs in {derive_s:.0f} s"
         )
         return {"train_files": len(train_files), "test_files": len(test_files)}
+    if args.eval_only:
+        return evaluate_only(out, load_collision_data(test_files), args.eval_labels)
     train = load_collision_data(
         train_files,
         far_per_pair=args.far_per_pair,

@@ -388,6 +388,7 @@ def binary_metrics(predicted: np.ndarray, label: np.ndarray) -> dict:
         f1=2 * prec * rec / max(prec + rec, 1e-12),
         balanced_accuracy=0.5 * (rec + tn / max(tn + fp, 1)),
         free_precision=tn / max(tn + fn, 1),  # of the poses called free, how many are
+        specificity=tn / max(tn + fp, 1),  # of the free poses, how many are called free
     )
 
 

@@ -154,3 +154,80 @@ def test_far_free_poses_never_touch_the_support_or_its_wall():
         lo, hi = planner.default_bounds(build_scene(obj, sup))
         inside = np.all((poses[:, :3] >= lo) & (poses[:, :3] <= hi), axis=1)
         assert inside.mean() > 0.2
+
+
+def test_near_contact_poses_and_their_mesh_labels():
+    from experiments.train_collision import (
+        NEAR_APPROACH,
+        NEAR_COUNTS,
+        NEAR_JITTER,
+        NEAR_LIFT,
+        NEAR_STABLE,
+        near_contact_labels,
+        near_contact_poses,
+    )
+    from omnihang_jax import planner
+    from sim.assets import objects, supports  # noqa: F401  (registers the generators)
+    from sim.assets.base import build_object, build_support
+    from sim.scene import build_scene
+
+    obj, sup = build_object("mug", 1), build_support("pegboard_hook", 1)
+    scene = build_scene(obj, sup)
+    lo, hi = np.asarray(scene.support_bounds, float)
+    centre = 0.5 * (lo + hi)
+    stable = np.array([[*centre, 1, 0, 0, 0], [centre[0], hi[1], hi[2], 0, 1, 0, 0]], float)
+    poses, kind = near_contact_poses(scene, stable, np.random.default_rng(0))
+    assert (kind == NEAR_STABLE).sum() == 2 and np.allclose(poses[:2], stable)
+    for k, n in NEAR_COUNTS.items():
+        assert (kind == k).sum() == n
+    np.testing.assert_allclose(np.linalg.norm(poses[:, 3:], axis=1), 1.0, atol=1e-5)
+    # jitter: 0.5-30 mm from one of the stable poses
+    shift = np.min(
+        [np.linalg.norm(poses[kind == NEAR_JITTER, :3] - s[:3], axis=1) for s in stable], axis=0
+    )
+    assert shift.min() >= 4.9e-4 and shift.max() <= 0.0301
+    # lift: straight up by 0.5-20 mm, same orientation
+    lifted = poses[kind == NEAR_LIFT]
+    up = np.min([np.abs(lifted[:, 2] - s[2]) for s in stable], axis=0)
+    assert up.min() >= 4.9e-4 and up.max() <= 0.0201
+    # approach: between a stable pose and the planner's start pose (same x, z and rotation)
+    approach = poses[kind == NEAR_APPROACH]
+    assert np.all(np.isin(approach[:, 0].round(5), stable[:, 0].round(5)))
+    starts = [planner.start_pose(scene, s)[1] for s in stable]
+    assert approach[:, 1].min() >= min(stable[:, 1]) - 1e-6
+    assert approach[:, 1].max() <= max(starts) + 1e-6
+    # labels: the planner's ground truth, pose by pose
+    fields = near_contact_labels(scene, stable, stable, seed=0)
+    mesh = planner.MeshChecker(scene)
+    np.testing.assert_allclose(fields["near_penetration"], mesh.penetration(fields["near_poses"]))
+    np.testing.assert_allclose(fields["collision_penetration"], mesh.penetration(stable))
+    assert 0 < (fields["near_penetration"] > 1e-3).mean() < 1  # both kinds among them
+
+
+def test_goal_pass_threshold_and_near_metrics():
+    from experiments.train_collision import (
+        NEAR_JITTER,
+        NEAR_STABLE,
+        CollisionData,
+        goal_pass_threshold,
+        near_metrics,
+    )
+
+    kind = np.array([NEAR_STABLE] * 10 + [NEAR_JITTER] * 4, np.int8)
+    labels = np.array([False] * 10 + [True, True, False, False])
+    data = CollisionData(
+        *(np.zeros((1, 4, 3)) for _ in range(4)),
+        pair=np.zeros(0, np.int32), poses=np.zeros((0, 7)), labels=np.zeros(0, bool), meta=[],
+        near_pair=np.zeros(14, np.int32), near_poses=np.zeros((14, 7)), near_kind=kind,
+        near_labels=labels,
+    )  # fmt: skip
+    stable_scores = np.linspace(0.1, 0.82, 10)  # 0.1, 0.18, ..., 0.82
+    scores = np.concatenate([stable_scores, [0.9, 0.6, 0.3, 0.95]])
+    # 90 % of the stable poses at or below 0.74: the lowest grid threshold reaching it
+    assert goal_pass_threshold(scores, data, 0.9) == 0.74
+    assert goal_pass_threshold(scores, data, 0.5) == 0.5  # never below 0.5
+    assert goal_pass_threshold(scores, data, 1.0) == 0.82
+    m = near_metrics(scores, data, 0.74)
+    assert m["goal_pass"] == 0.9 and m["stable_poses"] == 10
+    assert m["near"]["n"] == 4 and m["near"]["recall"] == 0.5 and m["near"]["precision"] == 0.5
+    assert m["jitter"]["specificity"] == 0.5
