@@ -44,12 +44,13 @@ def profile(preset: str, batch: int, stages, repeat: int, n_points: int = 4096) 
     sample = data.HangSample(*(jnp.asarray(x) for x in sample))
     rows = []
     for stage in stages:
-        init, step, _ = train._jitted(stage, config)
-        state = init(jax.random.key(1))
-        s = _time(lambda st, b, step=step: step(st, b, jax.random.key(2))[1]["loss"], state, sample,
-                  repeat=repeat)  # fmt: skip
-        rows.append(dict(preset=preset, batch=batch, part=f"train step {stage}", ms=1e3 * s,
-                         samples_per_s=batch / s))  # fmt: skip
+        state = jax.jit(train.make_init_state(stage, config))(jax.random.key(1))
+        for method in pointnet2.BALL_QUERY_METHODS:  # the same step with each ball query
+            step = _with_ball_query(method, jax.jit(train.make_train_step(stage, config)))
+            s = _time(lambda st, b, step=step: step(st, b, jax.random.key(2))[1]["loss"],
+                      state, sample, repeat=repeat)  # fmt: skip
+            rows.append(dict(preset=preset, batch=batch, part=f"train step {stage} ({method})",
+                             ms=1e3 * s, samples_per_s=batch / s))  # fmt: skip
     # parts of the encoder on one cloud batch (Stage 1's object cloud; Stage 2 sees twice N)
     enc = config.stage1.encoder
     lvl = enc.sa_levels[0]
@@ -60,11 +61,31 @@ def profile(preset: str, batch: int, stages, repeat: int, n_points: int = 4096) 
                      ms=1e3 * s))  # fmt: skip
     idx = fps(pts)
     cent = pointnet2.gather_points(pts, idx)
-    bq = jax.jit(lambda p, c: pointnet2.ball_query(p, c, lvl.radius, lvl.nsample))
-    s = _time(bq, pts, cent, repeat=repeat)
-    rows.append(dict(preset=preset, batch=batch, part=f"ball query level 1 ({lvl.npoint} x {lvl.nsample})",
-                     ms=1e3 * s))  # fmt: skip
+    for method in pointnet2.BALL_QUERY_METHODS:
+        bq = jax.jit(lambda p, c, m=method: pointnet2.ball_query(p, c, lvl.radius, lvl.nsample, m))
+        s = _time(bq, pts, cent, repeat=repeat)
+        rows.append(dict(preset=preset, batch=batch, part=f"ball query L1 {lvl.npoint}x{lvl.nsample} ({method})",
+                         ms=1e3 * s))  # fmt: skip
     return rows
+
+
+def _with_ball_query(method: str, fn):
+    """``fn`` (a fresh ``jax.jit``) run with ``pointnet2.ball_query`` using ``method``: it is
+    traced on its first call, inside the patch, so the compiled step uses that method."""
+    original = pointnet2.ball_query
+
+    def patched(*args, **kwargs):
+        kwargs["method"] = method
+        return original(*args, **kwargs)
+
+    def run(*args):
+        pointnet2.ball_query = patched
+        try:
+            return fn(*args)
+        finally:
+            pointnet2.ball_query = original
+
+    return run
 
 
 def main(argv=None) -> dict:

@@ -187,20 +187,39 @@ def farthest_point_sample(points: jax.Array, num_samples: int) -> jax.Array:
     return jax.lax.stop_gradient(idx)
 
 
-def ball_query(points: jax.Array, centroids: jax.Array, radius: float, nsample: int) -> jax.Array:
+BALL_QUERY_METHODS = ("cumsum", "top_k")
+
+
+def ball_query(
+    points: jax.Array, centroids: jax.Array, radius: float, nsample: int, method: str = "cumsum"
+) -> jax.Array:
     """Ball query as in the original PointNet++ kernel.
 
     points: [B, N, 3] float32; centroids: [B, S, 3] float32; radius in metres; nsample static.
     Returns idx: [B, S, nsample] int32 -- the first ``nsample`` point indices (ascending index
     order) with squared distance strictly below ``radius**2``; empty slots repeat the first index
     found. If no point lies within the radius, every slot holds the nearest point.
+
+    method: how the first ``nsample`` hits are found (same answer): "cumsum" = the running
+    count of hits along N, then a binary search for counts 1..nsample (memory-bound, fast on
+    a GPU), or "top_k" = the ``nsample`` smallest hit indices (``jax.lax.top_k``; the first
+    implementation, kept for the side-by-side benchmark in ``experiments.profile_where``).
     """
     n = points.shape[1]
     d2 = squared_distance(centroids[:, :, None, :], points[:, None, :, :])  # [B, S, N]
     within = d2 < radius**2
-    candidates = jnp.where(within, jnp.arange(n, dtype=jnp.int32), n)
     k = min(nsample, n)
-    first = -jax.lax.top_k(-candidates, k)[0]  # k smallest candidates, ascending
+    if method == "cumsum":
+        count = jnp.cumsum(within, axis=-1, dtype=jnp.int32)  # nondecreasing along N
+        targets = jnp.arange(1, k + 1, dtype=jnp.int32)
+        # position of the j-th hit = first index whose running count reaches j (N if none)
+        first = jax.vmap(jax.vmap(lambda c: jnp.searchsorted(c, targets, side="left")))(count)
+        first = first.astype(jnp.int32)
+    elif method == "top_k":
+        candidates = jnp.where(within, jnp.arange(n, dtype=jnp.int32), n)
+        first = -jax.lax.top_k(-candidates, k)[0]  # k smallest candidates, ascending
+    else:
+        raise ValueError(f"unknown ball-query method {method!r}; expected {BALL_QUERY_METHODS}")
     if k < nsample:
         first = jnp.concatenate(
             [first, jnp.full(first.shape[:-1] + (nsample - k,), n, jnp.int32)], axis=-1

@@ -77,14 +77,15 @@ def test_fps_matches_numpy(clouds, num_samples):
         assert len(set(got[b].tolist())) == num_samples  # no repeats on distinct points
 
 
+@pytest.mark.parametrize("method", ["cumsum", "top_k"])
 @pytest.mark.parametrize("radius,nsample", [(0.01, 8), (0.03, 16), (0.2, 32), (1e-4, 4)])
-def test_ball_query_matches_numpy(clouds, radius, nsample):
+def test_ball_query_matches_numpy(clouds, radius, nsample, method):
     # Centroids: FPS points (always have a hit) plus off-cloud points (may have none -> nearest).
     rng = np.random.default_rng(1)
     centroids = np.concatenate(
         [clouds[:, ::7], rng.uniform(-0.06, 0.06, (3, 10, 3)).astype(np.float32)], axis=1
     )
-    got = np.asarray(ball_query(clouds, centroids, radius, nsample))
+    got = np.asarray(ball_query(clouds, centroids, radius, nsample, method=method))
     assert got.dtype == np.int32 and got.shape == (3, centroids.shape[1], nsample)
     for b in range(3):
         np.testing.assert_array_equal(
@@ -92,9 +93,10 @@ def test_ball_query_matches_numpy(clouds, radius, nsample):
         )
 
 
-def test_ball_query_nsample_larger_than_cloud():
+@pytest.mark.parametrize("method", ["cumsum", "top_k"])
+def test_ball_query_nsample_larger_than_cloud(method):
     pts = np.random.default_rng(2).uniform(size=(1, 5, 3)).astype(np.float32)
-    got = np.asarray(ball_query(pts, pts[:, :2], 10.0, 8))
+    got = np.asarray(ball_query(pts, pts[:, :2], 10.0, 8, method=method))
     np.testing.assert_array_equal(got[0], ball_query_numpy(pts[0], pts[0, :2], 10.0, 8))
     np.testing.assert_array_equal(got[0, 0], [0, 1, 2, 3, 4, 0, 0, 0])
 
