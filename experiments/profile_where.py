@@ -103,15 +103,6 @@ def main(argv=None) -> dict:
     if unknown:
         parser.error(f"unknown stages {sorted(unknown)}")
     rows = []
-    for preset in args.presets.split(","):
-        if preset not in train.PRESETS:
-            parser.error(f"unknown preset {preset!r}")
-        for b in (int(x) for x in args.batches.split(",")):
-            for row in profile(preset, b, stages, args.repeat):
-                rows.append(row)
-                extra = f"{row['samples_per_s']:9.0f} samples/s" if "samples_per_s" in row else ""
-                print(f"{preset:9s} batch {b:4d}  {row['part']:38s} {row['ms']:9.2f} ms {extra}",
-                      flush=True)  # fmt: skip
     result = {
         "device": str(jax.devices()[0].device_kind),
         "backend": jax.default_backend(),
@@ -122,8 +113,17 @@ def main(argv=None) -> dict:
         "rows": rows,
     }
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(result, f, indent=1)
+    for preset in args.presets.split(","):
+        if preset not in train.PRESETS:
+            parser.error(f"unknown preset {preset!r}")
+        for b in (int(x) for x in args.batches.split(",")):
+            for row in profile(preset, b, stages, args.repeat):
+                rows.append(row)
+                extra = f"{row['samples_per_s']:9.0f} samples/s" if "samples_per_s" in row else ""
+                print(f"{preset:9s} batch {b:4d}  {row['part']:38s} {row['ms']:9.2f} ms {extra}",
+                      flush=True)  # fmt: skip
+            with open(args.out, "w") as f:  # after every setting: a cut-short run keeps its rows
+                json.dump(result, f, indent=1)
     return result
 
 

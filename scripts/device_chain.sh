@@ -128,7 +128,7 @@ if [ "$CALL" = 1 ]; then
         $PY -m experiments.profile_where --presets tiny --batches 2 --stages 1 --repeat 2 \
             --out "$OUT/profile_where.json" >"$C/logs/profile.log" 2>&1
     else
-        timeout 260 $PY -m experiments.profile_where --presets small,original --batches 32,64,128 \
+        timeout 250 $PY -m experiments.profile_where --presets small,original --batches 32,128 \
             --stages 1,2a --repeat 10 --out "$OUT/profile_where.json" >"$C/logs/profile.log" 2>&1
     fi
     log "profile: exit $?"
