@@ -149,6 +149,31 @@ def _record_path(work: str | Path, index: int) -> Path:
     return Path(work) / "records" / f"pair_{index:06d}.npz"
 
 
+def _collision_behind(scene, seed: int, config, kept: np.ndarray, label: np.ndarray):
+    """The pair's collision labels with every pose that reaches behind the wall plane and
+    was stored as not colliding relabelled by ``sim.dataset.collision_labels``' rule under
+    ``scene`` (contact queries are per pose, so this equals the full recomputation on those
+    poses). Poses in front of the wall see the same front face as before, and a pose that
+    collided with the slab collides with the block that contains it: both keep their
+    stored labels."""
+    from sim import dataset, judges, kernels
+
+    kept, label = np.array(kept, bool), np.array(label, bool)
+    poses = dataset.collision_poses(scene.obj, scene.support, seed, config)
+    depth = judges.behind_wall_depth(scene.obj, poses, scene.support.wall_y)
+    behind = np.flatnonzero((depth > 0) & ~label)
+    if len(behind):
+        con = kernels.contact_query(
+            scene,
+            poses[behind],
+            kernels.ContactConfig(distance_cutoff=config.collision_free_within + 1e-3),
+        )
+        colliding = con.penetration > 0
+        free = (~colliding) & (con.distance <= config.collision_free_within)
+        kept[behind], label[behind] = colliding | free, colliding
+    return kept, label
+
+
 def _regenerate(job: tuple[int, str, str, str]) -> tuple[int, dict]:
     """``kind`` "full": ``generate_pair`` under the current scene; "labels": the stored
     record with its near misses and collision labels recomputed under the current scene
@@ -156,7 +181,7 @@ def _regenerate(job: tuple[int, str, str, str]) -> tuple[int, dict]:
     from sim import atomic, dataset
     from sim.scene import build_scene
 
-    index, work, kind, data = job
+    index, work, kind, data, redo_negatives = job
     w = _WORKER
     dataset.STAGE_SECONDS.clear()
     config = w["config"]
@@ -177,11 +202,13 @@ def _regenerate(job: tuple[int, str, str, str]) -> tuple[int, dict]:
             raise AssertionError(f"pair {index}: stored seed differs from the recipe's")
         stable = dataset.unpack(shard)[int(i)]["stable_poses"].astype(float)
         scene = build_scene(obj, sup)
-        with dataset._timed("negatives"):
-            part["negative_kept"] = dataset.near_misses(scene, stable, seed, config, "cpu")
+        if redo_negatives:  # a kept near miss starts in the wall: the cap may admit others
+            with dataset._timed("negatives"):
+                part["negative_kept"] = dataset.near_misses(scene, stable, seed, config, "cpu")
         with dataset._timed("collision_labels"):
-            kept, colliding = dataset.collision_labels(scene, obj, sup, seed, config)
-        part["collision_kept"], part["collision_label"] = kept, colliding
+            part["collision_kept"], part["collision_label"] = _collision_behind(
+                scene, seed, config, part["collision_kept"], part["collision_label"]
+            )
         one = _from_slices([part], shard)
     atomic.savez(_record_path(work, index), **one)
     return index, dict(dataset.STAGE_SECONDS)
@@ -200,7 +227,8 @@ def run(data: str, work: str, workers: int = 2, progress: bool = True) -> dict:
     t0, done, stages = time.time(), 0, {}
     bar = tqdm(total=len(listed), initial=len(listed) - len(todo), desc="pairs", unit="pair",
                disable=not progress, smoothing=0.05)  # fmt: skip
-    jobs = [(i, os.fspath(work), kinds[i], os.fspath(data)) for i in todo]
+    negatives = {p["pair_index"] for p in found["detail"] if p["negative"]}
+    jobs = [(i, os.fspath(work), kinds[i], os.fspath(data), i in negatives) for i in todo]
     interrupted = True
     try:
         if workers <= 1:
