@@ -5,24 +5,26 @@
 #
 #   run(carry=[".whl_min", ".whl_train"], timeout_s=600, command="bash scripts/device_chain.sh CALL")
 #
-# CALL (one foreground device call each, <= 10 min; /tmp/chain persists only while the next
-# call lands within the machine's 30-s warm window; every step resumes from what exists, so
-# a call on a bare machine redoes the missing derive and continues from the carried state):
-#   1      install; derive the train split (DERIVE_W workers) + the NCE part; profile the train
-#          step (experiments.profile_where); pack what is derived; start Stage 1 (small and
-#          original presets side by side, the preset comparison) until the call ends
-#   2, 3   derive on (until complete), re-pack, resume Stage 1 (both presets) and Stage 2
-#          (STAGE2: 2a in call 2, 2b in call 3), the Stage-3 part (V) and the NCE part
-#   eval   derive the held-out pairs (results/hanging_success.pairs.jsonl), export the best
-#          Stage 1-2 weights, eval_stage3 with them and the new V on all held-out pairs
-# Back in $OUT (<= 8 files): chain.log, where.tgz (exported weights best+latest, metrics, val
-# curves, throughput, logs), nce.tgz, stage3.tgz, profile_where.json, eval outputs.
-# Knobs: END_S (575), DERIVE_W (10 in call 1, 8 later), STEPS1 (Stage 1 total steps),
-# STEPS2 (2a / 2b), BATCH1 (64), BATCH2 (32), PRESETS1 ("small original"), STAGE2,
-# NO_NCE=1 / NO_S3=1 (skip a part), SKIP_INSTALL=1 (dry run here, .venv first on PATH),
-# CHAIN_TINY=1 (tiny presets and sizes for a local dry run).
+# CALL (one foreground device call each, <= 10 min; the eval call finds /tmp/chain only if it
+# lands within the machine's 30-s warm window, so it takes its weights from the tree when told:
+# WHERE_W=... VALUE=...):
+#   train  install; derive training pairs on DERIVE_W (12) workers for DERIVE_S (290 s) (round
+#          robin over categories), pack them; train Stage 1 (PRESETS1, batch BATCH1 = 256,
+#          STEPS1 = 12000 on a warm-up + cosine schedule) and Stage 2 (2a then 2b, batch 64,
+#          STEPS2 = 5000) side by side on the GPU, validation on held-out training objects;
+#          meanwhile the Stage-3 part (V, hard-negative rounds) and the NCE part run with
+#          their own workers and the derive goes on for them on DERIVE_W2 (6) workers
+#   eval   derive the held-out pairs (results/hanging_success.pairs.jsonl), eval_stage3 with
+#          WHERE_W (default the exported best Stage 1-2 of this chain) and VALUE on all of them
+# (the seventh session planned three training calls; its first call, the profile, showed the
+# device budget counting the full held time, so the job was cut to these two.)
+# Back in $OUT (<= 8 files): chain.log, where.tgz (exported weights best + latest, metrics, val
+# curves, throughput, logs), nce.tgz, stage3.tgz, eval outputs.
+# Knobs: END_S (575), DERIVE_W, DERIVE_S, DERIVE_W2, STEPS1, STEPS2, BATCH1, BATCH2, PRESETS1,
+# LR_ARGS, NO_NCE=1 / NO_S3=1 (skip a part), NCE_W (3), S3_W (4), SKIP_INSTALL=1 (dry run
+# here, .venv first on PATH), CHAIN_TINY=1 (tiny presets and sizes for a local dry run).
 set -uo pipefail
-CALL=${1:?usage: device_chain.sh 1|2|3|eval}
+CALL=${1:?usage: device_chain.sh train|eval}
 T0=$(date +%s)
 OUT=${OUT:-/tmp/out}
 C=/tmp/chain
@@ -45,7 +47,8 @@ if [ ! -e "$C/ds/recipe.json" ]; then
 fi
 
 TINY=${CHAIN_TINY:-}
-PRESETS1=${PRESETS1:-small original}
+PRESETS1=${PRESETS1:-small}
+LR_ARGS=${LR_ARGS:---lr-stage1 1e-3 --warmup 500}
 [ -n "$TINY" ] && PRESETS1=tiny
 n_train() { ls "$C/ds/derived/train" 2>/dev/null | wc -l; }
 derive_bg() {  # workers split extra...: resumable, stops 25 s before the end of the call
@@ -62,10 +65,10 @@ pack() {
 }
 where_train() {  # preset stage steps batch budget_s
     local p=$1 st=$2 steps=$3 b=$4 budget=$5 tb
-    case $st in 2a) tb="2a=$budget" ;; 2b) tb="2b=$budget" ;; *) tb="1=$budget" ;; esac
+    case $st in 2) tb="2a=$budget,2b=$budget" ;; *) tb="$st=$budget" ;; esac
     $PY -m experiments.train_where --data "$C/pack" --out "$C/where_$p" --preset "$p" \
         --stage "$st" --steps "$steps" --batch "$b" --time-budget "$tb" \
-        --eval-every "${EVAL_EVERY:-500}" --checkpoint-every 1000 --no-progress \
+        --eval-every "${EVAL_EVERY:-500}" --checkpoint-every 1000 --no-progress $LR_ARGS \
         >>"$C/logs/where_${p}_$st.log" 2>&1
     log "where $p stage $st: exit $? ($(tail -1 "$C/logs/where_${p}_$st.log" | cut -c1-120))"
 }
@@ -104,7 +107,7 @@ if [ "$CALL" = eval ]; then
     log "held-out pairs derived: $(ls "$C/ds/derived/test" | wc -l)"
     bring_back_where
     P=${EVAL_PRESET:-small}
-    W=$C/export/$P/best
+    W=${WHERE_W:-$C/export/$P/best}
     V=${VALUE:-$C/stage3/run/value}
     [ -d "$V" ] || V=weights/value_small_paper
     log "eval: Stages 1-2 $W, V $V"
@@ -117,43 +120,33 @@ if [ "$CALL" = eval ]; then
     exit 0
 fi
 
-# ---- calls 1-3: derive + train
-DW=${DERIVE_W:-$([ "$CALL" = 1 ] && echo 10 || echo 8)}
+# ---- call "train": derive, pack, train (the device budget left one training call)
+DW=${DERIVE_W:-12}
 [ -n "$TINY" ] && DW=1
-derive_bg "$DW" train ${DERIVE_LIMIT:+--limit $DERIVE_LIMIT} &
-DERIVE_PID=$!
 start_parts
-if [ "$CALL" = 1 ]; then
-    if [ -n "$TINY" ]; then
-        $PY -m experiments.profile_where --presets tiny --batches 2 --stages 1 --repeat 2 \
-            --out "$OUT/profile_where.json" >"$C/logs/profile.log" 2>&1
-    else
-        timeout 250 $PY -m experiments.profile_where --presets small,original --batches 32,128 \
-            --stages 1,2a --repeat 10 --out "$OUT/profile_where.json" >"$C/logs/profile.log" 2>&1
-    fi
-    log "profile: exit $?"
-    cat "$C/logs/profile.log" >>"$OUT/chain.log"
-else
-    sleep "${PACK_WAIT_S:-0}"
-fi
+# 1. derive on DW workers until DERIVE_S, pack what is there (round robin over categories)
+timeout -k 5 "${DERIVE_S:-290}" $PY -m experiments.derive_dataset --data "$C/ds" --split train \
+    --workers "$DW" --no-progress ${DERIVE_LIMIT:+--limit $DERIVE_LIMIT} >>"$C/logs/derive_train.log" 2>&1
+log "derived $(n_train) training pairs"
 pack
-BUDGET=$(($(left) - ${TRAIN_MARGIN_S:-110}))
+# 2. more pairs for the Stage-3 part (it ingests new pairs between rounds) on fewer workers
+derive_bg "${DERIVE_W2:-6}" train ${DERIVE_LIMIT:+--limit $DERIVE_LIMIT} &
+DERIVE_PID=$!
+BUDGET=$(($(left) - ${TRAIN_MARGIN_S:-70}))
 [ -n "$TINY" ] && BUDGET=20
-log "training for ${BUDGET} s on $(n_train) derived pairs"
+log "training for ${BUDGET} s on the packed pairs"
 PIDS=()
 for p in $PRESETS1; do
-    where_train "$p" 1 "${STEPS1:-40000}" "${BATCH1:-64}" "$BUDGET" &
+    where_train "$p" 1 "${STEPS1:-12000}" "${BATCH1:-256}" "$BUDGET" &
     PIDS+=($!)
 done
-if [ -n "${STAGE2:-}" ]; then
-    P2=$([ -n "$TINY" ] && echo tiny || echo small)
-    where_train "$P2" "$STAGE2" "${STEPS2:-15000}" "${BATCH2:-32}" "$BUDGET" &
-    PIDS+=($!)
-fi
+P2=$([ -n "$TINY" ] && echo tiny || echo small)
+where_train "$P2" 2 "${STEPS2:-5000}" "${BATCH2:-64}" "$((BUDGET / 2 - 20))" &
+PIDS+=($!)
 for pid in "${PIDS[@]}"; do wait "$pid"; done
 bring_back_where
 wait "$DERIVE_PID"
-log "derive: $(n_train) train pairs; $(tail -c 300 "$C/logs/derive_train.log" | tr '\n' ' ')"
+log "derive: $(n_train) train pairs"
 wait_parts
 ls -la "$OUT" | tee -a "$OUT/chain.log"
 log "done"
