@@ -256,6 +256,7 @@ def test_hardneg_job_labels_the_top_members_and_takes_arriving_pairs(tmp_path):
     import dataclasses
     import json
     import os
+    from pathlib import Path
 
     from experiments.train_stage3 import PRESETS
     from omnihang_jax import dataset_bridge, rl
@@ -268,9 +269,16 @@ def test_hardneg_job_labels_the_top_members_and_takes_arriving_pairs(tmp_path):
     os.symlink(os.path.abspath(f"{DATA}/recipe.json"), ds / "recipe.json")
     os.symlink(os.path.abspath(f"{DATA}/shards"), ds / "shards")
 
+    import shutil
+
+    # copies, not links: the shared derived folder may be rewritten while the test runs
+    store = tmp_path / "store"
+    store.mkdir()
+    files = [Path(shutil.copy(f, store / f.name)) for f in files]
+
     def arrive(fs):
         for f in fs:
-            os.symlink(os.path.abspath(f), ds / "derived" / "train" / f.name)
+            os.symlink(f, ds / "derived" / "train" / f.name)
 
     arrive(files[:8])
     cfg = dataclasses.replace(PRESETS["hardneg_tiny"], rounds=1, val_every=0, round_pairs=3)

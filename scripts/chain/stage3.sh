@@ -80,7 +80,8 @@ if [ "$STATUS" -eq 0 ]; then
     STATUS=$?
     if [ "$STATUS" -eq 124 ] || [ "$STATUS" -eq 137 ]; then
         log "warning: train_stage3 ran into the guard timeout; the state of the last seed chunk / round is kept and the next call resumes"
-        [ -f "$STATE/run/value/params.msgpack" ] && STATUS=0
+        # progress was saved (state.json): not a failure, the next call goes on from there
+        [ -f "$STATE/run/state.json" ] && STATUS=0
     elif [ "$STATUS" -ne 0 ]; then
         log "error: train_stage3 exited $STATUS (see logs/train_$CALL.log):"
         tail -5 "$STATE/logs/train_$CALL.log" | tee -a "$LOG"
