@@ -130,7 +130,7 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float) -> dict:
     """The four checkers of one pair. The HCEs' support normals do not depend on the pose:
     predicted once per pair (``collision.hce_collides`` computes the same per call)."""
     sub = collision.subsample_cloud
-    n_obj, n_sup = est.nce_config.object_points, est.nce_config.support_points
+    n_obj, n_sup = est.nce_config.object_points, est.nce_config.support_input
     nce = planner.EstimatorChecker(
         est.nce,
         est.nce_params,

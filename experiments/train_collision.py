@@ -501,7 +501,7 @@ def train_nce(
         pick = jax.random.randint(k_pick, (batch,), 0, labels.shape[0])
         p = pair[pick]
         obj = _sample_points(k_obj, obj_clouds[p], config.object_points)
-        sup = _sample_points(k_sup, sup_clouds[p], config.support_points)
+        sup = _sample_points(k_sup, sup_clouds[p], config.support_input)
 
         def loss_fn(params):
             logits = nets.apply(params, obj, sup, poses[pick])
@@ -709,7 +709,7 @@ def evaluate_only(out: Path, test: CollisionData, eval_labels: int) -> dict:
     """Held-out metrics of the NCE already in ``out`` (``--eval-only``)."""
     cfg, params, _ = collision.load_estimator(out / "nce")
     fn = nce_score_fn(cfg, params)
-    n_obj, n_sup = cfg.object_points, cfg.support_points
+    n_obj, n_sup = cfg.object_points, cfg.support_input
     s, y = estimator_scores(test, fn, n_obj, n_sup, eval_labels)
     result = dict(test_pairs=len(test.meta), threshold=cfg.threshold)
     for t in sorted({cfg.threshold, 0.5}):
@@ -762,6 +762,13 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", required=True, help="output folder for the weights")
     parser.add_argument("--preset", default="fast", choices=sorted(collision.NCE_PRESETS))
     parser.add_argument("--normal-preset", default=None, help="default: --preset")
+    parser.add_argument(
+        "--support-crop-from",
+        type=int,
+        default=0,
+        help="NCE: given this many support points, keep the preset's number nearest to the "
+        "posed object (collision.NCEConfig.support_crop_from; 0: off)",
+    )
     parser.add_argument("--train-pairs", type=int, default=200)
     parser.add_argument("--test-pairs", type=int, default=60)
     parser.add_argument("--steps", type=int, default=1_000_000, help="cap on steps per network")
@@ -832,6 +839,8 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     nce_cfg = collision.NCE_PRESETS[args.preset]
+    if args.support_crop_from:
+        nce_cfg = dataclasses.replace(nce_cfg, support_crop_from=args.support_crop_from)
     normal_name = args.normal_preset or args.preset
     if normal_name not in collision.NORMAL_PRESETS:
         raise SystemExit(f"--normal-preset must be one of {sorted(collision.NORMAL_PRESETS)}")
@@ -904,7 +913,7 @@ def main(argv=None) -> dict:
     )
 
     # thresholds on training labels, metrics on held-out labels
-    n_obj, n_sup = nce_cfg.object_points, nce_cfg.support_points
+    n_obj, n_sup = nce_cfg.object_points, nce_cfg.support_input
     h_obj, h_sup = nce_cfg.object_points, normal_cfg.points
     hce_train, y_train = estimator_scores(
         train, hce_score_fn(normal_cfg, normal_params), h_obj, h_sup,

@@ -231,3 +231,26 @@ def test_goal_pass_threshold_and_near_metrics():
     assert m["goal_pass"] == 0.9 and m["stable_poses"] == 10
     assert m["near"]["n"] == 4 and m["near"]["recall"] == 0.5 and m["near"]["precision"] == 0.5
     assert m["jitter"]["specificity"] == 0.5
+
+
+def test_crop_support_keeps_the_points_nearest_to_the_object_and_batches_agree():
+    rng = np.random.default_rng(0)
+    support = rng.uniform(-0.2, 0.2, (1, 300, 3)).astype(np.float32)
+    obj = rng.uniform(-0.01, 0.01, (1, 40, 3)).astype(np.float32)
+    near = np.asarray(collision.crop_support(jax.numpy.asarray(obj), support, 20))[0]
+    d = np.linalg.norm(support[0][:, None] - obj[0][::1][None], axis=-1).min(1)
+    dn = np.linalg.norm(near[:, None] - obj[0][None], axis=-1).min(1)
+    assert dn.max() <= np.sort(d)[19] + 1e-6  # the 20 nearest (probes = all 40 points)
+    cfg = collision.NCEConfig(
+        pointnet="tiny", object_points=32, support_points=32, head=(16,), support_crop_from=96
+    )
+    assert cfg.support_input == 96
+    params = collision.make_nce(cfg).init(jax.random.key(0))
+    oc = rng.normal(0, 0.02, (32, 3)).astype(np.float32)
+    sc = rng.normal(0, 0.1, (96, 3)).astype(np.float32)
+    poses = np.tile(np.array([0, 0, 0, 1, 0, 0, 0], np.float32), (5, 1))
+    poses[:, :3] = rng.normal(0, 0.05, (5, 3))
+    prob = jax.jit(collision.nce_probability(cfg))
+    batched = np.asarray(prob(params, oc, sc, poses))
+    single = np.array([np.asarray(prob(params, oc, sc, p[None]))[0] for p in poses])
+    np.testing.assert_allclose(batched, single, rtol=1e-4, atol=1e-5)

@@ -26,7 +26,10 @@
 # DERIVE_FRACTION (0.4), RESUME_WAIT_S (60), NORMALS_S (30), NCE_MAX_S (no cap), EVAL_RESERVE_S
 # (110 + 1 s per 300 training pairs: loading, compilation, evaluation, packing), CHAIN_WORKERS (3), CHAIN_DS (/tmp/chain/ds).
 # CHAIN_TINY=1: tiny preset, 4 held-out + 40 training pairs, NCE 20 s, reserve 40 s.
-# GPU memory: XLA_PYTHON_CLIENT_MEM_FRACTION 0.2 unless set (~16 GB of an H100).
+# CROP_FROM (2048; 0: off): a second NCE trained beside the first on the same GPU, in
+# run_crop/ (tarball: weights_crop/), that is given 2,048 support points and keeps the 256
+# nearest to the posed object (collision.crop_support: ~8x denser support where contact is).
+# GPU memory: XLA_PYTHON_CLIENT_MEM_FRACTION 0.12 per process unless set (2 x ~9.6 GB).
 set -uo pipefail
 BUDGET=${1:?usage: nce.sh BUDGET_S OUT_TGZ}
 OUT_TGZ=${2:?usage: nce.sh BUDGET_S OUT_TGZ}
@@ -45,14 +48,16 @@ if [ -n "${CHAIN_TINY:-}" ]; then
     N_TEST=${N_TEST:-4} N_TRAIN=${N_TRAIN:-40} PRESET=${PRESET:-tiny} BATCH=${BATCH:-16}
     NORMALS_S=${NORMALS_S:-3} EVAL_RESERVE_S=${EVAL_RESERVE_S:-40} RESUME_WAIT_S=${RESUME_WAIT_S:-5}
     EVAL_LABELS=2000 THRESHOLD_LABELS=2000 NORMAL_BATCH=4 NCE_MAX_S=${NCE_MAX_S:-20}
+    CROP_FROM=${CROP_FROM:-256}
 else
     N_TEST=${N_TEST:-150} N_TRAIN=${N_TRAIN:-20000} PRESET=${PRESET:-fast} BATCH=${BATCH:-256}
     NORMALS_S=${NORMALS_S:-30} EVAL_RESERVE_S=${EVAL_RESERVE_S:-110} RESUME_WAIT_S=${RESUME_WAIT_S:-60}
     EVAL_LABELS=50000 THRESHOLD_LABELS=20000 NORMAL_BATCH=32 NCE_MAX_S=${NCE_MAX_S:-100000}
+    CROP_FROM=${CROP_FROM:-2048}
 fi
 DERIVE_FRACTION=${DERIVE_FRACTION:-0.4}
 export PYTHONPATH=${PYTHONPATH:-/tmp/site:$PWD} PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
-export XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.2}
+export XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.12}  # per process
 PY=${PYTHON:-python3}  # the chain's image python; SKIP_INSTALL=1 (local test): the venv's
 if [ -n "${SKIP_INSTALL:-}" ] && [ -z "${PYTHON:-}" ] && [ -x .venv/bin/python ]; then PY=.venv/bin/python; fi
 log "budget ${BUDGET} s, ${WORKERS} workers, dataset $DS ($(ls "$DS/derived/train" 2>/dev/null | wc -l) derive_dataset train files), preset $PRESET"
@@ -93,6 +98,19 @@ if [ "$NCE_S" -lt 5 ]; then
     log "error: no time left to train (budget ${BUDGET} s too small)"
     STATUS=4
 else
+    # the crop variant (CROP_FROM > 0) trains beside the base one on the same GPU (its own
+    # folder run_crop/; the NCE sees CROP_FROM support points and keeps the nearest ones)
+    CROP_PID=
+    if [ "$CROP_FROM" -gt 0 ]; then
+        CROP_RESUME=
+        [ -f "$STATE/run_crop/nce/config.json" ] && CROP_RESUME=--resume
+        timeout -k 5 $(($(left) - 12)) "$PY" -m experiments.train_collision "${COMMON[@]}" \
+            --out "$STATE/run_crop" --support-crop-from "$CROP_FROM" \
+            --existing-only $CROP_RESUME --batch "$BATCH" --normal-batch "$NORMAL_BATCH" \
+            --time-budget "nce=$NCE_S,normals=$NORMALS_S" --eval-labels "$EVAL_LABELS" \
+            --threshold-labels "$THRESHOLD_LABELS" >"$STATE/logs/train_crop_$CALL.log" 2>&1 &
+        CROP_PID=$!
+    fi
     timeout -k 5 $(($(left) - 12)) "$PY" -m experiments.train_collision "${COMMON[@]}" \
         --existing-only $RESUME --batch "$BATCH" --normal-batch "$NORMAL_BATCH" \
         --time-budget "nce=$NCE_S,normals=$NORMALS_S" --eval-labels "$EVAL_LABELS" \
@@ -100,6 +118,13 @@ else
     STATUS=$?
     grep -E "^pairs:|^held-out" "$STATE/logs/train_$CALL.log" | tee -a "$LOG"
     [ "$STATUS" -eq 0 ] || log "error: train_collision exited $STATUS (see logs/train_$CALL.log)"
+    if [ -n "$CROP_PID" ]; then
+        wait "$CROP_PID"
+        CROP_STATUS=$?
+        log "crop variant (support crop from $CROP_FROM points), exit $CROP_STATUS:"
+        grep -E "^held-out" "$STATE/logs/train_crop_$CALL.log" | tee -a "$LOG"
+        [ "$CROP_STATUS" -eq 0 ] || log "warning: the crop variant failed (logs/train_crop_$CALL.log); the base weights are unaffected"
+    fi
 fi
 kill "$DERIVE_PID" 2>/dev/null
 wait "$DERIVE_PID" 2>/dev/null
@@ -109,6 +134,7 @@ log "derived now: $(ls "$STATE/derived/train" | wc -l) training, $(ls "$STATE/de
 PACK=$(mktemp -d)
 mkdir -p "$PACK/weights" "$PACK/logs"
 cp -r "$STATE/run/." "$PACK/weights/" 2>/dev/null
+if [ -d "$STATE/run_crop/nce" ]; then mkdir -p "$PACK/weights_crop" && cp -r "$STATE/run_crop/." "$PACK/weights_crop/"; fi
 cp "$STATE"/logs/*.log "$PACK/logs/" 2>/dev/null
 "$PY" - "$STATE" "$PACK/summary.json" "$CALL" "$STATUS" "$(elapsed)" <<'EOF' >>"$LOG" 2>&1
 import json, os, sys
@@ -127,6 +153,14 @@ summary = dict(
                      for k, v in m.get("held_out", {}).items()},
     goal_pass=near.get("goal_pass"), near_contact=near.get("near"),
 )
+if os.path.exists(f"{state}/run_crop/metrics.json"):
+    c = json.load(open(f"{state}/run_crop/metrics.json"))
+    cn = c.get("held_out_near", {}).get("nce", {})
+    summary["crop"] = dict(
+        nce_threshold=c.get("nce_threshold"), nce_steps_this_call=c.get("nce", {}).get("steps"),
+        held_out_labels={x: c.get("held_out", {}).get("nce", {}).get(x) for x in ("accuracy", "precision", "recall")},
+        goal_pass=cn.get("goal_pass"), near_contact=cn.get("near"),
+    )
 json.dump(summary, open(out, "w"), indent=2)
 print(json.dumps(summary))
 EOF
