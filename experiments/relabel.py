@@ -93,8 +93,9 @@ def _load(data: str):
     return recipe, config, build_library(config.library, progress=False)
 
 
-def find(data: str, work: str, progress: bool = True) -> dict:
-    """Check every stored record (:func:`wall_changes`); write WORK/pairs.json."""
+def find(data: str, work: str, progress: bool = True, full: bool = False) -> dict:
+    """Check every stored record (:func:`wall_changes`); write WORK/pairs.json. ``full``:
+    list every flagged pair for whole regeneration (none only recomputed)."""
     from sim import dataset
 
     recipe, config, library = _load(data)
@@ -115,10 +116,10 @@ def find(data: str, work: str, progress: bool = True) -> dict:
         "records_checked": len(records),
         # regenerated whole (sim.dataset.generate_pair): a stable pose changes, and with it
         # which candidates fill the 50-pose cap, the take-off test and the near misses
-        "pairs": sorted(p["pair_index"] for p in changed if p["stable"]),
+        "pairs": sorted(p["pair_index"] for p in changed if p["stable"] or full),
         # stable poses unchanged: near misses and collision labels recomputed from them
         # exactly as generate_pair computes them (sim.dataset.near_misses, collision_labels)
-        "label_pairs": sorted(p["pair_index"] for p in changed if not p["stable"]),
+        "label_pairs": sorted(p["pair_index"] for p in changed if not (p["stable"] or full)),
         "pairs_by_reason": per_reason,
         "labels_changed": totals,
         "stable_depth_m": STABLE_DEPTH,
@@ -501,6 +502,12 @@ def main(argv=None) -> dict:
     parser.add_argument("--data", required=True, help="generated dataset (recipe.json + shards/)")
     parser.add_argument("--work", required=True, help="work folder (pairs.json, records/)")
     parser.add_argument("--workers", type=int, default=2, help="processes for `run`")
+    parser.add_argument(
+        "--full",
+        action="store_true",
+        help="`find`: regenerate every flagged pair whole (instead of recomputing near misses "
+        "and collision labels where the stable poses stay)",
+    )
     parser.add_argument("--sample", type=int, default=24, help="`verify`: pairs per group")
     parser.add_argument("--seed", type=int, default=0, help="`verify`: sample seed")
     parser.add_argument("--no-progress", action="store_true")
@@ -509,7 +516,7 @@ def main(argv=None) -> dict:
     progress = not args.no_progress
     try:
         if args.step == "find":
-            res = find(args.data, args.work, progress)
+            res = find(args.data, args.work, progress, args.full)
             res = {k: v for k, v in res.items() if k not in ("detail", "pairs")} | {
                 "pairs": len(res["pairs"])
             }

@@ -24,16 +24,17 @@ PAPER = Path(__file__).resolve().parents[1] / "datasets" / "paper"
 @pytest.mark.skipif(not (PAPER / "shards").is_dir(), reason="paper dataset labels not present")
 def test_engines_agree_on_a_tiny_sample_of_the_paper_dataset(tmp_path):
     """A seeded sample of 6 stable poses and 6 near misses of mugs and bags, re-judged by
-    MuJoCo (the scene, and with a thick wall) and by the matched PyBullet set-up: with the
-    thick wall every verdict agrees; the one bag the scene's thin wall lets through (its
-    strap pierces the slab, in PyBullet it starts deep in the wall) is the only difference."""
+    MuJoCo (the scene, with its solid wall, and the 2 cm slab of labels versions 1-2) and by
+    the matched PyBullet set-up: every verdict agrees. The two MuJoCo walls differ exactly
+    on poses reaching behind the wall plane, which labels version 3 no longer holds (in
+    version 2 the sample had a bag whose strap pierced the slab)."""
     from experiments import cross_engine
 
     out = tmp_path / "ce.json"
     result = cross_engine.main(
         [
             "--stable", "6", "--near-miss", "6", "--categories", "mug,bag",
-            "--bullet", "matched", "--mujoco", "scene,thick_wall", "--out", str(out),
+            "--bullet", "matched", "--mujoco", "scene,thin_wall", "--out", str(out),
             "--no-progress", "--items", str(tmp_path / "items.jsonl"),
         ]
     )  # fmt: skip
@@ -41,14 +42,14 @@ def test_engines_agree_on_a_tiny_sample_of_the_paper_dataset(tmp_path):
     assert result["sample"]["stable"] == 6 and result["sample"]["near_miss"] == 6
     comps = result["comparisons"]
     assert comps["dataset_vs_mujoco:scene"]["stable"]["overall"]["agree"] == 1.0
-    after = comps["mujoco:thick_wall_vs_pybullet:matched"]
+    after = comps["mujoco:scene_vs_pybullet:matched"]
     assert after["stable"]["overall"]["agree"] == 1.0
     assert after["near_miss"]["overall"]["agree"] == 1.0
     rows = [json.loads(line) for line in (tmp_path / "items.jsonl").read_text().splitlines()]
     assert len(rows) == 12 and {r["category"] for r in rows} == {"mug", "bag"}
     for r in (r for r in rows if r["kind"] == "stable"):
-        # the scene and the thick wall differ exactly where a part is behind the wall
-        differ = r["hangs"]["mujoco:scene"] != r["hangs"]["mujoco:thick_wall"]
+        # the solid wall and the old slab differ exactly where a part is behind the wall
+        differ = r["hangs"]["mujoco:scene"] != r["hangs"]["mujoco:thin_wall"]
         assert differ == (r["behind_wall_m"] > 0.001)
         if r["behind_wall_m"] > 0.001:
             assert r["status"]["pybullet:matched"] == "penetrating"
