@@ -133,3 +133,24 @@ def test_wall_changes_flags_labels_behind_the_wall(bag_scene):
     both = dict(base, stable_poses=np.stack([FRONT, BEHIND]), collision_label=np.zeros_like(behind))
     c = relabel.wall_changes(both, obj, sup, config)
     assert c["stable"] == 1 and c["collision"] == int(behind.sum())
+
+
+def test_collision_relabel_marks_poses_behind_the_wall_colliding(bag_scene):
+    """``relabel._collision_behind``: a stored "free" label on a pose that reaches behind the
+    wall plane becomes colliding (and kept) under the solid wall; poses in front keep their
+    stored labels; it agrees with the generator's own rule on those poses."""
+    from experiments import relabel
+
+    config = dataset.DatasetConfig(n_collision=200)
+    seed = 3
+    obj, sup = bag_scene.obj, bag_scene.support
+    poses = dataset.collision_poses(obj, sup, seed, config)
+    behind = judges.behind_wall_depth(obj, poses, sup.wall_y) > 0
+    assert 0 < behind.sum() < len(poses)
+    stored = np.zeros(len(poses), bool)
+    kept, label = relabel._collision_behind(bag_scene, seed, config, stored, stored)
+    assert label[behind].all() and kept[behind].all()
+    assert not label[~behind].any() and not kept[~behind].any()
+    full_kept, full_label = dataset.collision_labels(bag_scene, obj, sup, seed, config)
+    np.testing.assert_array_equal(label[behind], full_label[behind])
+    np.testing.assert_array_equal(kept[behind], full_kept[behind])
