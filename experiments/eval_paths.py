@@ -104,10 +104,39 @@ class Estimators(NamedTuple):
     nce: object
     heuristic: object
     normals: object
+    nce_far_threshold: float | None = None  # see goal_ball_collides
+    nce_goal_ball: float = 0.0
 
 
-def load_estimators(weights: str) -> Estimators:
+def goal_ball_collides(config: collision.NCEConfig, far_threshold: float, ball: float):
+    """``collides((params, goal [7], weight), object_cloud, support_cloud, poses)``: the NCE
+    with its own threshold (chosen so that stable goals pass) within ``ball`` (planner
+    metric: translation + weight x angle, m) of the goal, and ``far_threshold`` (stricter)
+    elsewhere: lenient only where the object must touch the support."""
+    probability = collision.nce_probability(config)
+
+    def collides(params, object_cloud, support_cloud, poses):
+        nce_params, goal, weight = params
+        p = probability(nce_params, object_cloud, support_cloud, poses)
+        dot = jax.numpy.abs(poses[:, 3:] @ goal[3:]) / jax.numpy.linalg.norm(poses[:, 3:], axis=1)
+        angle = 2.0 * jax.numpy.arccos(jax.numpy.clip(dot, 0.0, 1.0))
+        dist = jax.numpy.linalg.norm(poses[:, :3] - goal[:3], axis=1) + weight * angle
+        return p > jax.numpy.where(dist <= ball, config.threshold, far_threshold)
+
+    return collides
+
+
+def load_estimators(
+    weights: str,
+    nce_threshold: float | None = None,
+    nce_far_threshold: float | None = None,
+    nce_goal_ball: float = 0.0,
+) -> Estimators:
+    """The estimators of a weights folder; ``nce_threshold`` overrides the NCE's threshold;
+    ``nce_far_threshold`` with ``nce_goal_ball`` > 0: :func:`goal_ball_collides`."""
     nce_cfg, nce_params, _ = collision.load_estimator(Path(weights, "nce"))
+    if nce_threshold is not None:
+        nce_cfg = dataclasses.replace(nce_cfg, threshold=nce_threshold)
     normal_cfg, normal_params, _ = collision.load_estimator(Path(weights, "hce_normals"))
     true_json = Path(weights, "hce_true_normals.json")
     if not true_json.exists():
@@ -120,9 +149,15 @@ def load_estimators(weights: str) -> Estimators:
         normal_cfg,
         normal_params,
         true_threshold,
-        jax.jit(collision.nce_collides(nce_cfg)),
+        jax.jit(
+            collision.nce_collides(nce_cfg)
+            if nce_far_threshold is None or nce_goal_ball <= 0
+            else goal_ball_collides(nce_cfg, nce_far_threshold, nce_goal_ball)
+        ),
         jax.jit(collision.heuristic_score),
         jax.jit(lambda params, pts: net.apply(params, pts[None])[0]),
+        nce_far_threshold if nce_goal_ball > 0 else None,
+        nce_goal_ball,
     )
 
 
@@ -131,9 +166,13 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float) -> dict:
     predicted once per pair (``collision.hce_collides`` computes the same per call)."""
     sub = collision.subsample_cloud
     n_obj, n_sup = est.nce_config.object_points, est.nce_config.support_input
+    nce_params = est.nce_params
+    if est.nce_far_threshold is not None:  # goal_ball_collides
+        weight = np.float32(planner.object_radius(case.scene))
+        nce_params = (est.nce_params, np.asarray(case.goal, np.float32), weight)
     nce = planner.EstimatorChecker(
         est.nce,
-        est.nce_params,
+        nce_params,
         sub(case.object_points, n_obj, SUBSET_SEED_OBJECT),
         sub(case.support_points, n_sup, SUBSET_SEED_SUPPORT),
     )
@@ -327,6 +366,21 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--goal-radius", type=float, default=1e-6, help="m: states this near the goal unchecked"
     )
+    parser.add_argument(
+        "--nce-threshold", type=float, default=None, help="override the NCE's own threshold"
+    )
+    parser.add_argument(
+        "--nce-far-threshold",
+        type=float,
+        default=None,
+        help="with --nce-goal-ball: the NCE threshold farther than the ball from the goal",
+    )
+    parser.add_argument(
+        "--nce-goal-ball",
+        type=float,
+        default=0.0,
+        help="m (planner metric): within it the NCE's threshold, beyond it --nce-far-threshold",
+    )
     parser.add_argument("--out", default="out/paths")
     parser.add_argument("--results", default=None, help="summary JSON (default OUT/paths.json)")
     parser.add_argument("--figure", default=None, help="strip-of-frames PNG")
@@ -341,7 +395,9 @@ def main(argv=None) -> dict:
     config = planner.PlannerConfig(time_limit=args.time_limit, goal_radius=args.goal_radius)
     out = Path(args.out)
     (out / "scenes").mkdir(parents=True, exist_ok=True)
-    est = load_estimators(args.weights)
+    est = load_estimators(
+        args.weights, args.nce_threshold, args.nce_far_threshold, args.nce_goal_ball
+    )
     cases = load_pairs(args.data, args.pairs, args.workers, not args.no_progress)
     jsonl = out / "pairs.jsonl"
     rows = [json.loads(x) for x in jsonl.read_text().splitlines()] if jsonl.exists() else []
@@ -373,6 +429,8 @@ def main(argv=None) -> dict:
         nce_config=est.nce_config.__dict__,
         normal_config=est.normal_config.__dict__,
         hce_true_normals_threshold=est.true_threshold,
+        nce_far_threshold=est.nce_far_threshold,
+        nce_goal_ball_m=est.nce_goal_ball,
         goal="first stable pose of each held-out pair",
         device=str(jax.devices()[0]),
         host_cores=os.cpu_count(),
