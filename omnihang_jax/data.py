@@ -631,11 +631,12 @@ def pack_dataset(
     files = list(files)
     if not files:
         raise ValueError("pack_dataset: no files given")
-    c, first_ok = 1, None
+    c, first_ok, has_maps = 1, None, True
     for path in files:  # largest C over the readable files; a broken file is skipped later
         try:
             with np.load(path) as f:
                 c = max(c, f["contact_pairs"].shape[1])
+                has_maps = has_maps and bool(f["contact_maps"]) if "contact_maps" in f else has_maps
             first_ok = first_ok or path
         except (ValueError, OSError, KeyError, EOFError):
             continue
@@ -683,6 +684,8 @@ def pack_dataset(
         "skipped": skipped,
         "max_poses": max_poses,
         "max_contacts": c,
+        # False when any pair was derived with --clouds-only (zero maps: not for Stage 2)
+        "has_contact_maps": has_maps,
         "dtypes": {f: np.dtype(t).name for f, t in _PACKED.items()},
     }
     with open(os.path.join(out, PACK_FILE), "w") as f:

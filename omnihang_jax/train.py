@@ -757,7 +757,14 @@ def make_dataset(
     fraction = config.train.val_fraction
     if os.path.exists(os.path.join(data, data_lib.PACK_FILE)):
         with open(os.path.join(data, data_lib.PACK_FILE)) as f:
-            names = json.load(f)["object_names"]
+            meta = json.load(f)
+        names = meta["object_names"]
+        missing = [f for f in (fields or HangSample._fields) if "contact" in f]
+        if missing and not meta.get("has_contact_maps", True):
+            raise ValueError(
+                f"{data} was packed from --clouds-only pairs (no contact maps): it trains Stage 1 "
+                "only (--stage 1); pack a fully derived split for Stage 2"
+            )
         fit, val = data_lib.split_by_object(names, fraction)
         return (
             data_lib.PackedDataset(data, fit, fields),

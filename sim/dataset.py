@@ -419,9 +419,15 @@ def _visible_contact_mass(points: np.ndarray, contacts: np.ndarray, scale: float
     return float(np.exp(-d / scale).sum())
 
 
-def derive_pair(obj: Asset, support: Asset, record: dict, config: DatasetConfig) -> dict:
+def derive_pair(
+    obj: Asset, support: Asset, record: dict, config: DatasetConfig, contacts: bool = True
+) -> dict:
     """Heavy arrays of one pair from its labels: clouds with normals (object frame / world
-    frame) and, per stable pose, soft contact maps and contact pairs. Deterministic."""
+    frame) and, per stable pose, soft contact maps and contact pairs. Deterministic.
+
+    contacts=False skips the contact query and annotation (about half the time): the maps
+    are zeros and the contact-pair lists empty; the clouds are the same as with contacts
+    (what Stage 1, V and the NCE read)."""
     scene = build_scene(obj, support)
     seed = int(record["pair_seed"])
     rng = np.random.default_rng([seed, 5])
@@ -436,7 +442,9 @@ def derive_pair(obj: Asset, support: Asset, record: dict, config: DatasetConfig)
     obj_maps = np.zeros((len(poses), n), np.float32)
     sup_maps = np.zeros((len(poses), m), np.float32)
     pairs = []
-    if len(poses):
+    if not contacts:
+        pairs = [np.zeros((0, 2), np.int32) for _ in range(len(poses))]
+    elif len(poses):
         con = kernels.contact_query(scene, poses)
         cfg = annotate.AnnotationConfig()
         graphs = (

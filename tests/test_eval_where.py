@@ -74,6 +74,34 @@ def test_derive_with_workers_writes_the_same_files(derived, tmp_path):
                     np.testing.assert_array_equal(a[key], b[key])
 
 
+def test_clouds_only_derive_keeps_the_clouds_and_is_refused_for_stage2(derived, tmp_path):
+    from omnihang_jax import train
+
+    out, summary = derived
+    fast = dataset_bridge.derive_dataset(
+        out, tmp_path / "d", splits=("train",), progress=False, clouds_only=True
+    )
+    assert fast["clouds_only"] and fast["files_per_split"] == {
+        "train_clouds": summary["files_per_split"]["train"]
+    }
+    full_files = dataset_bridge.derived_files(out / "derived", "train")
+    for path in full_files:
+        with np.load(path) as a, np.load(tmp_path / "d" / "train_clouds" / path.name) as b:
+            for key in ("object_points", "object_normals", "support_points", "stable_poses"):
+                np.testing.assert_array_equal(a[key], b[key])
+            assert bool(a["contact_maps"]) and not bool(b["contact_maps"])
+            assert not b["object_contact_maps"].any() and not b["contact_mask"].any()
+    meta = data.pack_dataset(
+        sorted((tmp_path / "d" / "train_clouds").glob("*.npz")), tmp_path / "p", progress=False
+    )
+    assert meta["has_contact_maps"] is False
+    config = train.WHERE_TINY
+    with pytest.raises(ValueError, match="clouds-only"):
+        train.make_dataset(str(tmp_path / "p"), config)
+    fit, _ = train.make_dataset(str(tmp_path / "p"), config, fields=train.STAGE1_FIELDS)
+    assert len(fit) >= 1
+
+
 def _shifted_fn(shift) -> evaluate.PredictFn:
     truth = evaluate.ground_truth_fn()
 
