@@ -61,6 +61,7 @@ PRESETS = {
         ingest_every=3,
         ingest_min=200,
         seed_chunk=1500,
+        seed_share=0.5,
         bank_capacity=16384,
         cem_batch=16,
     ),
@@ -124,6 +125,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--init-value", default=None, help="start V from this value/ folder")
     parser.add_argument("--min-pairs", type=int, default=None, help="wait for this many pairs")
     parser.add_argument("--cem-batch", type=int, default=None, help="pairs per jitted CEM call")
+    parser.add_argument(
+        "--seed-share", type=float, default=None, help="of the budget a run may spend seeding"
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     config = PRESETS[args.preset]

@@ -79,6 +79,7 @@ class RLConfig:
     ingest_every: int = 0  # rounds between looks for newly derived pairs (0: only at start)
     ingest_min: int = 1  # ingest when at least this many new pairs are there
     seed_chunk: int = 2000  # pairs seeded per chunk (buffer saved after each)
+    seed_share: float = 1.0  # of time_budget a run may spend seeding (the rest: rounds)
     bank_capacity: int = 0  # device bank padded to at least this many pairs (one shape)
     cem_batch: int = 32  # pairs per jitted CEM call (B x K x population states at once)
 
@@ -303,7 +304,7 @@ def train_stage3(
     predictor = _load_where(weights)
     buffer_path = job.dir / "buffer.npz"
     buffer = ReplayBuffer.load(buffer_path) if buffer_path.exists() else ReplayBuffer()
-    timings = {"seed_per_pair": None, "round": None}
+    timings = {"seed_per_pair": job.state.get("seed_per_pair"), "round": None}
     # what each phase keeps free for the ones after it (saving, packing): 45 s of a long
     # budget, a tenth of a short one
     reserve = min(45.0, 0.1 * config.time_budget) if config.time_budget else 0.0
@@ -346,19 +347,31 @@ def train_stage3(
                     m = src == name
                     buffer.add(slots[m], poses[m], rewards[m], str(name))
 
+        seed_used = [0.0]  # seconds of seeding in this run (capped by seed_share)
+
         def seed_pending(min_left: float) -> None:
-            """Seed the pairs not seeded yet, in chunks, while time allows."""
+            """Seed the pairs not seeded yet, in chunks sized to the time left, while this
+            run's seeding stays within ``seed_share`` of the budget (the rest is rounds)."""
             while job.state["seeded_pairs"] < len(pairs):
                 lo = job.state["seeded_pairs"]
-                chunk = np.arange(lo, min(lo + config.seed_chunk, len(pairs)))
-                est = (timings["seed_per_pair"] or 0.0) * len(chunk)
-                if time_left() < min_left + 1.3 * est:
-                    break
+                n = min(config.seed_chunk, len(pairs) - lo)
+                per_pair = timings["seed_per_pair"]
+                if config.time_budget:
+                    avail = min(time_left() - min_left,
+                                config.seed_share * config.time_budget - seed_used[0])  # fmt: skip
+                    if lo and avail <= 0:  # (the first pairs are seeded whatever the share)
+                        break
+                    if per_pair:  # a smaller chunk rather than none
+                        n = min(n, int(avail / (1.3 * per_pair)))
+                        if n < min(config.seed_chunk, len(pairs) - lo, 32):
+                            break
+                chunk = np.arange(lo, lo + n)
                 t0 = time.time()
                 seed(chunk)
                 buffer.save(buffer_path)
                 dt = time.time() - t0
-                timings["seed_per_pair"] = dt / len(chunk)
+                seed_used[0] += dt
+                timings["seed_per_pair"] = job.state["seed_per_pair"] = dt / len(chunk)
                 job.state["seeded_pairs"] = int(chunk[-1]) + 1
                 job.state["seed_s"] = job.state.get("seed_s", 0.0) + dt
                 job.state["seeded"] = job.state["seeded_pairs"] == len(pairs)
@@ -395,7 +408,10 @@ def train_stage3(
             d = buffer.data
             m = np.isin(d["slot"], pairs.val_slots)
             out = {}
-            for tag, mm in (("val", m), ("val_hard", m & np.isin(d["source"], hard_ids))):
+            hard = np.isin(d["source"], hard_ids)
+            # two fixed kinds: the seed transitions (stable, perturbed, Stage-1/2 proposals)
+            # and the hard cases; mixing them would move the figure as hard cases are added
+            for tag, mm in (("val", m & ~hard), ("val_hard", m & hard)):
                 if not mm.any():
                     continue
                 idx = np.flatnonzero(mm)
@@ -494,9 +510,8 @@ def train_stage3(
             if time_left() < reserve + 1.3 * est:
                 break
             t0 = time.time()
-            slots = rng.choice(pairs.fit_slots, min(config.round_pairs, len(pairs.fit_slots)),
-                               replace=False)  # fmt: skip
-            slots = slots[slots < job.state["seeded_pairs"]]
+            seeded_fit = pairs.fit_slots[pairs.fit_slots < job.state["seeded_pairs"]]
+            slots = rng.choice(seeded_fit, min(config.round_pairs, len(seeded_fit)), replace=False)
             if not len(slots):
                 break
             out, labelled, figs = cem_round(slots, r, 7 * r)
