@@ -6,7 +6,8 @@
         --out results/hanging_success_stage3_judges.json
 
 For each pair the chosen pose of every stage (Stage 1, 1+2, 1+3, all stages) is simulated
-under the evaluation protocol by ``sim.judges.judge_stability(..., judge="both")`` in the
+under the evaluation protocol by ``sim.judges.judge_stability`` (MuJoCo, and PyBullet
+``MATCHED`` in a fresh world per pose; stable under "both" = stable in each) in the
 current scene (``sim.scene.build_scene``: the solid wall of labels version 3; PyBullet's
 ``MATCHED`` world copies that scene's wall box, docs/judges.md); success per judge = mean
 over categories. The stored verdict of the evaluation run (MuJoCo, in the scene of its
@@ -42,30 +43,60 @@ JUDGES = ("mujoco", "pybullet")
 
 
 def _init(dataset_dir: str) -> None:
-    from sim.library import build_library
-
     recipe = dataset_bridge.read_recipe(dataset_dir)
-    _W["library"] = build_library(
-        dataset_bridge.dataset_config_from_recipe(recipe).library, progress=False
-    )
+    _W["config"] = dataset_bridge.dataset_config_from_recipe(recipe).library
+    _W["assets"] = {}
+
+
+def _asset(kind: str, name: str):
+    """The dataset library's asset ``name`` ("<category>_<index>"), built alone the way
+    ``sim.library.build_library`` builds it (the whole library takes ~5 s of CPU)."""
+    from sim.assets.base import build_object, build_support
+    from sim.library import asset_seed
+
+    key = (kind, name)
+    if key not in _W["assets"]:
+        config = _W["config"]
+        category, index = name.rsplit("_", 1)
+        counts = config.objects_per_category() if kind == "object" else config.supports_per_family()
+        if category not in counts or not index.isdigit() or int(index) >= counts[category]:
+            raise ValueError(f"{kind} {name!r} is not in the dataset's library")
+        build = build_object if kind == "object" else build_support
+        _W["assets"][key] = build(
+            category, asset_seed(config.seed, kind, category, int(index)), int(index)
+        )
+    return _W["assets"][key]
 
 
 def _judge(job):
-    """``job`` = (pair_index, object, support, poses [S, 7]) -> per-judge stable / status."""
+    """``job`` = (pair_index, object, support, poses [S, 7]) -> per-judge stable / status.
+
+    MuJoCo judges the poses as one batch (every pose starts from fresh ``MjData``);
+    PyBullet gets a fresh world per pose: in one shared world the penetration check of a
+    pose reads contact points left in Bullet's persistent manifolds by the pose before
+    (``set_pose`` + ``performCollisionDetection`` keeps them, with distances recomputed at
+    the new pose), which turned nearby later poses PENETRATING (docs/judges.md)."""
     from omnihang_jax.evaluate import protocol_stability
     from sim import judges
     from sim.kernels import STATUS_NAMES
     from sim.scene import build_scene
 
     pair_index, obj, sup, poses = job
-    lib = _W["library"]
-    scene = build_scene(lib.objects[obj], lib.supports[sup])
-    res = judges.judge_stability(scene, np.asarray(poses), protocol_stability(), judge="both")
-    out = {"pair_index": pair_index}
-    for name, r in res.by_judge.items():
-        out[name] = [bool(x) for x in r.stable]
-        out[f"{name}_status"] = [STATUS_NAMES[int(s)] for s in r.status]
-    return out
+    scene = build_scene(_asset("object", obj), _asset("support", sup))
+    poses = np.asarray(poses)
+    config = protocol_stability()
+    mj = judges.judge_stability(scene, poses, config, judge="mujoco")
+    pb = [
+        judges.judge_stability(scene, poses[i : i + 1], config, judge="pybullet")
+        for i in range(len(poses))
+    ]
+    return {
+        "pair_index": pair_index,
+        "mujoco": [bool(x) for x in mj.stable],
+        "mujoco_status": [STATUS_NAMES[int(x)] for x in mj.status],
+        "pybullet": [bool(r.stable[0]) for r in pb],
+        "pybullet_status": [STATUS_NAMES[int(r.status[0])] for r in pb],
+    }
 
 
 def _open(path):
@@ -188,6 +219,41 @@ def _read_items(path) -> dict[int, dict]:
     return done
 
 
+def compact(out: dict, path: str) -> dict:
+    """The figures of a summary for a results file's ``judges`` key."""
+    return {
+        "note": "every stage's chosen pose re-judged by MuJoCo and PyBullet (MATCHED, a fresh "
+        "world per pose) in the scene of labels version "
+        f"{out['scene']['labels_version']} (solid wall, {out['scene']['wall_thickness_m']} m); "
+        "success = mean over categories (%); 'stored' = the evaluation run's own MuJoCo "
+        "verdict of the same pairs; agreement = share of (pair, stage) verdicts on which "
+        "MuJoCo and PyBullet agree",
+        "pairs": out["pairs"],
+        "pairs_per_category": out["pairs_per_category"],
+        "scene": out["scene"],
+        **{
+            judge: {stage: out[judge][stage]["mean"] for stage in STAGES}
+            for judge in ("mujoco", "pybullet", "both", "stored")
+        },
+        "agreement": out["agreement"],
+        "agreement_by_stage": out["agreement_by_stage"],
+        "mujoco_vs_stored": out["mujoco_vs_stored"],
+        "source": out["source"],
+        "file": path,
+        "command": out["command"],
+    }
+
+
+def _write_into(results: str, path: str, out: dict, keep_previous: str | None) -> None:
+    data = json.loads(Path(results).read_text())
+    entry = compact(out, path)
+    prev = data.get("judges")
+    if keep_previous and prev:
+        entry[keep_previous] = prev.get(keep_previous, prev)
+    data["judges"] = entry
+    refine.write_json(results, data)
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -206,6 +272,12 @@ def main(argv=None) -> dict:
         help="keep the existing --out file's figures under KEY of the new one",
     )
     parser.add_argument("--out", required=True)
+    parser.add_argument(
+        "--into",
+        metavar="RESULTS_JSON",
+        help="also write a compact entry under the key 'judges' of this results file "
+        "(e.g. results/hanging_success.json; its other keys are kept)",
+    )
     args = parser.parse_args(argv)
     if args.per_category < 1:
         raise ValueError(f"--per-category must be >= 1, got {args.per_category}")
@@ -277,6 +349,8 @@ def main(argv=None) -> dict:
         else:
             out[args.keep_previous] = prev
     refine.write_json(args.out, out)
+    if args.into and out["pairs"]:
+        _write_into(args.into, args.out, out, args.keep_previous)
     if out["pairs"]:
         summary = {j: {s: round(out[j][s]["mean"], 1) for s in STAGES} for j in out if j in
                    ("mujoco", "pybullet", "both", "stored")}  # fmt: skip

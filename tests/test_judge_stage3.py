@@ -74,11 +74,14 @@ def test_summary_uses_the_balanced_prefix_and_counts_each_judge():
 
 @pytest.mark.skipif(not (PAPER / "recipe.json").exists(), reason="paper dataset not present")
 def test_two_held_out_pairs_under_both_judges(tmp_path):
-    """Two held-out pairs whose chosen poses fall, start penetrating and hang: both engines
+    """Three held-out pairs whose chosen poses fall, start penetrating and hang: both engines
     give every stage the same verdict as the evaluation run stored, the summary counts
-    them, and a second call with the same items file judges nothing again."""
+    them, and a second call with the same items file judges nothing again. The clothes
+    hanger's last pose follows three penetrating ones: in one shared PyBullet world it read
+    28 mm deep from the manifold points those left behind (0 mm in a fresh world)."""
     pick = {12746: ["fallen", "fallen", "penetrating", "stable"],  # knife on a coat-rack knob
-            24038: ["penetrating", "stable", "stable", "stable"]}  # wrench on a two-rod hook  # fmt: skip
+            24038: ["penetrating", "stable", "stable", "stable"],  # wrench on a two-rod hook
+            4846: ["penetrating", "penetrating", "penetrating", "stable"]}  # hanger, mug tree  # fmt: skip
     with gzip.open(PAIRS, "rt") as f:
         lines = [x for x in f if json.loads(x)["pair_index"] in pick]
     pairs = tmp_path / "pairs.jsonl"
@@ -92,14 +95,21 @@ def test_two_held_out_pairs_under_both_judges(tmp_path):
     for i, statuses in pick.items():
         assert judged[i]["mujoco_status"] == statuses
         assert judged[i]["pybullet_status"] == statuses
-    assert result["pairs"] == 2 and result["agreement"] == 1.0
+    assert result["pairs"] == 3 and result["agreement"] == 1.0
     assert result["scene"] == {"labels_version": 3, "wall_thickness_m": 0.5}
     assert result["both"]["stage1"]["mean"] == 0.0
-    assert result["both"]["stage1_2"]["mean"] == 50.0  # the wrench's category 100, knife's 0
+    assert result["both"]["stage1_2"]["mean"] == pytest.approx(100 / 3)  # wrench 100, others 0
     assert result["both"]["all_stages"]["mean"] == 100.0
     assert result["mujoco_vs_stored"]["all"] == 1.0
     assert json.loads(out.read_text())["old"]["note"] == "an older run"
     again = judge_stage3.main(args + ["--summarize-only", "--keep-previous", "old"])
-    assert items.read_text().count("\n") == 2
+    assert items.read_text().count("\n") == 3
     assert again["both"] == result["both"]
     assert again["old"]["note"] == "an older run"  # kept, not nested twice
+    results = tmp_path / "hanging_success.json"
+    results.write_text(json.dumps({"stage1": {"mean": 1.0}, "judges": {"pairs": 44}}))
+    judge_stage3.main(args + ["--summarize-only", "--into", str(results), "--keep-previous", "old"])
+    data = json.loads(results.read_text())
+    assert data["stage1"] == {"mean": 1.0}  # other keys untouched
+    assert data["judges"]["both"]["all_stages"] == 100.0 and data["judges"]["pairs"] == 3
+    assert data["judges"]["old"] == {"pairs": 44} and data["judges"]["file"] == str(out)
