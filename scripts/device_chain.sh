@@ -21,7 +21,7 @@
 # Back in $OUT (<= 8 files): chain.log, where.tgz (exported weights best + latest, metrics, val
 # curves, throughput, logs), nce.tgz, stage3.tgz, eval outputs.
 # Knobs: END_S (575), DERIVE_W, DERIVE_S, DERIVE_W2, STEPS1, STEPS2, BATCH1, BATCH2, PRESETS1,
-# LR_ARGS, NO_NCE=1 / NO_S3=1 (skip a part), NCE_W (3), S3_W (4), SKIP_INSTALL=1 (dry run
+# LR_ARGS, CLOUDS_ONLY=1 (Stage 1 only, from a --clouds-only derive), NO_NCE=1 / NO_S3=1 (skip a part), NCE_W (3), S3_W (4), SKIP_INSTALL=1 (dry run
 # here, .venv first on PATH), CHAIN_TINY=1 (tiny presets and sizes for a local dry run).
 set -uo pipefail
 CALL=${1:?usage: device_chain.sh train|eval}
@@ -58,7 +58,7 @@ derive_bg() {  # workers split extra...: resumable, stops 25 s before the end of
         --split "$split" --workers "$w" --no-progress "$@" >>"$C/logs/derive_$split.log" 2>&1
 }
 pack() {
-    $PY -m experiments.pack_dataset --data "$C/ds" --split train --out "$C/pack_new" \
+    $PY -m experiments.pack_dataset --data "$C/ds" --split "train${CLOUDS_ONLY:+_clouds}" --out "$C/pack_new" \
         --threads 12 --no-progress >"$C/logs/pack.log" 2>&1 &&
         rm -rf "$C/pack" && mv "$C/pack_new" "$C/pack"
     log "packed: $(tr -d '\n ' <"$C/logs/pack.log" | cut -c1-160)"
@@ -124,10 +124,12 @@ fi
 DW=${DERIVE_W:-12}
 [ -n "$TINY" ] && DW=1
 start_parts
-# 1. derive on DW workers until DERIVE_S, pack what is there (round robin over categories)
+# 1. derive on DW workers until DERIVE_S, pack what is there (round robin over categories);
+#    CLOUDS_ONLY=1: clouds + poses only (1.6-1.8x less CPU per pair), Stage 1 only
 timeout -k 5 "${DERIVE_S:-290}" $PY -m experiments.derive_dataset --data "$C/ds" --split train \
-    --workers "$DW" --no-progress ${DERIVE_LIMIT:+--limit $DERIVE_LIMIT} >>"$C/logs/derive_train.log" 2>&1
-log "derived $(n_train) training pairs"
+    --workers "$DW" --no-progress ${DERIVE_LIMIT:+--limit $DERIVE_LIMIT} \
+    ${CLOUDS_ONLY:+--clouds-only} >>"$C/logs/derive_train.log" 2>&1
+log "derived $(n_train) training pairs ($(ls "$C/ds/derived/train_clouds" 2>/dev/null | wc -l) clouds-only)"
 pack
 # 2. more pairs for the Stage-3 part (it ingests new pairs between rounds) on fewer workers
 derive_bg "${DERIVE_W2:-6}" train ${DERIVE_LIMIT:+--limit $DERIVE_LIMIT} &
@@ -141,8 +143,10 @@ for p in $PRESETS1; do
     PIDS+=($!)
 done
 P2=$([ -n "$TINY" ] && echo tiny || echo small)
-where_train "$P2" 2 "${STEPS2:-5000}" "${BATCH2:-64}" "$((BUDGET / 2 - 20))" &
-PIDS+=($!)
+if [ -z "${CLOUDS_ONLY:-}" ]; then
+    where_train "$P2" 2 "${STEPS2:-5000}" "${BATCH2:-64}" "$((BUDGET / 2 - 20))" &
+    PIDS+=($!)
+fi
 for pid in "${PIDS[@]}"; do wait "$pid"; done
 bring_back_where
 wait "$DERIVE_PID"
