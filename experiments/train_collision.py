@@ -40,6 +40,7 @@ from tqdm.auto import tqdm
 from omnihang_jax import collision, dataset_bridge
 from omnihang_jax.collision import start_pose
 
+T_IMPORT = time.time()  # the phases' clock (train_collision's start)
 DERIVED = os.path.join(dataset_bridge.DERIVED_DIRNAME, "collision")  # ignored by git
 SUBSET_SEED_OBJECT, SUBSET_SEED_SUPPORT = 0, 1  # the planner's fixed cloud subsets
 
@@ -253,13 +254,15 @@ def derive_collision_pairs(
     out_dir: str | os.PathLike | None = None,
     existing_only: bool = False,
     shuffle_seed: int | None = None,
+    only=None,
 ) -> dict[str, list[Path]]:
     """Per split in ``limits`` ("test" / "train" -> n): its first n pairs with stable poses
     (round robin over object categories), derived to ``DATA/derived/collision/<split>/`` if
     not there yet (resumable; the splits in the order given, in one worker pool). Returns the
     files per split; ``existing_only``: derive nothing, return those already there;
     ``shuffle_seed``: pairs in a seeded random order within each category (by default the
-    pair order, which takes each category's first object with every support in turn)."""
+    pair order, which takes each category's first object with every support in turn);
+    ``only(pair_index) -> bool``: only those pairs."""
     from sim import dataset
 
     for split in limits:
@@ -274,6 +277,8 @@ def derive_collision_pairs(
         index = int(record["pair_index"])
         obj_name, sup_name, split = pairs[index]
         if split not in jobs or len(record["stable_poses"]) == 0:
+            continue
+        if only is not None and not only(index):
             continue
         if not np.asarray(record["collision_kept"]).any():
             continue
@@ -477,8 +482,11 @@ def train_nce(
     seed: int = 0,
     params=None,
     progress: bool = True,
+    stop_at: float | None = None,
 ) -> tuple[dict, dict]:
-    """Cross entropy on (pair, pose, label) triples. Returns (params, log)."""
+    """Cross entropy on (pair, pose, label) triples. Returns (params, log). ``stop_at``: a
+    unix time training stops at, whatever the budget (initialisation and compilation
+    included)."""
     nets = collision.make_nce(config)
     key = jax.random.key(seed)
     key, init_key = jax.random.split(key)
@@ -512,7 +520,7 @@ def train_nce(
         updates, opt_state = opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss, acc
 
-    return _loop(step, params, opt_state, key, steps, time_budget, batch, "nce", progress)
+    return _loop(step, params, opt_state, key, steps, time_budget, batch, "nce", progress, stop_at)
 
 
 def train_normals(
@@ -525,6 +533,7 @@ def train_normals(
     seed: int = 1,
     params=None,
     progress: bool = True,
+    stop_at: float | None = None,
 ) -> tuple[dict, dict]:
     """The paper's normal loss on object and support clouds alike. Returns (params, log)."""
     nets = collision.make_normal_net(config)
@@ -552,10 +561,12 @@ def train_normals(
         updates, opt_state = opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss, cos
 
-    return _loop(step, params, opt_state, key, steps, time_budget, batch, "normals", progress)
+    return _loop(
+        step, params, opt_state, key, steps, time_budget, batch, "normals", progress, stop_at
+    )
 
 
-def _loop(step, params, opt_state, key, steps, time_budget, batch, name, progress):
+def _loop(step, params, opt_state, key, steps, time_budget, batch, name, progress, stop_at=None):
     t_compile = time.perf_counter()
     key, k = jax.random.split(key)
     params, opt_state, loss, metric = step(params, opt_state, k)
@@ -567,6 +578,8 @@ def _loop(step, params, opt_state, key, steps, time_budget, batch, name, progres
     bar = tqdm(total=steps, desc=f"train {name}", disable=not progress)
     bar.update(1)
     losses, metrics = [], []
+    if stop_at is not None:  # the budget, or less if the wall clock says so
+        time_budget = min(time_budget, stop_at - time.time())
     while done < steps and time.perf_counter() - t0 < time_budget:
         key, k = jax.random.split(key)
         params, opt_state, loss, metric = step(params, opt_state, k)
@@ -705,13 +718,30 @@ def true_normals_score_fn(data: CollisionData, n_support):
 # ----------------------------------------------------------------------------------------------
 
 
-def evaluate_only(out: Path, test: CollisionData, eval_labels: int) -> dict:
-    """Held-out metrics of the NCE already in ``out`` (``--eval-only``)."""
-    cfg, params, _ = collision.load_estimator(out / "nce")
+def evaluate_only(
+    out: Path,
+    test: CollisionData,
+    eval_labels: int,
+    val: CollisionData | None = None,
+    goal_pass: float = 0.95,
+) -> dict:
+    """Held-out metrics of the NCE already in ``out`` (``--eval-only``); with validation
+    pairs ``val``, first its threshold (:func:`goal_pass_threshold`), written into its
+    config."""
+    cfg, params, meta = collision.load_estimator(out / "nce")
     fn = nce_score_fn(cfg, params)
     n_obj, n_sup = cfg.object_points, cfg.support_input
+    result = {}
+    if val is not None and val.near_poses is not None:
+        s = score_poses(val, val.near_pair, val.near_poses, fn, n_obj, n_sup)
+        threshold = goal_pass_threshold(s, val, goal_pass)
+        cfg = dataclasses.replace(cfg, threshold=threshold)
+        result["validation"] = dict(
+            pairs=len(val.meta), chosen=near_metrics(s, val, threshold),
+            at_05=near_metrics(s, val, 0.5),
+        )  # fmt: skip
     s, y = estimator_scores(test, fn, n_obj, n_sup, eval_labels)
-    result = dict(test_pairs=len(test.meta), threshold=cfg.threshold)
+    result |= dict(test_pairs=len(test.meta), threshold=cfg.threshold)
     for t in sorted({cfg.threshold, 0.5}):
         result[f"labels_at_{t:g}"] = collision.binary_metrics(s > t, y)
     if test.near_poses is not None:
@@ -720,13 +750,16 @@ def evaluate_only(out: Path, test: CollisionData, eval_labels: int) -> dict:
             result[f"near_at_{t:g}"] = near_metrics(s, test, t)
     with open(out / "metrics_eval.json", "w") as f:
         json.dump(result, f, indent=2)
+    if "validation" in result:  # the chosen threshold goes into the NCE's config
+        extra = {k: v for k, v in meta.items() if k not in ("kind", "config")}
+        collision.save_estimator(out / "nce", cfg, params, **extra, eval_only=result)
     print(json.dumps(_brief(result)))
     return result
 
 
 def _brief(result: dict) -> dict:
     """The headline numbers of evaluate_only's result."""
-    out = {}
+    out = {"threshold": result["threshold"]}
     for k, v in result.items():
         if k.startswith("labels_at_"):
             out[k] = {x: round(v[x], 3) for x in ("accuracy", "precision", "recall")}
@@ -772,7 +805,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--train-pairs", type=int, default=200)
     parser.add_argument("--test-pairs", type=int, default=60)
     parser.add_argument("--steps", type=int, default=1_000_000, help="cap on steps per network")
-    parser.add_argument("--time-budget", default="nce=300,normals=60", help="seconds per network")
+    parser.add_argument(
+        "--time-budget",
+        default="nce=300,normals=60",
+        help="seconds per network (normals=0: no normal net, no HCE metrics)",
+    )
     parser.add_argument("--batch", type=int, default=64, help="NCE batch (poses)")
     parser.add_argument("--normal-batch", type=int, default=16, help="normal-net batch (clouds)")
     parser.add_argument("--lr", type=float, default=1e-3)
@@ -831,10 +868,38 @@ def main(argv=None) -> dict:
         help="score the NCE in OUT on the held-out pairs (labels, goal pass, near contact) "
         "at its threshold and at 0.5; writes OUT/metrics_eval.json",
     )
+    parser.add_argument(
+        "--eval-val-pairs",
+        type=int,
+        default=0,
+        help="--eval-only: also choose the NCE threshold (--goal-pass) on this many validation "
+        "pairs (pair_index %% --val-every == 0, never trained on), derived if needed",
+    )
+    parser.add_argument(
+        "--deadline",
+        type=float,
+        default=0.0,
+        help="unix time by which everything must be written: the NCE trains for what is left "
+        "after loading, compilation and the reserves (0: --time-budget only)",
+    )
+    parser.add_argument(
+        "--post-reserve-s", type=float, default=60.0, help="--deadline: after the NCE trains"
+    )
+    parser.add_argument(
+        "--compile-reserve-s", type=float, default=45.0, help="--deadline: per compilation"
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     progress = not args.no_progress
     budgets = _budgets(args.time_budget)
+    train_normal_net = budgets["normals"] > 0
+    phases: list = []
+
+    def phase(name: str) -> None:  # wall-clock log of the phases (stdout, flushed)
+        seconds = round(time.time() - T_IMPORT, 1)
+        phases.append((name, seconds))
+        print(f"[{seconds} s since start] {name}", flush=True)
+
     workers = args.workers or len(os.sched_getaffinity(0))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -867,7 +932,16 @@ def main(argv=None) -> dict:
         )
         return {"train_files": len(train_files), "test_files": len(test_files)}
     if args.eval_only:
-        return evaluate_only(out, load_collision_data(test_files), args.eval_labels)
+        val = None
+        if args.val_every > 0 and args.eval_val_pairs > 0:
+            val_files = derive_collision_pairs(
+                args.data, {"train": args.eval_val_pairs}, workers, progress,
+                out_dir=args.derived_dir, only=lambda i: i % args.val_every == 0,
+            )["train"]  # fmt: skip
+            val = load_collision_data(val_files)
+        return evaluate_only(
+            out, load_collision_data(test_files), args.eval_labels, val, args.goal_pass
+        )
     train = load_collision_data(
         train_files,
         far_per_pair=args.far_per_pair,
@@ -893,41 +967,37 @@ def main(argv=None) -> dict:
         f"derived in {derive_s:.0f} s; device {jax.devices()[0]}"
     )
 
+    phase("loaded")
     nce_params = normal_params = None
     if args.resume and (out / "nce" / "config.json").exists():
         nce_cfg, nce_params, _ = collision.load_estimator(out / "nce")
     if args.resume and (out / "hce_normals" / "config.json").exists():
         normal_cfg, normal_params, _ = collision.load_estimator(out / "hce_normals")
 
+    # the NCE's training time: what --deadline leaves after loading (measured), compilation
+    # and what must follow (NCE threshold + held-out metrics, then the normal net and HCEs)
+    nce_budget = budgets["nce"]
+    if args.deadline:
+        after = args.post_reserve_s + (budgets["normals"] if train_normal_net else 0.0)
+        nce_budget = min(nce_budget, args.deadline - time.time() - args.compile_reserve_s - after)
+        if nce_budget < 1:
+            raise SystemExit(
+                f"--deadline leaves no time to train the NCE ({nce_budget:.0f} s after loading; "
+                f"reserves: compile {args.compile_reserve_s:.0f} s, after {after:.0f} s)"
+            )
+        print(
+            f"NCE time budget {nce_budget:.0f} s (deadline in {args.deadline - time.time():.0f} s)"
+        )
     nce_params, nce_log = train_nce(
-        train, nce_cfg, args.steps, budgets["nce"], args.batch, args.lr, params=nce_params,
+        train, nce_cfg, args.steps, nce_budget, args.batch, args.lr, params=nce_params,
         progress=progress,
+        stop_at=args.deadline - after if args.deadline else None,
     )  # fmt: skip
     collision.save_estimator(out / "nce", nce_cfg, nce_params, train=nce_log, evaluated=False)
-    normal_params, normal_log = train_normals(
-        train, normal_cfg, args.steps, budgets["normals"], args.normal_batch, args.lr,
-        params=normal_params, progress=progress,
-    )  # fmt: skip
-    collision.save_estimator(
-        out / "hce_normals", normal_cfg, normal_params, train=normal_log, evaluated=False
-    )
-
-    # thresholds on training labels, metrics on held-out labels
-    n_obj, n_sup = nce_cfg.object_points, nce_cfg.support_input
-    h_obj, h_sup = nce_cfg.object_points, normal_cfg.points
-    hce_train, y_train = estimator_scores(
-        train, hce_score_fn(normal_cfg, normal_params), h_obj, h_sup,
-        args.threshold_labels, max_pairs=args.threshold_pairs,
-    )  # fmt: skip
-    hce_threshold = collision.balanced_threshold(hce_train, y_train)
-    true_train, y_true_train = estimator_scores(
-        train, true_normals_score_fn(train, h_sup), h_obj, h_sup, args.threshold_labels,
-        max_pairs=args.threshold_pairs,
-    )  # fmt: skip
-    true_threshold = collision.balanced_threshold(true_train, y_true_train)
-    normal_cfg = dataclasses.replace(normal_cfg, threshold=hce_threshold)
+    phase(f"NCE trained ({nce_log['steps']} steps, compiled in {nce_log['compile_s']} s)")
 
     # the NCE threshold: stable goals of validation pairs pass (near_metrics, --goal-pass)
+    n_obj, n_sup = nce_cfg.object_points, nce_cfg.support_input
     nce_fn = nce_score_fn(nce_cfg, nce_params)
     validation = {}
     if val is not None and args.goal_pass > 0 and val.near_poses is not None:
@@ -938,7 +1008,6 @@ def main(argv=None) -> dict:
             "chosen": near_metrics(s, val, threshold),
         }
         nce_cfg = dataclasses.replace(nce_cfg, threshold=threshold)
-
     metrics = {}
     s, y = estimator_scores(test, nce_fn, n_obj, n_sup, args.eval_labels)
     metrics["nce"] = collision.binary_metrics(s > nce_cfg.threshold, y)
@@ -950,15 +1019,6 @@ def main(argv=None) -> dict:
             "nce": near_metrics(s, test, nce_cfg.threshold),
             "nce_at_0.5": near_metrics(s, test, 0.5),
         }
-    s, y = estimator_scores(
-        test, hce_score_fn(normal_cfg, normal_params), h_obj, h_sup, args.eval_labels
-    )
-    metrics["hce"] = collision.binary_metrics(s > hce_threshold, y)
-    s, y = estimator_scores(
-        test, true_normals_score_fn(test, h_sup), h_obj, h_sup, args.eval_labels
-    )
-    metrics["hce_true_normals"] = collision.binary_metrics(s > true_threshold, y)
-
     summary = dict(
         device=str(jax.devices()[0]),
         train_pairs=len(train.meta),
@@ -969,23 +1029,71 @@ def main(argv=None) -> dict:
         far_free_per_pair=args.far_per_pair,
         stable_poses_free=bool(args.stable_free),
         nce=nce_log,
-        normals=normal_log,
-        hce_threshold=hce_threshold,
-        hce_true_normals_threshold=true_threshold,
         nce_threshold=nce_cfg.threshold,
         near_training=bool(args.near),
         validation_pairs=len(val_files),
         validation=validation,
         held_out=metrics,
         held_out_near=near_held_out,
+        phases=phases,
     )
     extra = dict(train_pairs=len(train.meta), held_out=metrics, held_out_near=near_held_out)
     collision.save_estimator(out / "nce", nce_cfg, nce_params, train=nce_log, **extra)
-    collision.save_estimator(
-        out / "hce_normals", normal_cfg, normal_params, train=normal_log, **extra
-    )
-    with open(out / "hce_true_normals.json", "w") as f:
-        json.dump(dict(threshold=true_threshold, points=h_sup, held_out=metrics), f, indent=2)
+    with open(out / "metrics.json", "w") as f:  # written again below with the HCEs
+        json.dump(summary, f, indent=2)
+    phase("NCE threshold and held-out metrics")
+
+    if train_normal_net:
+        normal_budget = budgets["normals"]
+        if args.deadline:  # what is left after compiling it and the HCE metrics
+            normal_budget = min(
+                normal_budget,
+                args.deadline - time.time() - args.compile_reserve_s - args.post_reserve_s / 2,
+            )
+        if normal_budget < 1:
+            print(f"skipped the normal net and the HCEs: {normal_budget:.0f} s left for them")
+            train_normal_net = False
+    if train_normal_net:
+        normal_params, normal_log = train_normals(
+            train, normal_cfg, args.steps, normal_budget, args.normal_batch, args.lr,
+            params=normal_params, progress=progress,
+            stop_at=args.deadline - args.post_reserve_s / 2 if args.deadline else None,
+        )  # fmt: skip
+        collision.save_estimator(
+            out / "hce_normals", normal_cfg, normal_params, train=normal_log, evaluated=False
+        )
+        phase(f"normal net trained ({normal_log['steps']} steps)")
+        # HCE thresholds on training labels, metrics on held-out labels
+        h_obj, h_sup = nce_cfg.object_points, normal_cfg.points
+        hce_train, y_train = estimator_scores(
+            train, hce_score_fn(normal_cfg, normal_params), h_obj, h_sup,
+            args.threshold_labels, max_pairs=args.threshold_pairs,
+        )  # fmt: skip
+        hce_threshold = collision.balanced_threshold(hce_train, y_train)
+        true_train, y_true_train = estimator_scores(
+            train, true_normals_score_fn(train, h_sup), h_obj, h_sup, args.threshold_labels,
+            max_pairs=args.threshold_pairs,
+        )  # fmt: skip
+        true_threshold = collision.balanced_threshold(true_train, y_true_train)
+        normal_cfg = dataclasses.replace(normal_cfg, threshold=hce_threshold)
+        s, y = estimator_scores(
+            test, hce_score_fn(normal_cfg, normal_params), h_obj, h_sup, args.eval_labels
+        )
+        metrics["hce"] = collision.binary_metrics(s > hce_threshold, y)
+        s, y = estimator_scores(
+            test, true_normals_score_fn(test, h_sup), h_obj, h_sup, args.eval_labels
+        )
+        metrics["hce_true_normals"] = collision.binary_metrics(s > true_threshold, y)
+        summary |= dict(
+            normals=normal_log, hce_threshold=hce_threshold,
+            hce_true_normals_threshold=true_threshold,
+        )  # fmt: skip
+        collision.save_estimator(
+            out / "hce_normals", normal_cfg, normal_params, train=normal_log, **extra
+        )
+        with open(out / "hce_true_normals.json", "w") as f:
+            json.dump(dict(threshold=true_threshold, points=h_sup, held_out=metrics), f, indent=2)
+        phase("HCE thresholds and held-out metrics")
     with open(out / "metrics.json", "w") as f:
         json.dump(summary, f, indent=2)
     for name, m in metrics.items():

@@ -24,17 +24,21 @@
 #    eval_paths --weights DIR/weights.
 # Knobs (env): N_TEST (150 held-out pairs), N_TRAIN (20000: all), PRESET (fast), BATCH (256),
 # DERIVE_FRACTION (0.4), RESUME_WAIT_S (60), NORMALS_S (30), NCE_MAX_S (no cap), EVAL_RESERVE_S
-# (110 + 1 s per 300 training pairs: loading, compilation, evaluation, packing), CHAIN_WORKERS (3), CHAIN_DS (/tmp/chain/ds).
+# (110: when training may start at the latest), COMPILE_RESERVE_S (60) and POST_RESERVE_S (90):
+# train_collision --deadline (end of the call - 15 s) gives the NCE what is left after loading
+# the pairs (measured: 7,984 pairs took minutes beside 15 derive workers on the first device
+# attempt, which overran), one compilation and the reserve for the threshold, held-out
+# metrics, normal net and HCEs; CHAIN_WORKERS (3), CHAIN_DS (/tmp/chain/ds).
 # CHAIN_TINY=1: tiny preset, 4 held-out + 40 training pairs, NCE 20 s, reserve 40 s.
 # CROP_FROM (2048; 0: off): a second NCE trained beside the first on the same GPU, in
-# run_crop/ (tarball: weights_crop/), that is given 2,048 support points and keeps the 256
+# run_crop/ (tarball: weights_crop/; NCE only, no normal net), that is given 2,048 support points and keeps the 256
 # nearest to the posed object (collision.crop_support: ~8x denser support where contact is).
 # GPU memory: XLA_PYTHON_CLIENT_MEM_FRACTION 0.12 per process unless set (2 x ~9.6 GB).
 set -uo pipefail
 BUDGET=${1:?usage: nce.sh BUDGET_S OUT_TGZ}
 OUT_TGZ=${2:?usage: nce.sh BUDGET_S OUT_TGZ}
 T0=$(date +%s)
-STATE=/tmp/chain/nce
+STATE=${CHAIN_STATE:-/tmp/chain/nce}  # local tests: a private CHAIN_STATE
 DS=${CHAIN_DS:-/tmp/chain/ds}
 WORKERS=${CHAIN_WORKERS:-3}
 mkdir -p "$STATE/logs" "$STATE/run"
@@ -48,11 +52,13 @@ if [ -n "${CHAIN_TINY:-}" ]; then
     N_TEST=${N_TEST:-4} N_TRAIN=${N_TRAIN:-40} PRESET=${PRESET:-tiny} BATCH=${BATCH:-16}
     NORMALS_S=${NORMALS_S:-3} EVAL_RESERVE_S=${EVAL_RESERVE_S:-40} RESUME_WAIT_S=${RESUME_WAIT_S:-5}
     EVAL_LABELS=2000 THRESHOLD_LABELS=2000 NORMAL_BATCH=4 NCE_MAX_S=${NCE_MAX_S:-20}
+    COMPILE_RESERVE_S=${COMPILE_RESERVE_S:-20} POST_RESERVE_S=${POST_RESERVE_S:-30}
     CROP_FROM=${CROP_FROM:-256}
 else
     N_TEST=${N_TEST:-150} N_TRAIN=${N_TRAIN:-20000} PRESET=${PRESET:-fast} BATCH=${BATCH:-256}
     NORMALS_S=${NORMALS_S:-30} EVAL_RESERVE_S=${EVAL_RESERVE_S:-110} RESUME_WAIT_S=${RESUME_WAIT_S:-60}
     EVAL_LABELS=50000 THRESHOLD_LABELS=20000 NORMAL_BATCH=32 NCE_MAX_S=${NCE_MAX_S:-100000}
+    COMPILE_RESERVE_S=${COMPILE_RESERVE_S:-60} POST_RESERVE_S=${POST_RESERVE_S:-90}
     CROP_FROM=${CROP_FROM:-2048}
 fi
 DERIVE_FRACTION=${DERIVE_FRACTION:-0.4}
@@ -89,10 +95,13 @@ while kill -0 "$DERIVE_PID" 2>/dev/null && [ "$(elapsed)" -lt "$LATEST" ] &&
     { [ "$(elapsed)" -lt "$START_AT" ] || [ "$(n_test)" -lt "$N_TEST" ]; }; do sleep 2; done
 N_HAVE=$(ls "$STATE/derived/train" 2>/dev/null | wc -l)
 log "held-out pairs derived: $(n_test) of $N_TEST"
-RESERVE=$((EVAL_RESERVE_S + N_HAVE / 300))  # reading the pair files: ~3 ms each
-NCE_S=$(($(left) - RESERVE - NORMALS_S))
+# train_collision sizes the NCE's time itself (--deadline): what is left after loading the
+# pairs (measured), compilation (COMPILE_RESERVE_S) and what follows (POST_RESERVE_S + normals)
+DEADLINE=$((T0 + BUDGET - 15))
+NCE_S=$(($(left) - EVAL_RESERVE_S - NORMALS_S))  # an upper bound; the deadline decides
 [ "$NCE_S" -gt "$NCE_MAX_S" ] && NCE_S=$NCE_MAX_S
-log "training on up to $N_HAVE derived training pairs: NCE ${NCE_S} s, normals ${NORMALS_S} s ${RESUME:+(resumed)}"
+TIMING=(--deadline "$DEADLINE" --compile-reserve-s "$COMPILE_RESERVE_S" --post-reserve-s "$POST_RESERVE_S")
+log "training on up to $N_HAVE derived training pairs: NCE at most ${NCE_S} s (deadline in $((DEADLINE - $(date +%s))) s), normals ${NORMALS_S} s ${RESUME:+(resumed)}"
 STATUS=0
 if [ "$NCE_S" -lt 5 ]; then
     log "error: no time left to train (budget ${BUDGET} s too small)"
@@ -107,13 +116,13 @@ else
         timeout -k 5 $(($(left) - 12)) "$PY" -m experiments.train_collision "${COMMON[@]}" \
             --out "$STATE/run_crop" --support-crop-from "$CROP_FROM" \
             --existing-only $CROP_RESUME --batch "$BATCH" --normal-batch "$NORMAL_BATCH" \
-            --time-budget "nce=$NCE_S,normals=$NORMALS_S" --eval-labels "$EVAL_LABELS" \
+            --time-budget "nce=$NCE_S,normals=0" "${TIMING[@]}" --eval-labels "$EVAL_LABELS" \
             --threshold-labels "$THRESHOLD_LABELS" >"$STATE/logs/train_crop_$CALL.log" 2>&1 &
         CROP_PID=$!
     fi
     timeout -k 5 $(($(left) - 12)) "$PY" -m experiments.train_collision "${COMMON[@]}" \
         --existing-only $RESUME --batch "$BATCH" --normal-batch "$NORMAL_BATCH" \
-        --time-budget "nce=$NCE_S,normals=$NORMALS_S" --eval-labels "$EVAL_LABELS" \
+        --time-budget "nce=$NCE_S,normals=$NORMALS_S" "${TIMING[@]}" --eval-labels "$EVAL_LABELS" \
         --threshold-labels "$THRESHOLD_LABELS" >"$STATE/logs/train_$CALL.log" 2>&1
     STATUS=$?
     grep -E "^pairs:|^held-out" "$STATE/logs/train_$CALL.log" | tee -a "$LOG"
