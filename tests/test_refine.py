@@ -179,7 +179,10 @@ def test_pair_bank_light_read_extend_and_cache(tmp_path):
     keeps slots; the .npz cache round-trips."""
     from omnihang_jax import dataset_bridge
 
-    files = sorted(dataset_bridge.derived_files(f"{DATA}/derived", "train"))[:3]
+    # its own 3 pairs (a fresh clone has no derived files)
+    dataset_bridge.derive_dataset(DATA, tmp_path / "d", splits=("train",), limit=3,
+                                  progress=False)  # fmt: skip
+    files = sorted(dataset_bridge.derived_files(tmp_path / "d", "train"))[:3]
     cfg = stage3.VALUE_TINY
     bank = PairBank.from_files(files[:2], cfg, progress=False)
     bank.extend(PairBank.from_files(files[2:], cfg, progress=False))
