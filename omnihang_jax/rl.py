@@ -21,7 +21,6 @@ to ``workdir`` so a killed run loses at most the step in progress:
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 import time
@@ -33,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from omnihang_jax import data as data_lib
 from omnihang_jax import refine, stage3
 from omnihang_jax.refine import Labeller, PairBank, ReplayBuffer
 from omnihang_jax.stage3 import CEMConfig, PairClouds, ValueConfig
@@ -84,13 +84,9 @@ class RLConfig:
     cem_batch: int = 32  # pairs per jitted CEM call (B x K x population states at once)
 
 
-def validation_objects(names, fraction: float) -> set[str]:
-    """A fixed subset of object names (by a hash of the name, independent of order)."""
-
-    def h(n):
-        return int(hashlib.sha1(n.encode()).hexdigest()[:8], 16) / 0xFFFFFFFF
-
-    return {n for n in names if h(n) < fraction}
+# A fixed subset of object names by a hash of the name: the same validation objects as the
+# Stage 1-2 trainer's (one function, omnihang_jax.data).
+validation_objects = data_lib.validation_objects
 
 
 # ----------------------------------------------------------------------------------------------
