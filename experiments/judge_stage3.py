@@ -337,6 +337,7 @@ def main(argv=None) -> dict:
         },
         "per_category_requested": args.per_category,
         "source": args.pairs,
+        "judged_now": 0 if args.summarize_only else len(jobs),  # the rest came from --items
         "judge_s": round(time.time() - t0, 1),
     } | summarize(chosen, done)
     out["command"] = "python -m experiments.judge_stage3 " + " ".join(
