@@ -445,6 +445,16 @@ class PairWorld:
         q = rot.as_quat()
         return np.concatenate([np.asarray(pos) - rot.apply(self.com), np.roll(q, 1)])
 
+    def park(self) -> None:
+        """Move the object 1 km up and run collision detection: Bullet drops the contact
+        manifolds of pairs whose boxes no longer overlap. ``set_pose`` alone keeps them, and
+        the next pose's penetration check read the previous pose's points (a hanging pose
+        judged after penetrating ones read 28 mm deep; docs/judges.md)."""
+        pb.resetBasePositionAndOrientation(
+            self.body, [0.0, 0.0, 1000.0], [0.0, 0.0, 0.0, 1.0], physicsClientId=self.client
+        )
+        pb.performCollisionDetection(physicsClientId=self.client)
+
     def contacts(self, other: int):
         return pb.getContactPoints(self.body, other, physicsClientId=self.client)
 
@@ -515,6 +525,7 @@ def stability(
     env = [world.support, *world.ground]
     try:
         for i, pose in enumerate(poses):
+            world.park()  # flush the previous pose's contact manifolds
             world.set_pose(pose)
             pb.performCollisionDetection(physicsClientId=c)
             dists = [p[8] for b in env for p in world.contacts(b)]

@@ -4,6 +4,7 @@ it judges hangs the same way (a hang stays, a pose beside the hook falls)."""
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import mujoco
 import numpy as np
@@ -202,3 +203,39 @@ def test_erode_hull_keeps_sharp_tips():
         gap = np.linalg.norm(wedge[:, None] - eroded[None], axis=-1).min(1)
         assert eroded[:, 0].max() > 0.1 - 0.02  # the tip stays near x = 0.1
         assert (gap <= depth + 0.001 + 1e-9).all()
+
+
+PAPER_PAIRS = "results/hanging_success_stage3.pairs.jsonl.gz"
+
+
+@pytest.mark.skipif(
+    not os.path.exists(PAPER_PAIRS) or not os.path.exists("datasets/paper/recipe.json"),
+    reason="paper dataset / held-out run not present",
+)
+def test_poses_judged_in_one_world_do_not_see_the_previous_poses_contacts():
+    """Bullet keeps contact manifolds across ``set_pose``: a clothes hanger's hanging pose
+    judged after three penetrating poses of the same pair read 28 mm deep in one shared
+    world (0 mm alone). ``stability`` must give each pose the verdict it gets alone."""
+    import gzip
+    import json
+
+    from experiments import judge_stage3
+    from omnihang_jax.evaluate import protocol_stability
+
+    with gzip.open(PAPER_PAIRS, "rt") as f:
+        row = next(json.loads(x) for x in f if json.loads(x)["pair_index"] == 4846)
+    judge_stage3._init("datasets/paper")
+    scene = build_scene(
+        judge_stage3._asset("object", row["object"]),
+        judge_stage3._asset("support", row["support"]),
+    )
+    stages = ("stage1", "stage1_2", "stage1_3", "all_stages")
+    poses = np.array([row[s]["pose"] for s in stages], np.float64)
+    config = protocol_stability()
+    shared = pybullet_ref.stability(scene, poses, config)
+    alone = [pybullet_ref.stability(scene, poses[i : i + 1], config) for i in range(4)]
+    assert [int(a.status[0]) for a in alone] == [kernels.PENETRATING] * 3 + [kernels.STABLE]
+    assert shared.status.tolist() == [int(a.status[0]) for a in alone]
+    np.testing.assert_allclose(
+        shared.initial_penetration, [a.initial_penetration[0] for a in alone], atol=1e-4
+    )
