@@ -7,7 +7,7 @@
 
 For each pair the chosen pose of every stage (Stage 1, 1+2, 1+3, all stages) is simulated
 under the evaluation protocol by ``sim.judges.judge_stability`` (MuJoCo, and PyBullet
-``MATCHED`` in a fresh world per pose; stable under "both" = stable in each) in the
+``MATCHED``, contact manifolds flushed between poses; stable under "both" = stable in each) in the
 current scene (``sim.scene.build_scene``: the solid wall of labels version 3; PyBullet's
 ``MATCHED`` world copies that scene's wall box, docs/judges.md); success per judge = mean
 over categories. The stored verdict of the evaluation run (MuJoCo, in the scene of its
@@ -71,11 +71,10 @@ def _asset(kind: str, name: str):
 def _judge(job):
     """``job`` = (pair_index, object, support, poses [S, 7]) -> per-judge stable / status.
 
-    MuJoCo judges the poses as one batch (every pose starts from fresh ``MjData``);
-    PyBullet gets a fresh world per pose: in one shared world the penetration check of a
-    pose reads contact points left in Bullet's persistent manifolds by the pose before
-    (``set_pose`` + ``performCollisionDetection`` keeps them, with distances recomputed at
-    the new pose), which turned nearby later poses PENETRATING (docs/judges.md)."""
+    Both engines judge the poses as one batch: MuJoCo starts every pose from fresh
+    ``MjData``, PyBullet flushes the previous pose's contact manifolds
+    (``pybullet_ref.stability``; before that fix a per-pose world was needed here, see
+    docs/judges.md)."""
     from omnihang_jax.evaluate import protocol_stability
     from sim import judges
     from sim.kernels import STATUS_NAMES
@@ -86,16 +85,13 @@ def _judge(job):
     poses = np.asarray(poses)
     config = protocol_stability()
     mj = judges.judge_stability(scene, poses, config, judge="mujoco")
-    pb = [
-        judges.judge_stability(scene, poses[i : i + 1], config, judge="pybullet")
-        for i in range(len(poses))
-    ]
+    pb = judges.judge_stability(scene, poses, config, judge="pybullet")
     return {
         "pair_index": pair_index,
         "mujoco": [bool(x) for x in mj.stable],
         "mujoco_status": [STATUS_NAMES[int(x)] for x in mj.status],
-        "pybullet": [bool(r.stable[0]) for r in pb],
-        "pybullet_status": [STATUS_NAMES[int(r.status[0])] for r in pb],
+        "pybullet": [bool(x) for x in pb.stable],
+        "pybullet_status": [STATUS_NAMES[int(x)] for x in pb.status],
     }
 
 
@@ -222,8 +218,8 @@ def _read_items(path) -> dict[int, dict]:
 def compact(out: dict, path: str) -> dict:
     """The figures of a summary for a results file's ``judges`` key."""
     return {
-        "note": "every stage's chosen pose re-judged by MuJoCo and PyBullet (MATCHED, a fresh "
-        "world per pose) in the scene of labels version "
+        "note": "every stage's chosen pose re-judged by MuJoCo and PyBullet (MATCHED, contact "
+        "manifolds flushed between poses) in the scene of labels version "
         f"{out['scene']['labels_version']} (solid wall, {out['scene']['wall_thickness_m']} m); "
         "success = mean over categories (%); 'stored' = the evaluation run's own MuJoCo "
         "verdict of the same pairs; agreement = share of (pair, stage) verdicts on which "

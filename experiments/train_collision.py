@@ -406,19 +406,7 @@ def load_collision_data(
         poses.append(f["collision_poses"])
         labels.append(f["collision_labels"])
         pair.append(np.full(len(f["collision_labels"]), i, np.int32))
-        meta.append(
-            {
-                k: f[k].item()
-                for k in (
-                    "pair_index",
-                    "object_name",
-                    "support_name",
-                    "object_category",
-                    "support_family",
-                    "split",
-                )
-            }
-        )
+        meta.append({k: f[k].item() for k in dataset_bridge.META_KEYS})
         if far_per_pair:
             g = _geometry_of(f, meta[-1], cache)
             far_poses.append(
