@@ -389,6 +389,7 @@ def make_train_step(stage: str, config: WhereConfig) -> Callable:
     """
     loss_fn = make_loss_fn(stage, config)
     tx = make_optimizer(stage, config)
+    schedule = learning_rate_schedule(stage, config)  # logged per step
 
     def train_step(state: TrainState, batch: HangSample, key):
         grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, batch, key)
@@ -397,7 +398,6 @@ def make_train_step(stage: str, config: WhereConfig) -> Callable:
         metrics = dict(metrics, grad_norm=optax.global_norm(grads), lr=schedule(state.step))
         return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
-    schedule = learning_rate_schedule(stage, config)
     return train_step
 
 
