@@ -120,6 +120,13 @@ def main(argv=None) -> dict:
     parser.add_argument("--checkpoint-every", type=int, default=None)
     parser.add_argument("--export", default=None, metavar="DIR", help="export weights here")
     parser.add_argument("--export-which", choices=["best", "latest"], default="best")
+    parser.add_argument(
+        "--init-from",
+        default=None,
+        metavar="WEIGHTS",
+        help="start stages without a checkpoint from these weights (e.g. "
+        "weights/where_small_paper; same preset): fine-tuning with a fresh schedule",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     budget = None
@@ -168,6 +175,7 @@ def main(argv=None) -> dict:
         progress=not args.no_progress,
         time_budget_s=budget,
         data_on_device=args.data_on_device,
+        init_from=args.init_from,
     )
     summary = {stage: int(state.step) for stage, state in states.items()}
     print(f"trained steps per stage: {summary}; outputs in {args.out}")

@@ -491,6 +491,11 @@ def restore_stage(stage_dir: str, step: int | None = None) -> tuple[WhereConfig,
 WEIGHTS_FILE = "params.msgpack"
 
 
+def _network_fields(config: WhereConfig, stage: str):
+    """The parts of a config that shape a stage's parameters."""
+    return config.stage1 if stage == "1" else config.stage2.pointnet
+
+
 def export_weights(
     run_dir: str, out_dir: str, stages: Sequence[str] = STAGES, which: str = "latest"
 ) -> dict[str, int]:
@@ -791,10 +796,14 @@ def train_where(
     progress: bool = True,
     time_budget_s: dict[str, float] | None = None,
     data_on_device: bool = False,
+    init_from: str | None = None,
 ) -> dict[str, TrainState]:
     """Train the requested stages in order (1, 2a, 2b) into ``out``; resumes each stage.
 
     2b starts from 2a's latest parameters when it has no checkpoint of its own.
+    ``init_from``: a weights folder (``export_weights``' layout, e.g. weights/where_small_paper)
+    whose stage parameters start a stage that has no checkpoint yet (fine-tuning; fresh
+    optimiser state and schedule); its network config must equal ``config``'s.
     Returns the final TrainState per stage.
     """
     if steps is not None:  # the schedule decays over the run's total steps
@@ -806,7 +815,17 @@ def train_where(
         if stage not in stages:
             continue
         init_params = None
-        if stage == "2b":
+        if init_from is not None and os.path.exists(
+            os.path.join(_stage_dir(init_from, stage), "config.json")
+        ):
+            init_config, init_params, init_step = restore_stage(_stage_dir(init_from, stage))
+            if _network_fields(init_config, stage) != _network_fields(config, stage):
+                raise ValueError(
+                    f"--init-from {init_from}: stage {stage}'s network config differs from the "
+                    "preset's (same --preset as those weights?)"
+                )
+            print(f"stage {stage}: parameters from {init_from} (step {init_step})")
+        elif stage == "2b":
             if "2a" in states:
                 init_params = states["2a"].params
             elif os.path.exists(os.path.join(_stage_dir(out, "2a"), "config.json")):

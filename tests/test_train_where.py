@@ -356,3 +356,21 @@ def test_object_split_pack_and_validation_curve(tmp_path):
     assert best["val_loss"] == min(r["val_loss"] for r in rows)
     with open(tmp_path / "w" / "stage1" / "config.json") as f:
         assert json.load(f)["step"] == best["step"]
+
+
+def test_init_from_exported_weights_starts_there(trained_dir, tmp_path):
+    """--init-from: a stage without a checkpoint starts from the given weights (a tiny lr
+    leaves them in place), and a mismatched preset is refused."""
+    train.export_weights(trained_dir, str(tmp_path / "w"), ("1",))
+    out = str(tmp_path / "ft")
+    argv = ["--data", "synthetic", "--preset", "tiny", "--stage", "1", "--steps", "1"]
+    argv += ["--batch", "2", "--lr-stage1", "1e-12", "--no-progress"]
+    train_where.main(argv + ["--out", out, "--init-from", str(tmp_path / "w")])
+    _, start, _ = train.restore_stage(os.path.join(tmp_path, "w", "stage1"))
+    _, tuned, step = train.restore_stage(os.path.join(out, "stage1"))
+    assert step == 1
+    for a, b in zip(jax.tree.leaves(start), jax.tree.leaves(tuned)):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    with pytest.raises(ValueError, match="network config differs"):
+        small = argv[:3] + ["small"] + argv[4:]
+        train_where.main(small + ["--out", str(tmp_path / "x"), "--init-from", str(tmp_path / "w")])

@@ -1,0 +1,127 @@
+#!/usr/bin/env bash
+# The eighth session's GPU job (issues 14 and 12): every training pair, Stage 1 fine-tuned on
+# all of them and V's hard-negative rounds side by side, then the held-out evaluation.
+#
+#   bash scripts/device_slim.sh out
+#   run(carry=[".whl_min", ".whl_train"], timeout_s=600, command="bash scripts/device_full.sh train")
+#   run(..., command="bash scripts/device_full.sh eval")     # next call (same machine if warm)
+#   bash scripts/device_slim.sh in
+#
+# CALL
+#   train  install; derive every training pair clouds-only at half the camera resolution
+#          (`derive_dataset --clouds-only --camera-scale 0.5`, ~3x less CPU than a full derive;
+#          the held-out pairs keep the recipe's 640 x 480) on 16 workers for at most DERIVE_S
+#          (240 s); pack; then side by side until END_S:
+#          - Stage 1 (small preset) fine-tuned from INIT1 (weights/where_small_paper) on all
+#            packed pairs minus the validation objects: batch BATCH1 (128), lr LR1 (5e-4) with
+#            warm-up 300 and cosine over STEPS1 (30000, spread over calls: a warm next call
+#            resumes it), validation every 500 steps;
+#          - the Stage-3 part (scripts/chain/stage3.sh, hard-negative V, S3_W = 11 workers,
+#            V from weights/value_small_paper, 1,000 pretraining steps, 512 pairs a round, at
+#            most S3_PAIRS = 4000 pairs seeded) on the same clouds;
+#          - the held-out pairs derived (3 workers) for the eval call.
+#   eval   derive the held-out pairs if absent; eval_stage3 on all 1,814 of them for the new
+#          Stage 1 (+ the committed Stage 2b) with the committed V, and with the new V.
+# Back in $OUT: full.log, where.tgz (stage-1 best + latest exports, the resumable checkpoint,
+# metrics, validation curve, logs), stage3.tgz, eval JSONs (+ pairs .jsonl.gz).
+set -uo pipefail
+CALL=${1:?usage: device_full.sh train|eval}
+T0=$(date +%s)
+OUT=${OUT:-/tmp/out}
+C=/tmp/full
+END_S=${END_S:-570}
+mkdir -p "$OUT" "$C/logs"
+log() { echo "[$(($(date +%s) - T0)) s] $*" | tee -a "$OUT/full.log"; }
+left() { echo $((END_S - $(date +%s) + T0)); }
+PY=${PY:-python3}
+if [ -z "${SKIP_INSTALL:-}" ] && [ ! -e /tmp/site/mujoco ]; then
+    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
+        .whl_min/*.whl .whl_train/*.whl || { log "wheel install failed"; exit 5; }
+fi
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+log "call $CALL; earlier calls on this machine: $(cat "$C/calls" 2>/dev/null | tr "\n" " ")"
+echo "$CALL" >>"$C/calls"
+command -v nvidia-smi >/dev/null && nvidia-smi -L | tee -a "$OUT/full.log"
+if [ ! -e "$C/ds/recipe.json" ]; then
+    mkdir -p "$C/ds" && cp -r datasets/paper/recipe.json datasets/paper/shards "$C/ds/"
+fi
+SCALE=${CAMERA_SCALE:-0.5}
+CLOUDS=train_clouds_r$($PY -c "print(round($SCALE * 100))")
+INIT1=${INIT1:-weights/where_small_paper}
+HELDOUT=results/hanging_success.pairs.jsonl
+
+derive_test() {  # workers
+    timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split test \
+        --workers "$1" --pairs-from "$HELDOUT" --no-progress >>"$C/logs/derive_test.log" 2>&1
+    log "held-out pairs derived: $(ls "$C/ds/derived/test" | wc -l)"
+}
+export_where() {
+    $PY - >>"$C/logs/export.log" 2>&1 <<EOF
+import shutil
+from omnihang_jax import train
+for which in ("best", "latest"):
+    dst = "$C/export/" + which
+    print(which, train.export_weights("$C/where", dst, ("1",), which=which))
+    shutil.copytree("$INIT1/stage2b", dst + "/stage2b", dirs_exist_ok=True)
+EOF
+    (cd "$C" && tar -czf "$OUT/where.tgz" export logs where/stage1/config.json \
+        where/stage1/metrics.jsonl where/stage1/val_metrics.jsonl where/stage1/throughput.json \
+        where/stage1/loss.png where/stage1/best 2>/dev/null)
+    # the resumable checkpoint (params + Adam state, ~9 MB) for a bare next machine
+    (cd "$C" && tar -czf "$OUT/where_ckpt.tgz" where/stage1 2>/dev/null)
+    log "exported: $(tr '\n' ' ' <"$C/logs/export.log" | tail -c 300)"
+}
+
+if [ "$CALL" = train ]; then
+    timeout -k 5 "${DERIVE_S:-240}" $PY -m experiments.derive_dataset --data "$C/ds" --split train \
+        --workers 16 --clouds-only --camera-scale "$SCALE" --no-progress \
+        >>"$C/logs/derive_train.log" 2>&1
+    log "derived $(ls "$C/ds/derived/$CLOUDS" | wc -l) training pairs ($CLOUDS)"
+    $PY -m experiments.pack_dataset --data "$C/ds" --split "$CLOUDS" --out "$C/pack_new" \
+        --threads 16 --no-progress >"$C/logs/pack.log" 2>&1 && rm -rf "$C/pack" && mv "$C/pack_new" "$C/pack"
+    log "packed: $(tr -d '\n ' <"$C/logs/pack.log" | cut -c1-200)"
+    # the Stage-3 part reads DS/derived/train: a dataset folder whose train is the clouds
+    mkdir -p "$C/ds3/derived" && ln -sfn "$C/ds/recipe.json" "$C/ds3/recipe.json" &&
+        ln -sfn "$C/ds/shards" "$C/ds3/shards" && ln -sfn "$C/ds/derived/$CLOUDS" "$C/ds3/derived/train"
+    if [ -z "${NO_S3:-}" ]; then
+        CHAIN_DS=$C/ds3 STAGE3_STATE=$C/stage3 CHAIN_WORKERS=${S3_W:-11} \
+            INIT_VALUE=weights/value_small_paper \
+            EXTRA="--pretrain-steps 1000 --round-pairs 512 --max-pairs ${S3_PAIRS:-4000}" \
+            bash scripts/chain/stage3.sh $(($(left) - 15)) "$OUT/stage3.tgz" \
+            >>"$C/logs/stage3_part.log" 2>&1 &
+        S3_PID=$!
+    fi
+    derive_test 3 &
+    TEST_PID=$!
+    BUDGET=$(($(left) - 45))
+    log "Stage 1 for ${BUDGET} s from $INIT1"
+    $PY -m experiments.train_where --data "$C/pack" --out "$C/where" --preset small --stage 1 \
+        --steps "${STEPS1:-30000}" --batch "${BATCH1:-128}" --lr-stage1 "${LR1:-5e-4}" \
+        --warmup 300 --time-budget "1=$BUDGET" --eval-every 500 --checkpoint-every 1000 \
+        --init-from "$INIT1" --no-progress >>"$C/logs/where.log" 2>&1
+    log "Stage 1: exit $? ($(tail -1 "$C/logs/where.log" | cut -c1-160))"
+    export_where
+    wait "$TEST_PID"
+    [ -n "${S3_PID:-}" ] && { wait "$S3_PID"; log "Stage-3 part: exit $?"; }
+    ls -la "$OUT" | tee -a "$OUT/full.log"
+    log "done"
+    exit 0
+fi
+
+# ---- eval
+[ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1814 ] || derive_test 16
+W=${WHERE_W:-$C/export/best}
+NEWV=$C/stage3/run/value
+evaluate() {  # value label out
+    timeout $(($(left) - 10)) $PY -m experiments.eval_stage3 --data "$C/ds" --weights "$W" \
+        --value "$1" --pairs-from "$HELDOUT" --workers 15 --batch 16 --out "$OUT/$3.json" \
+        --label "$2" --no-progress 2>&1 | tail -12 | tee -a "$OUT/full.log"
+}
+log "eval: Stages 1-2 $W"
+evaluate weights/value_small_paper "eighth session: Stage 1 fine-tuned on all training pairs, committed V" \
+    hanging_success_stage3_s8_where
+if [ -d "$NEWV" ] && [ "$(left)" -gt 200 ]; then
+    evaluate "$NEWV" "eighth session: Stage 1 fine-tuned, hard-negative V" hanging_success_stage3_s8_both
+fi
+gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
+log "done"
