@@ -20,7 +20,8 @@
 #            V from weights/value_small_paper, 1,000 pretraining steps, 512 pairs a round, at
 #            most S3_PAIRS = 4000 pairs seeded) on the same clouds;
 #          - the held-out pairs derived (3 workers) for the eval call.
-#   eval   derive the held-out pairs if absent; eval_stage3 on all 1,814 of them for the new
+#   eval   derive the held-out pairs if absent; eval_stage3 on all 1,794 of them (the 1,814 of
+#          results/hanging_success.pairs.jsonl that keep stable poses under labels v3) for the new
 #          Stage 1 (+ the committed Stage 2b) with the committed V, and with the new V.
 # Back in $OUT: full.log, where.tgz (stage-1 best + latest exports, the resumable checkpoint,
 # metrics, validation curve, logs), stage3.tgz, eval JSONs (+ pairs .jsonl.gz).
@@ -109,7 +110,17 @@ if [ "$CALL" = train ]; then
 fi
 
 # ---- eval
-[ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1814 ] || derive_test 16
+[ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1794 ] || derive_test 16
+# the 1,814 pairs of the earlier runs minus the 20 without a stable pose under labels v3
+# (not derived): 1,794
+$PY - "$HELDOUT" "$C/ds/derived/test" >"$C/heldout.jsonl" <<'EOF'
+import json, os, sys
+for line in open(sys.argv[1]):
+    if os.path.exists(os.path.join(sys.argv[2], json.loads(line)["file"])):
+        print(line, end="")
+EOF
+HELDOUT=$C/heldout.jsonl
+log "held-out pairs to evaluate: $(wc -l <"$HELDOUT")"
 W=${WHERE_W:-$C/export/best}
 NEWV=$C/stage3/run/value
 evaluate() {  # value label out
