@@ -102,6 +102,30 @@ def test_clouds_only_derive_keeps_the_clouds_and_is_refused_for_stage2(derived, 
     assert len(fit) >= 1
 
 
+def test_half_resolution_clouds_derive_to_their_own_folder(derived, tmp_path):
+    """--camera-scale 0.5: half the recipe's resolution (640 x 480 -> 320 x 240) into train_clouds_r50/, the same number of finite
+    points near the full-resolution clouds of the same view; refused without clouds_only."""
+    from scipy.spatial import cKDTree
+
+    out, summary = derived
+    half = dataset_bridge.derive_dataset(
+        out, tmp_path / "h", splits=("train",), progress=False, clouds_only=True, camera_scale=0.5
+    )
+    cam = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(out)).camera
+    assert half["camera_resolution"] == [round(cam.width / 2), round(cam.height / 2)]
+    assert half["files_per_split"] == {"train_clouds_r50": summary["files_per_split"]["train"]}
+    for path in dataset_bridge.derived_files(out / "derived", "train"):
+        with np.load(path) as a, np.load(tmp_path / "h" / "train_clouds_r50" / path.name) as b:
+            np.testing.assert_array_equal(a["stable_poses"], b["stable_poses"])
+            for key in ("object_points", "support_points"):
+                assert b[key].shape == a[key].shape and np.isfinite(b[key]).all()
+                assert not np.array_equal(a[key], b[key])  # a different pixel grid
+                gap = cKDTree(a[key]).query(b[key])[0]
+                assert np.median(gap) < 0.01  # the same visible surface
+    with pytest.raises(ValueError, match="clouds-only"):
+        dataset_bridge.derive_dataset(out, tmp_path / "x", progress=False, camera_scale=0.5)
+
+
 def _shifted_fn(shift) -> evaluate.PredictFn:
     truth = evaluate.ground_truth_fn()
 
