@@ -52,6 +52,13 @@ def main(argv=None) -> dict:
         help="with --clouds-only: render at this fraction of the recipe's 640 x 480 (0.5: "
         "~3x less CPU per pair) into DERIVED/<split>_clouds_r<percent>/; training inputs only",
     )
+    parser.add_argument(
+        "--view",
+        type=int,
+        default=0,
+        help="with --clouds-only: render each pair from its k-th other candidate view "
+        "(1..n_views-1) into DERIVED/<split>_clouds[_r..]_v<k>/: more views for training",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     pair_indices = None
@@ -69,6 +76,7 @@ def main(argv=None) -> dict:
         pair_indices=pair_indices,
         clouds_only=args.clouds_only,
         camera_scale=args.camera_scale,
+        view=args.view,
     )
     print(json.dumps(summary, indent=1))
     return summary

@@ -25,13 +25,24 @@ def main(argv=None) -> dict:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--data", required=True, help="dataset folder (with derived/<split>/)")
-    parser.add_argument("--split", default="train", help="derived split to pack")
+    parser.add_argument(
+        "--split",
+        default="train",
+        help="derived split(s) to pack, comma-separated (e.g. train_clouds_r50,train_clouds_r50_v1: "
+        "two views of every pair in one pack)",
+    )
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--threads", type=int, default=8, help="reader threads")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    pattern = os.path.join(args.data, "derived", args.split, "*.npz")
-    files = sorted(glob.glob(pattern)) or sorted(glob.glob(os.path.join(args.data, "*.npz")))
+    splits = [x for x in args.split.split(",") if x]
+    pattern = os.path.join(args.data, "derived", "{" + ",".join(splits) + "}", "*.npz")
+    files = [
+        f
+        for sp in splits
+        for f in sorted(glob.glob(os.path.join(args.data, "derived", sp, "*.npz")))
+    ]
+    files = files or sorted(glob.glob(os.path.join(args.data, "*.npz")))
     if not files:
         raise FileNotFoundError(f"no pair files at {pattern}: run experiments.derive_dataset first")
     meta = data.pack_dataset(files, args.out, threads=args.threads, progress=not args.no_progress)

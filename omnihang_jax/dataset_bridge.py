@@ -133,12 +133,16 @@ def scaled_config(config, camera_scale: float = 1.0):
     return dataclasses.replace(config, camera=cam)
 
 
-def _worker_init(recipe: dict, clouds_only: bool = False, camera_scale: float = 1.0) -> None:
+def _worker_init(
+    recipe: dict, clouds_only: bool = False, camera_scale: float = 1.0, view: int = 0
+) -> None:
     from sim.library import build_library
 
     config = scaled_config(dataset_config_from_recipe(recipe), camera_scale)
     library = build_library(config.library, progress=False)
-    _WORKER.update(library=library, config=config, pairs=recipe["pairs"], clouds_only=clouds_only)
+    _WORKER.update(
+        library=library, config=config, pairs=recipe["pairs"], clouds_only=clouds_only, view=view
+    )
 
 
 def _derive_one(job: tuple[dict, str]) -> None:
@@ -149,7 +153,9 @@ def _derive_one(job: tuple[dict, str]) -> None:
     contacts = not w.get("clouds_only", False)
     obj_name, sup_name, split = w["pairs"][int(record["pair_index"])]
     obj, sup = w["library"].objects[obj_name], w["library"].supports[sup_name]
-    derived = dataset.derive_pair(obj, sup, record, w["config"], contacts=contacts)
+    derived = dataset.derive_pair(
+        obj, sup, record, w["config"], contacts=contacts, view=w.get("view", 0)
+    )
     sample = make_hang_sample(**derived, stable_poses=record["stable_poses"])
     meta = dict(
         contact_maps=np.bool_(contacts),
@@ -175,6 +181,7 @@ def derive_dataset(
     pair_indices: set[int] | None = None,
     clouds_only: bool = False,
     camera_scale: float = 1.0,
+    view: int = 0,
 ) -> dict:
     """Write one HangSample ``.npz`` per pair with stable poses (see module docstring).
 
@@ -189,6 +196,10 @@ def derive_dataset(
     cheaper derive of training inputs (the ray casting is most of a clouds-only derive);
     held-out pairs keep the recipe's camera.
 
+    ``view`` k >= 1 renders each pair from another of its candidate views (``sim.dataset.
+    derive_pair``; only with ``clouds_only``, into ``<split>_clouds[_r<percent>]_v<k>/``): more
+    views of the same training pairs.
+
     ``workers`` > 1 derives pairs in that many processes (ray casting and contact maps are
     single-threaded NumPy/MuJoCo; the files are identical either way).
 
@@ -202,6 +213,8 @@ def derive_dataset(
     recipe = read_recipe(dataset_dir)
     if camera_scale != 1.0 and not clouds_only:
         raise ValueError("camera_scale != 1 is only for clouds-only derives (training inputs)")
+    if view and not clouds_only:
+        raise ValueError("view >= 1 is only for clouds-only derives (training inputs)")
     config = scaled_config(dataset_config_from_recipe(recipe), camera_scale)
     out = Path(out_dir) if out_dir is not None else dataset_dir / DERIVED_DIRNAME
     records = _records(dataset_dir)
@@ -227,6 +240,8 @@ def derive_dataset(
         folder = f"{split}_clouds" if clouds_only else split
         if camera_scale != 1.0:
             folder += f"_r{round(camera_scale * 100)}"
+        if view:
+            folder += f"_v{view}"
         path = out / folder / pair_file_name(index, obj_name, sup_name)
         counts[split] += 1
         if path.exists():
@@ -241,7 +256,9 @@ def derive_dataset(
     bar = tqdm(total=len(jobs), desc="derive", unit="pair", disable=not progress)
     if workers <= 1 and jobs:
         library = build_library(config.library, progress=False)
-        _WORKER.update(library=library, config=config, pairs=pairs, clouds_only=clouds_only)
+        _WORKER.update(
+            library=library, config=config, pairs=pairs, clouds_only=clouds_only, view=view
+        )
         for job in jobs:
             _derive_one(job)
             written += 1
@@ -249,7 +266,7 @@ def derive_dataset(
     elif jobs:
         from sim.workers import spawn_pool
 
-        with spawn_pool(workers, _worker_init, (recipe, clouds_only, camera_scale)) as pool:
+        with spawn_pool(workers, _worker_init, (recipe, clouds_only, camera_scale, view)) as pool:
             for _ in pool.imap_unordered(_derive_one, jobs, chunksize=4):
                 written += 1
                 bar.update(1)
@@ -261,11 +278,13 @@ def derive_dataset(
         "pairs_planned": len(pairs),
         "files_per_split": {
             (f"{k}_clouds" if clouds_only else k)
-            + (f"_r{round(camera_scale * 100)}" if camera_scale != 1.0 else ""): v
+            + (f"_r{round(camera_scale * 100)}" if camera_scale != 1.0 else "")
+            + (f"_v{view}" if view else ""): v
             for k, v in counts.items()
         },
         "clouds_only": clouds_only,
         "camera_resolution": [config.camera.width, config.camera.height],
+        "view": view,
         "written_this_run": written,
         "skipped_existing": skipped_existing,
         "pairs_without_stable_poses": len(no_stable),

@@ -23,6 +23,8 @@
 #   eval   derive the held-out pairs if absent; eval_stage3 on all 1,794 of them (the 1,814 of
 #          results/hanging_success.pairs.jsonl that keep stable poses under labels v3) for the new
 #          Stage 1 (+ the committed Stage 2b) with the committed V, and with the new V.
+# VIEWS=2: also derive every pair's next candidate view (`--view 1`, ~100 s more) and train on
+# both (augmentation with real renders; DERIVE_S is then the budget per view).
 # Back in $OUT: full.log, where.tgz (stage-1 best + latest exports, the resumable checkpoint,
 # metrics, validation curve, logs), stage3.tgz, eval JSONs (+ pairs .jsonl.gz).
 set -uo pipefail
@@ -74,11 +76,17 @@ EOF
 }
 
 if [ "$CALL" = train ]; then
-    timeout -k 5 "${DERIVE_S:-240}" $PY -m experiments.derive_dataset --data "$C/ds" --split train \
-        --workers 16 --clouds-only --camera-scale "$SCALE" --no-progress \
-        >>"$C/logs/derive_train.log" 2>&1
-    log "derived $(ls "$C/ds/derived/$CLOUDS" | wc -l) training pairs ($CLOUDS)"
-    $PY -m experiments.pack_dataset --data "$C/ds" --split "$CLOUDS" --out "$C/pack_new" \
+    # VIEWS (1): views of every pair, view k >= 1 = the pair's k-th other candidate view
+    SPLITS=
+    for v in $(seq 0 $((${VIEWS:-1} - 1))); do
+        sfx=$([ "$v" -gt 0 ] && echo "_v$v")
+        timeout -k 5 $((${DERIVE_S:-240} * (v + 1) - $(date +%s) + T0)) $PY -m experiments.derive_dataset \
+            --data "$C/ds" --split train --workers 16 --clouds-only --camera-scale "$SCALE" \
+            --view "$v" --no-progress >>"$C/logs/derive_train.log" 2>&1
+        log "derived $(ls "$C/ds/derived/$CLOUDS$sfx" | wc -l) training pairs ($CLOUDS$sfx)"
+        SPLITS=$SPLITS${SPLITS:+,}$CLOUDS$sfx
+    done
+    $PY -m experiments.pack_dataset --data "$C/ds" --split "$SPLITS" --out "$C/pack_new" \
         --threads 16 --no-progress >"$C/logs/pack.log" 2>&1 && rm -rf "$C/pack" && mv "$C/pack_new" "$C/pack"
     log "packed: $(tr -d '\n ' <"$C/logs/pack.log" | cut -c1-200)"
     # the Stage-3 part reads DS/derived/train: a dataset folder whose train is the clouds

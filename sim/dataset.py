@@ -386,30 +386,53 @@ def near_misses(
 def choose_views(scene, stable_poses: np.ndarray, seed: int, config: DatasetConfig):
     """Among ``n_views`` random views per body, the one whose cloud carries the most contact
     map mass at the first stable pose (original: the view covering the most contact mass)."""
+    obj_eyes, sup_eyes = rank_views(scene, stable_poses, seed, config)
+    return obj_eyes[0], sup_eyes[0]
+
+
+def candidate_views(scene, seed: int, config: DatasetConfig) -> tuple[list, list]:
+    """The pair's ``n_views`` candidate camera positions per body (object eyes, support
+    eyes), in sampling order (the generator's draws: ``rank_views`` orders the same ones)."""
     rng = np.random.default_rng([seed, 3])
+    eyes = [camera.default_eyes(scene, rng, config.camera) for _ in range(max(1, config.n_views))]
+    return [e[0] for e in eyes], [e[1] for e in eyes]
+
+
+def rank_views(scene, stable_poses: np.ndarray, seed: int, config: DatasetConfig):
+    """The ``n_views`` candidate views of each body (object eyes, support eyes), each list
+    ordered by the contact-map mass its cloud sees at the first stable pose, most first (ties
+    keep the sampling order; without stable poses or contacts: the sampling order). The first
+    of each is ``choose_views``' answer; the others are the extra views ``derive_pair(view=k)``
+    renders."""
     cam = config.camera
-    eyes = [camera.default_eyes(scene, rng, cam) for _ in range(max(1, config.n_views))]
+    obj_eyes, sup_eyes = candidate_views(scene, seed, config)
+    eyes = list(zip(obj_eyes, sup_eyes))
     if len(stable_poses) == 0 or len(eyes) == 1:
-        return eyes[0]
+        return obj_eyes, sup_eyes
     pose = stable_poses[0].astype(float)
     con = kernels.contact_query(scene, pose[None])
     m = con.mask[0]
     if not m.any():
-        return eyes[0]
-    best_o, best_s = (-1.0, eyes[0][0]), (-1.0, eyes[0][1])
+        return obj_eyes, sup_eyes
+    co, cs = annotate.contact_points(con.object_points[0, m], con.support_points[0, m], pose)
+    o_mass, s_mass = [], []
     for i, (oe, se) in enumerate(eyes):
         crng = np.random.default_rng([seed, 4, i])
         oc = camera.partial_cloud(scene, "object", oe, crng, cam)
         sc = camera.partial_cloud(scene, "support", se, crng, cam)
-        co, cs = annotate.contact_points(con.object_points[0, m], con.support_points[0, m], pose)
         # mass seen: how close the visible cloud comes to the contacts, as soft-map mass
-        o_mass = _visible_contact_mass(oc.points, co.astype(np.float32))
-        s_mass = _visible_contact_mass(sc.points, cs.astype(np.float32))
-        if o_mass > best_o[0]:
-            best_o = (o_mass, oe)
-        if s_mass > best_s[0]:
-            best_s = (s_mass, se)
-    return best_o[1], best_s[1]
+        o_mass.append(_visible_contact_mass(oc.points, co.astype(np.float32)))
+        s_mass.append(_visible_contact_mass(sc.points, cs.astype(np.float32)))
+    o_order = np.argsort(-np.asarray(o_mass), kind="stable")
+    s_order = np.argsort(-np.asarray(s_mass), kind="stable")
+    return [obj_eyes[i] for i in o_order], [sup_eyes[i] for i in s_order]
+
+
+def _other_views(ranked: list, chosen: np.ndarray) -> list[np.ndarray]:
+    """``ranked`` eyes without the one equal to ``chosen`` (the first, if none is)."""
+    same = [i for i, e in enumerate(ranked) if np.allclose(e, chosen, atol=1e-5)]
+    drop = same[0] if same else 0
+    return [np.asarray(e, float) for i, e in enumerate(ranked) if i != drop]
 
 
 def _visible_contact_mass(points: np.ndarray, contacts: np.ndarray, scale: float = 0.01) -> float:
@@ -420,23 +443,39 @@ def _visible_contact_mass(points: np.ndarray, contacts: np.ndarray, scale: float
 
 
 def derive_pair(
-    obj: Asset, support: Asset, record: dict, config: DatasetConfig, contacts: bool = True
+    obj: Asset,
+    support: Asset,
+    record: dict,
+    config: DatasetConfig,
+    contacts: bool = True,
+    view: int = 0,
 ) -> dict:
     """Heavy arrays of one pair from its labels: clouds with normals (object frame / world
     frame) and, per stable pose, soft contact maps and contact pairs. Deterministic.
 
     contacts=False skips the contact query and annotation (about half the time): the maps
     are zeros and the contact-pair lists empty; the clouds are the same as with contacts
-    (what Stage 1, V and the NCE read)."""
+    (what Stage 1, V and the NCE read).
+
+    view=0: the record's views (the candidate views seeing the most contact mass); view=k: the
+    k-th of the other candidate views of each body in sampling order (``candidate_views``;
+    1 <= k < ``n_views``): a different view of the same pair for training, drawn like the
+    held-out views' candidates but not chosen for its contact coverage."""
     scene = build_scene(obj, support)
     seed = int(record["pair_seed"])
-    rng = np.random.default_rng([seed, 5])
-    oc = camera.partial_cloud(
-        scene, "object", np.asarray(record["object_eye"], float), rng, config.camera
-    )
-    sc = camera.partial_cloud(
-        scene, "support", np.asarray(record["support_eye"], float), rng, config.camera
-    )
+    rng = np.random.default_rng([seed, 5] if view == 0 else [seed, 5, view])
+    obj_eye = np.asarray(record["object_eye"], float)
+    sup_eye = np.asarray(record["support_eye"], float)
+    if view:
+        if not 0 < view < max(1, config.n_views):
+            raise ValueError(f"view must be in [0, {config.n_views}), got {view}")
+        # the other candidates in sampling order (ranking them by contact mass, like the
+        # record's choice, would render all n_views of them: ~4x the cost of this derive)
+        obj_eyes, sup_eyes = candidate_views(scene, seed, config)
+        obj_eye = _other_views(obj_eyes, obj_eye)[view - 1]
+        sup_eye = _other_views(sup_eyes, sup_eye)[view - 1]
+    oc = camera.partial_cloud(scene, "object", obj_eye, rng, config.camera)
+    sc = camera.partial_cloud(scene, "support", sup_eye, rng, config.camera)
     poses = np.asarray(record["stable_poses"], float)
     n, m = len(oc.points), len(sc.points)
     obj_maps = np.zeros((len(poses), n), np.float32)

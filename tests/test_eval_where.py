@@ -126,6 +126,39 @@ def test_half_resolution_clouds_derive_to_their_own_folder(derived, tmp_path):
         dataset_bridge.derive_dataset(out, tmp_path / "x", progress=False, camera_scale=0.5)
 
 
+def test_another_view_derives_and_packs_beside_the_first(derived, tmp_path):
+    """view=1: the pair's next candidate view (not the record's), same poses, own folder;
+    pack_dataset --split a,b packs both views; refused without clouds_only."""
+    from experiments import pack_dataset
+
+    out, summary = derived
+    n = summary["files_per_split"]["train"]
+    for view in (0, 1):
+        got = dataset_bridge.derive_dataset(
+            out,
+            tmp_path / "derived",
+            splits=("train",),
+            progress=False,
+            clouds_only=True,
+            view=view,
+        )
+        assert got["view"] == view
+    assert got["files_per_split"] == {"train_clouds_v1": n}
+    for path in sorted((tmp_path / "derived" / "train_clouds").glob("*.npz")):
+        with np.load(path) as a, np.load(tmp_path / "derived" / "train_clouds_v1" / path.name) as b:
+            np.testing.assert_array_equal(a["stable_poses"], b["stable_poses"])
+            assert not np.allclose(
+                a["support_points"].mean(0), b["support_points"].mean(0), atol=1e-4
+            )
+    packed = pack_dataset.main(
+        ["--data", str(tmp_path), "--split", "train_clouds,train_clouds_v1", "--out",
+         str(tmp_path / "p"), "--threads", "1", "--no-progress"]
+    )  # fmt: skip
+    assert packed["pairs"] == 2 * n
+    with pytest.raises(ValueError, match="clouds-only"):
+        dataset_bridge.derive_dataset(out, tmp_path / "x", progress=False, view=1)
+
+
 def _shifted_fn(shift) -> evaluate.PredictFn:
     truth = evaluate.ground_truth_fn()
 
