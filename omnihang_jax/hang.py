@@ -857,14 +857,9 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
 
         path, info, tried = None, None, []
         if weights is not None:
-            from omnihang_jax import collision
-
             cfg, params, collides = _nce(os.path.abspath(weights))
             nce_checker = planner.EstimatorChecker(
-                collides,
-                params,
-                collision.subsample_cloud(obj.points, cfg.object_points, 0),
-                collision.subsample_cloud(sup.points, cfg.support_points, 1),
+                collides, params, *nce_clouds(cfg, obj.points, sup.points)
             )
             nce_checker.warm_up()
             path, info = attempt(nce_checker, f"the neural collision estimator {weights}")
@@ -922,6 +917,21 @@ def _captured_stderr():
             os.close(saved)
             sink.seek(0)
             captured.text = sink.read().decode(errors="replace")
+
+
+def nce_clouds(cfg, object_points: np.ndarray, support_points: np.ndarray):
+    """The NCE's fixed cloud subsets, as ``train_collision`` trains and ``eval_paths`` plans
+    with them (``train_collision.planner_clouds``, seeds 0 / 1): ``cfg.object_points`` object
+    points and ``cfg.support_input`` support points: a support-crop NCE
+    (``support_crop_from``) is given that many and keeps the nearest ``support_points``
+    itself; given only ``support_points`` it would see a sparse uniform subset, not the
+    dense crop it was trained on."""
+    from omnihang_jax import collision
+
+    return (
+        collision.subsample_cloud(object_points, cfg.object_points, 0),
+        collision.subsample_cloud(support_points, cfg.support_input, 1),
+    )
 
 
 @functools.lru_cache(maxsize=2)

@@ -309,3 +309,22 @@ def test_viewer_page_in_headless_chromium(tmp_path):
     caught = check_page(bad, tmp_path / "bad.png", shoot=False)
     assert caught["loaded"] and len(caught["errors"]) == 2, caught
     assert all("boom" in e for e in caught["errors"]) and caught["canvases"] == 0
+
+
+def test_nce_gets_its_support_input_as_in_training():
+    """A support-crop NCE is trained on ``support_input`` (2,048) support points and crops
+    them itself; hang must give it as many (session 8 fix: it gave ``support_points``)."""
+    from experiments.train_collision import planner_clouds
+    from omnihang_jax import collision
+
+    rng = np.random.default_rng(0)
+    obj = rng.normal(size=(4096, 3)).astype(np.float32)
+    sup = rng.normal(size=(4096, 3)).astype(np.float32)
+    crop = collision.NCEConfig(pointnet="fast", object_points=256, support_points=256,
+                               support_crop_from=2048)  # fmt: skip
+    for cfg in (crop, collision.NCE_PRESETS["fast"]):
+        oc, sc = H.nce_clouds(cfg, obj, sup)
+        want = planner_clouds(obj, sup, cfg.object_points, cfg.support_input)
+        np.testing.assert_array_equal(oc, want[0])
+        np.testing.assert_array_equal(sc, want[1])
+    assert len(H.nce_clouds(crop, obj, sup)[1]) == 2048
