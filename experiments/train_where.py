@@ -34,23 +34,22 @@ STAGE_CHOICES = {
 }
 
 
-def stage2_overrides(stage2, items):
-    """Apply ``FIELD=VALUE`` strings to a Stage2Config (values cast to the field's type)."""
+def stage2_overrides(stage2, items, flag: str = "--stage2"):
+    """Apply ``FIELD=VALUE`` strings to a Stage2Config (or Stage1Config; values cast to the
+    field's type)."""
     fields = {f.name: f for f in dataclasses.fields(stage2)}
     changes = {}
     for item in items:
         name, _, value = item.partition("=")
         if name not in fields or not _:
-            raise SystemExit(
-                f"--stage2 {item!r}: expected FIELD=VALUE, FIELD one of {list(fields)}"
-            )
+            raise SystemExit(f"{flag} {item!r}: expected FIELD=VALUE, FIELD one of {list(fields)}")
         current = getattr(stage2, name)
         if isinstance(current, bool):
             changes[name] = value.lower() in ("1", "true", "yes")
         elif isinstance(current, (int, float, str)):
             changes[name] = type(current)(value)
         else:
-            raise SystemExit(f"--stage2 {name}: not settable from the command line")
+            raise SystemExit(f"{flag} {name}: not settable from the command line")
     return dataclasses.replace(stage2, **changes)
 
 
@@ -94,6 +93,14 @@ def main(argv=None) -> dict:
         metavar="FIELD=VALUE",
         help="override a Stage2Config field, e.g. --stage2 contact_loss=bce "
         "--stage2 train_selection=predicted (repeatable)",
+    )
+    parser.add_argument(
+        "--stage1",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a Stage1Config field, e.g. --stage1 rotation=6d --stage1 "
+        "set_loss_mean=true --stage1 num_train_samples=16 (repeatable)",
     )
     parser.add_argument(
         "--time-budget",
@@ -166,6 +173,10 @@ def main(argv=None) -> dict:
     config = dataclasses.replace(config, train=dataclasses.replace(config.train, **overrides))
     if args.stage2:
         config = dataclasses.replace(config, stage2=stage2_overrides(config.stage2, args.stage2))
+    if args.stage1:
+        config = dataclasses.replace(
+            config, stage1=stage2_overrides(config.stage1, args.stage1, "--stage1")
+        )
     states = train.train_where(
         args.data,
         args.out,

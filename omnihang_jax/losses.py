@@ -13,6 +13,7 @@ __all__ = [
     "TRANSLATION_WEIGHT",
     "pairwise_pose_distance",
     "pose_set_loss",
+    "pairwise_matrix_pose_distance",
     "CONTACT_LOSSES",
     "contact_score_loss",
     "correspondence_cross_entropy",
@@ -47,6 +48,8 @@ def pose_set_loss(
     gt: jax.Array,
     gt_mask: jax.Array,
     translation_weight: float = TRANSLATION_WEIGHT,
+    dist: jax.Array | None = None,
+    mean: bool = False,
 ) -> jax.Array:
     """Set-matching loss L_M of Eq. 1 (Chamfer-style, both directions).
 
@@ -55,16 +58,40 @@ def pose_set_loss(
     pred: [B, Z, 6] Stage-1 samples; gt: [B, D, 6] padded ground-truth stable poses;
     gt_mask: [B, D] bool (True = real pose, D_valid in [1, 50]). A pair without any valid pose
     contributes 0. Returns [B] float32.
+
+    dist: a precomputed [B, Z, D] distance (e.g. ``pairwise_matrix_pose_distance``) instead of
+    Eq. 1's on pose6; mean: average each direction over its terms (Z and the valid D) instead
+    of summing (ours; the paper sums).
     """
     gt_mask = gt_mask.astype(bool)
-    dist = pairwise_pose_distance(pred, gt, translation_weight)  # [B, Z, D]
+    if dist is None:
+        dist = pairwise_pose_distance(pred, gt, translation_weight)  # [B, Z, D]
     masked = jnp.where(gt_mask[:, None, :], dist, _BIG)
     pred_to_gt = jnp.min(masked, axis=2)  # [B, Z]
     has_gt = jnp.any(gt_mask, axis=1)
     pred_term = jnp.where(has_gt, jnp.sum(pred_to_gt, axis=1), 0.0)
     gt_to_pred = jnp.min(dist, axis=1)  # [B, D]
     gt_term = jnp.sum(jnp.where(gt_mask, gt_to_pred, 0.0), axis=1)
+    if mean:
+        pred_term = pred_term / dist.shape[1]
+        gt_term = gt_term / jnp.maximum(jnp.sum(gt_mask, axis=1), 1)
     return pred_term + gt_term
+
+
+def pairwise_matrix_pose_distance(
+    t_pred: jax.Array,
+    r_pred: jax.Array,
+    t_gt: jax.Array,
+    r_gt: jax.Array,
+    translation_weight: float = TRANSLATION_WEIGHT,
+) -> jax.Array:
+    """Eq. 1's L with rotations compared as matrices: w_t ||t - t'||^2 + ||R - R'||_F^2.
+
+    t_pred [B, Z, 3], r_pred [B, Z, 3, 3], t_gt [B, D, 3], r_gt [B, D, 3, 3] -> [B, Z, D].
+    (||R - R'||_F^2 = 4 (1 - cos angle): continuous everywhere, unlike axis-angle at pi.)"""
+    dt = jnp.sum(jnp.square(t_pred[:, :, None] - t_gt[:, None]), -1)
+    dr = jnp.sum(jnp.square(r_pred[:, :, None] - r_gt[:, None]), (-1, -2))
+    return translation_weight * dt + dr
 
 
 CONTACT_LOSSES = ("huber", "bce", "focal", "listnet")

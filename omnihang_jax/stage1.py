@@ -22,6 +22,7 @@ from typing import NamedTuple
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import jaxlie
 
 from omnihang_jax import pointnet2
 from omnihang_jax.losses import TRANSLATION_WEIGHT
@@ -35,6 +36,7 @@ __all__ = [
     "Stage1Net",
     "Stage1Network",
     "make_stage1",
+    "rotation_from_6d",
 ]
 
 
@@ -50,6 +52,14 @@ class Stage1Config:
     num_train_samples: int = 15  # Z during training (facts)
     num_eval_samples: int = 5  # Z at evaluation (facts)
     translation_weight: float = TRANSLATION_WEIGHT  # w_t of L, see losses.TRANSLATION_WEIGHT
+    # Rotation output (ours; "axis_angle" = paper): "6d" regresses two columns of R (Zhou et
+    # al.'s continuous representation, Gram-Schmidt to a rotation) and the set loss compares
+    # rotation matrices (||R - R'||_F^2); the network still returns pose6 (axis-angle).
+    rotation: str = "axis_angle"
+    # Set loss normalisation (ours; False = paper): True averages each direction of L_M over
+    # its terms (Z predictions, D valid stable poses) instead of summing them, so the up-to-50
+    # stable poses do not outweigh the Z proposals' own term.
+    set_loss_mean: bool = False
 
 
 STAGE1_ORIGINAL = Stage1Config()
@@ -85,8 +95,13 @@ class Stage1Net(nn.Module):
         self.support_encoder = PointNet2Encoder(cfg.encoder)
         self.noise_mlp = SharedMLP(cfg.noise_mlp)
         self.trunk = SharedMLP(cfg.trunk)
+        if cfg.rotation not in ROTATIONS:
+            raise ValueError(
+                f"Stage1Config.rotation must be one of {ROTATIONS}, got {cfg.rotation!r}"
+            )
         self.translation_head = SharedMLP(cfg.head, activate_last=False)
-        self.rotation_head = SharedMLP(cfg.head, activate_last=False)
+        rot_out = cfg.head[-1] if cfg.rotation == "axis_angle" else 6
+        self.rotation_head = SharedMLP((*cfg.head[:-1], rot_out), activate_last=False)
 
     def encode(self, object_points: jax.Array, support_points: jax.Array):
         """object_points [B, N, 3], support_points [B, M, 3] float32 metres.
@@ -99,6 +114,13 @@ class Stage1Net(nn.Module):
 
     def decode(self, f_object: jax.Array, f_support: jax.Array, z: jax.Array) -> jax.Array:
         """f_object, f_support: [B, C]; z: [B, Z, noise_dim]. Returns pose6 [B, Z, 6]."""
+        t, rot = self.decode_raw(f_object, f_support, z)
+        if self.config.rotation == "axis_angle":
+            return jnp.concatenate([t, rot], axis=-1)
+        return jnp.concatenate([t, jaxlie.SO3.from_matrix(rotation_from_6d(rot)).log()], axis=-1)
+
+    def decode_raw(self, f_object: jax.Array, f_support: jax.Array, z: jax.Array):
+        """(translation [B, Z, 3], raw rotation output [B, Z, 3 (axis-angle) or 6 (6-D)])."""
         num_samples = z.shape[1]
         f_noise = self.noise_mlp(z)  # F^R
 
@@ -107,11 +129,28 @@ class Stage1Net(nn.Module):
 
         f_osr = jnp.concatenate([tile(f_object), tile(f_support), f_noise], axis=-1)
         h = self.trunk(f_osr)
-        return jnp.concatenate([self.translation_head(h), self.rotation_head(h)], axis=-1)
+        return self.translation_head(h), self.rotation_head(h)
 
     def __call__(self, object_points, support_points, z):
         """Encode once, decode Z noise samples: [B, N, 3], [B, M, 3], [B, Z, nz] -> [B, Z, 6]."""
         return self.decode(*self.encode(object_points, support_points), z)
+
+    def raw(self, object_points, support_points, z):
+        """The training path: (translation, raw rotation output), see ``decode_raw``."""
+        return self.decode_raw(*self.encode(object_points, support_points), z)
+
+
+ROTATIONS = ("axis_angle", "6d")
+
+
+def rotation_from_6d(x: jax.Array) -> jax.Array:
+    """[..., 6] (two 3-vectors a, b) -> [..., 3, 3] rotation with columns (e1, e2, e1 x e2):
+    e1 = a / |a|, e2 = the unit part of b orthogonal to e1 (Gram-Schmidt; Zhou et al. 2019)."""
+    a, b = x[..., :3], x[..., 3:]
+    e1 = a / jnp.maximum(jnp.linalg.norm(a, axis=-1, keepdims=True), 1e-8)
+    b = b - jnp.sum(e1 * b, -1, keepdims=True) * e1
+    e2 = b / jnp.maximum(jnp.linalg.norm(b, axis=-1, keepdims=True), 1e-8)
+    return jnp.stack([e1, e2, jnp.cross(e1, e2)], axis=-1)
 
 
 class Stage1Network(NamedTuple):
@@ -121,12 +160,15 @@ class Stage1Network(NamedTuple):
     apply(params, object_points [B,N,3], support_points [B,M,3], z [B,Z,nz]) -> pose6 [B,Z,6].
     propose(params, object_points, support_points, key, num_samples) -> pose6 [B,Z,6]
       (samples z ~ N(0, I) itself; ``num_samples`` must be static under jit).
+    propose_raw(...same...) -> (translation [B,Z,3], raw rotation [B,Z,3|6]): the loss's input
+      (no axis-angle log map in the gradient path of the 6-D head).
     """
 
     config: Stage1Config
     init: Callable
     apply: Callable
     propose: Callable
+    propose_raw: Callable
 
 
 def make_stage1(config: Stage1Config) -> Stage1Network:
@@ -144,9 +186,20 @@ def make_stage1(config: Stage1Config) -> Stage1Network:
     def apply(params, object_points, support_points, z):
         return module.apply({"params": params}, object_points, support_points, z)
 
-    def propose(params, object_points, support_points, key, num_samples: int):
+    def _noise(object_points, key, num_samples):
         batch = object_points.shape[0]
-        z = jax.random.normal(key, (batch, num_samples, config.noise_dim), jnp.float32)
+        return jax.random.normal(key, (batch, num_samples, config.noise_dim), jnp.float32)
+
+    def propose(params, object_points, support_points, key, num_samples: int):
+        z = _noise(object_points, key, num_samples)
         return apply(params, object_points, support_points, z)
 
-    return Stage1Network(config=config, init=init, apply=apply, propose=propose)
+    def propose_raw(params, object_points, support_points, key, num_samples: int):
+        z = _noise(object_points, key, num_samples)
+        return module.apply(
+            {"params": params}, object_points, support_points, z, method=Stage1Net.raw
+        )
+
+    return Stage1Network(
+        config=config, init=init, apply=apply, propose=propose, propose_raw=propose_raw
+    )

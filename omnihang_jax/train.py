@@ -29,6 +29,7 @@ import flax
 import flax.struct
 import jax
 import jax.numpy as jnp
+import jaxlie
 import numpy as np
 import optax
 import orbax.checkpoint as ocp
@@ -45,6 +46,7 @@ from omnihang_jax.stage1 import (
     STAGE1_TINY,
     Stage1Config,
     make_stage1,
+    rotation_from_6d,
 )
 from omnihang_jax.stage2 import (
     STAGE2_ORIGINAL,
@@ -225,12 +227,24 @@ def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
         net1 = make_stage1(cfg1)
 
         def stage1_loss(params, batch: HangSample, key):
-            pred = net1.propose(
+            t, raw = net1.propose_raw(
                 params, batch.object_points, batch.support_points, key, cfg1.num_train_samples
             )
             gt = pose7_to_pose6(batch.stable_poses)
+            if cfg1.rotation == "6d":
+                r_pred = rotation_from_6d(raw)
+                r_gt = rotation_matrix(gt[..., 3:])
+                dist = losses.pairwise_matrix_pose_distance(
+                    t, r_pred, gt[..., :3], r_gt, cfg1.translation_weight
+                )
+                rot6 = jaxlie.SO3.from_matrix(jax.lax.stop_gradient(r_pred)).log()
+                pred = jnp.concatenate([t, rot6], axis=-1)  # metrics only
+            else:
+                pred, dist = jnp.concatenate([t, raw], axis=-1), None
             loss = jnp.mean(
-                losses.pose_set_loss(pred, gt, batch.pose_mask, cfg1.translation_weight)
+                losses.pose_set_loss(
+                    pred, gt, batch.pose_mask, cfg1.translation_weight, dist, cfg1.set_loss_mean
+                )
             )
             # Coverage of the ground truth: nearest proposal per stable pose.
             dt = jnp.linalg.norm(pred[:, :, None, :3] - gt[:, None, :, :3], axis=-1)

@@ -23,6 +23,8 @@
 #   eval   derive the held-out pairs if absent; eval_stage3 on all 1,794 of them (the 1,814 of
 #          results/hanging_success.pairs.jsonl that keep stable poses under labels v3) for the new
 #          Stage 1 (+ the committed Stage 2b) with the committed V, and with the new V.
+# INIT1=none trains Stage 1 from scratch; S1_ARGS adds train_where flags, e.g. S1_ARGS="--stage1
+# rotation=6d --stage1 set_loss_mean=true" (a changed head needs INIT1=none).
 # VIEWS=2: also derive every pair's next candidate view (`--view 1`, ~100 s more) and train on
 # both (augmentation with real renders; DERIVE_S is then the budget per view).
 # Back in $OUT: full.log, where.tgz (stage-1 best + latest exports, the resumable checkpoint,
@@ -107,7 +109,8 @@ if [ "$CALL" = train ]; then
     $PY -m experiments.train_where --data "$C/pack" --out "$C/where" --preset small --stage 1 \
         --steps "${STEPS1:-30000}" --batch "${BATCH1:-128}" --lr-stage1 "${LR1:-5e-4}" \
         --warmup 300 --time-budget "1=$BUDGET" --eval-every 500 --checkpoint-every 1000 \
-        --init-from "$INIT1" --no-progress >>"$C/logs/where.log" 2>&1
+        $([ "$INIT1" != none ] && echo --init-from "$INIT1") ${S1_ARGS:-} --no-progress \
+        >>"$C/logs/where.log" 2>&1
     log "Stage 1: exit $? ($(tail -1 "$C/logs/where.log" | cut -c1-160))"
     export_where
     wait "$TEST_PID"
