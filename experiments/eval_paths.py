@@ -3,6 +3,12 @@ hanging pose with four collision checkers, and check every returned path with th
 
     python -m experiments.eval_paths --weights weights/collision_fast --pairs 40 \\
         --out out/paths --results results/paths.json --figure docs/img/paths.png
+    # nce_geometric: its settings on training validation pairs, then planning
+    python -m experiments.eval_paths --weights weights/collision_fast_gpu_near \\
+        --select-geometric out/paths_hybrid/selection.json --val-pairs 60
+    python -m experiments.eval_paths --weights weights/collision_fast_gpu_near --pairs 40 \\
+        --methods nce_geometric --geometric out/paths_hybrid/selection.json --time-limit 15 \\
+        --out out/paths_hybrid --results results/paths_hybrid.json
 
 Per held-out pair (``DATA/derived/collision/test``, derived on demand: a seeded random sample,
 round robin over the object categories) and its first stable pose (the paper's protocol: the dataset's stable
@@ -11,7 +17,11 @@ poses as goals), OMPL's RRT-Connect plans with (``omnihang_jax.planner``):
 - ``nce``: the neural collision estimator on the partial clouds;
 - ``hce``: the heuristic with normals predicted by the HCE normal net;
 - ``hce_true_normals``: the same heuristic with the ray-cast normals;
-- ``mesh``: MuJoCo on the full meshes (the paper's "ground truth" planner).
+- ``mesh``: MuJoCo on the full meshes (the paper's "ground truth" planner);
+- ``nce_geometric`` (not in the default run; ``--methods nce_geometric``): the NCE OR an
+  observed-cloud penetration test (``collision.nce_geometric_collides``: enough object points
+  behind the observed support surface), its depth / radius / min points chosen on training
+  validation pairs by ``--select-geometric`` (read back with ``--geometric``).
 
 Every returned path is interpolated every 2 mm (weighted SE(3) metric) and checked with the
 full meshes; a path is collision-free if no state penetrates deeper than 1 mm. Precision =
@@ -19,8 +29,8 @@ collision-free paths / paths returned, recall = pairs with a collision-free path
 F1; per object category and the mean over categories. Diagnostics: why paths are missing
 (time-outs, estimator calls the start invalid) and where returned paths collide.
 
-Writes ``--results`` (keys ``nce``, ``hce``, ``hce_true_normals``, ``mesh``: precision,
-recall, f1, per_category, median_planning_s, ...), ``OUT/pairs.jsonl`` (one line per pair and
+Writes ``--results`` (keys ``nce``, ``hce``, ``hce_true_normals``, ``mesh``,
+``nce_geometric``: precision, recall, f1, per_category, median_planning_s, ...), ``OUT/pairs.jsonl`` (one line per pair and
 method, resumable: pairs already there are not planned again), ``OUT/scenes/<pair>/<method>.xml``
 (the pair's MJCF with the path as keyframes: ``python -m mujoco.viewer --mjcf=...``) and
 with ``--figure`` a strip of frames of a few paths.
@@ -47,7 +57,8 @@ from experiments.train_collision import (
 )
 from omnihang_jax import collision, planner
 
-METHODS = ("nce", "hce", "hce_true_normals", "mesh")
+METHODS = ("nce", "hce", "hce_true_normals", "mesh")  # the default run
+ALL_METHODS = (*METHODS, "nce_geometric")
 
 
 class PairCase(NamedTuple):
@@ -106,6 +117,8 @@ class Estimators(NamedTuple):
     normals: object
     nce_far_threshold: float | None = None  # see goal_ball_collides
     nce_goal_ball: float = 0.0
+    geometric: collision.GeometricConfig = collision.GeometricConfig()
+    nce_geometric: object = None  # jitted collision.nce_geometric_collides
 
 
 def goal_ball_collides(config: collision.NCEConfig, far_threshold: float, ball: float):
@@ -131,9 +144,12 @@ def load_estimators(
     nce_threshold: float | None = None,
     nce_far_threshold: float | None = None,
     nce_goal_ball: float = 0.0,
+    geometric: collision.GeometricConfig = collision.GeometricConfig(),
 ) -> Estimators:
     """The estimators of a weights folder; ``nce_threshold`` overrides the NCE's threshold;
-    ``nce_far_threshold`` with ``nce_goal_ball`` > 0: :func:`goal_ball_collides`."""
+    ``nce_far_threshold`` with ``nce_goal_ball`` > 0: :func:`goal_ball_collides`;
+    ``geometric``: the penetration test of ``nce_geometric`` (the NCE with its own
+    threshold OR the test)."""
     nce_cfg, nce_params, _ = collision.load_estimator(Path(weights, "nce"))
     if nce_threshold is not None:
         nce_cfg = dataclasses.replace(nce_cfg, threshold=nce_threshold)
@@ -158,12 +174,143 @@ def load_estimators(
         jax.jit(lambda params, pts: net.apply(params, pts[None])[0]),
         nce_far_threshold if nce_goal_ball > 0 else None,
         nce_goal_ball,
+        geometric,
+        jax.jit(collision.nce_geometric_collides(nce_cfg, geometric)),
     )
 
 
-def checkers_for(case: PairCase, est: Estimators, tolerance: float) -> dict:
-    """The four checkers of one pair. The HCEs' support normals do not depend on the pose:
-    predicted once per pair (``collision.hce_collides`` computes the same per call)."""
+# ----------------------------------------------------------------------------------------------
+# nce_geometric: the observed-cloud penetration test's settings, chosen on validation pairs
+
+SELECT_DEPTHS = (0.0005, 0.001, 0.0015, 0.002, 0.003, 0.004)  # m
+SELECT_RADII = (0.002, 0.003, 0.004, 0.006, 0.01)  # m
+SELECT_MIN_POINTS = (0, 1, 2, 3, 5, 8, 12)
+
+
+def _geometric_grid(data, pair_rows, poses, geo: collision.GeometricConfig, depths, radii):
+    """Inside counts [L, D, R] of ``poses`` [L, 7] of pairs ``pair_rows`` [L] for every
+    (depth, radius), one support lookup table per pair."""
+    import jax.numpy as jnp
+
+    def counts(grid, object_cloud, poses):
+        posed = collision.transform_points(poses, object_cloud)
+        along, length, ok = collision.grid_offsets(grid, posed)
+        along = jnp.where(ok, along, 0.0)
+        return jnp.stack(
+            [
+                jnp.stack([collision.inside_points(along, length, d, r) for r in radii], -1)
+                for d in depths
+            ],
+            -2,
+        )
+
+    counts = jax.jit(counts)
+    out = np.zeros((len(pair_rows), len(depths), len(radii)), np.int32)
+    for p in np.unique(pair_rows):
+        rows = np.flatnonzero(pair_rows == p)
+        grid = collision.support_grid(
+            data.support_points[p], data.support_normals[p], geo.voxel, geo.max_voxels, geo.margin
+        )
+        oc = collision.subsample_cloud(data.object_points[p], geo.object_points, SUBSET_SEED_OBJECT)
+        for a in range(0, len(rows), 256):
+            r = rows[a : a + 256]
+            padded = np.concatenate([poses[r], np.repeat(poses[r[:1]], 256 - len(r), 0)])
+            out[r] = np.asarray(counts(grid, oc, padded))[: len(r)]
+    return out
+
+
+def select_geometric(
+    data: str,
+    weights: str,
+    val_pairs: int = 60,
+    goal_pass: float = 0.9,
+    geo: collision.GeometricConfig = collision.GeometricConfig(),
+    depths=SELECT_DEPTHS,
+    radii=SELECT_RADII,
+    min_points=SELECT_MIN_POINTS,
+) -> dict:
+    """The penetration test's (depth, radius, min_points) for ``nce_geometric``, on TRAINING
+    validation pairs (``pair_index % 20 == 0``, never trained on; ``train_collision
+    --val-every 20``), with their near-contact poses and mesh labels (colliding: deeper than
+    1 mm on the full meshes): among the settings at which the hybrid (NCE OR test) still
+    calls at least ``goal_pass`` of the stable poses free, the one with the highest
+    precision of "free" on the moved near-contact poses (ties: higher specificity)."""
+    from experiments.train_collision import (
+        NEAR_APPROACH,
+        NEAR_JITTER,
+        NEAR_LIFT,
+        NEAR_STABLE,
+        load_collision_data,
+        nce_score_fn,
+        score_poses,
+    )
+
+    files = derive_collision_pairs(
+        data, {"train": val_pairs}, 1, False, only=lambda i: i % 20 == 0
+    )["train"]
+    val = load_collision_data(files)
+    if any(m["split"] != "train" or m["pair_index"] % 20 for m in val.meta):
+        raise RuntimeError("validation pairs must be training-split pairs with index % 20 == 0")
+    t0 = time.time()
+    cfg, params, _ = collision.load_estimator(Path(weights, "nce"))
+    nce_fn = nce_score_fn(cfg, params)
+    prob = score_poses(
+        val, val.near_pair, val.near_poses, nce_fn, cfg.object_points, cfg.support_input
+    )
+    by_nce = prob > cfg.threshold
+    nce_s = time.time() - t0
+    counts = _geometric_grid(val, val.near_pair, val.near_poses, geo, depths, radii)
+    stable = val.near_kind == NEAR_STABLE
+    moved = ~stable
+    label = val.near_labels
+
+    def metrics(called):
+        m = collision.binary_metrics(called[moved], label[moved])
+        kinds = {"jitter": NEAR_JITTER, "approach": NEAR_APPROACH, "lift": NEAR_LIFT}
+        return dict(
+            goal_pass=float(np.mean(~called[stable])),
+            near_recall=m["recall"], near_precision=m["precision"],
+            free_precision=m["free_precision"], specificity=m["specificity"],
+            **{f"{k}_" + ("recall" if k == "jitter" else "specificity"): (
+                collision.binary_metrics(called[val.near_kind == v], label[val.near_kind == v])[
+                    "recall" if k == "jitter" else "specificity"
+                ]
+            ) for k, v in kinds.items()},
+        )  # fmt: skip
+
+    table, best = [], None
+    for i, d in enumerate(depths):
+        for j, r in enumerate(radii):
+            for m in min_points:
+                by_test = counts[:, i, j] > m
+                row = dict(depth=d, radius=r, min_points=m, **metrics(by_nce | by_test))
+                row["test_alone"] = metrics(by_test)
+                table.append(row)
+                ok = row["goal_pass"] >= goal_pass
+                key = (row["free_precision"], row["specificity"])
+                if ok and (best is None or key > (best["free_precision"], best["specificity"])):
+                    best = row
+    return dict(
+        validation_pairs=len(val.meta),
+        near_poses=int(moved.sum()),
+        stable_poses=int(stable.sum()),
+        colliding_fraction=float(label[moved].mean()),
+        goal_pass_target=goal_pass,
+        rule="max free precision (moved near poses) at hybrid goal pass >= target",
+        geometric=dataclasses.asdict(geo),
+        nce=dict(weights=weights, threshold=cfg.threshold, **metrics(by_nce)),
+        chosen=best,
+        table=table,
+        nce_s=round(nce_s, 1),
+        wall_s=round(time.time() - t0, 1),
+    )
+
+
+def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METHODS) -> dict:
+    """The checkers of one pair. The HCEs' support normals do not depend on the pose:
+    predicted once per pair (``collision.hce_collides`` computes the same per call); nor does
+    ``nce_geometric``'s support lookup table (built once per pair, outside the planning
+    clock, only when that method is asked for)."""
     sub = collision.subsample_cloud
     n_obj, n_sup = est.nce_config.object_points, est.nce_config.support_input
     nce_params = est.nce_params
@@ -194,8 +341,22 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float) -> dict:
         "hce_true_normals": heuristic(true, est.true_threshold),
         "mesh": planner.MeshChecker(case.scene, tolerance),
     }
-    for name in ("nce", "hce", "hce_true_normals"):  # compile outside the planning clock
-        checkers[name].warm_up()
+    if "nce_geometric" in methods:
+        geo = est.geometric
+        grid = collision.support_grid(
+            case.support_points, case.support_normals, geo.voxel, geo.max_voxels, geo.margin
+        )
+        params = collision.NCEGeometricParams(
+            est.nce_params,
+            jax.numpy.asarray(sub(case.object_points, geo.object_points, SUBSET_SEED_OBJECT)),
+            grid,
+        )
+        checkers["nce_geometric"] = planner.EstimatorChecker(
+            est.nce_geometric, params, nce.object_cloud, nce.support_cloud
+        )
+    for name in ("nce", "hce", "hce_true_normals", "nce_geometric"):  # compile outside the
+        if name in checkers:  # planning clock
+            checkers[name].warm_up()
     return checkers
 
 
@@ -207,7 +368,7 @@ def evaluate_pair(case: PairCase, est: Estimators, config: planner.PlannerConfig
     goal = case.goal
     start = planner.start_pose(scene, goal)
     mesh = planner.MeshChecker(scene, config.penetration_tolerance)
-    checkers = checkers_for(case, est, config.penetration_tolerance)
+    checkers = checkers_for(case, est, config.penetration_tolerance, methods)
     base = dict(
         pair=case.name,
         **case.meta,
@@ -381,6 +542,21 @@ def main(argv=None) -> dict:
         default=0.0,
         help="m (planner metric): within it the NCE's threshold, beyond it --nce-far-threshold",
     )
+    parser.add_argument(
+        "--select-geometric",
+        default=None,
+        metavar="JSON",
+        help="choose nce_geometric's depth / radius / min points on --val-pairs training "
+        "validation pairs, write them to JSON and stop (no planning)",
+    )
+    parser.add_argument("--val-pairs", type=int, default=60, help="for --select-geometric")
+    parser.add_argument(
+        "--geometric",
+        default=None,
+        metavar="JSON",
+        help="nce_geometric's settings: a --select-geometric file (its 'chosen' row); "
+        "default collision.GeometricConfig()",
+    )
     parser.add_argument("--out", default="out/paths")
     parser.add_argument("--results", default=None, help="summary JSON (default OUT/paths.json)")
     parser.add_argument("--figure", default=None, help="strip-of-frames PNG")
@@ -388,15 +564,25 @@ def main(argv=None) -> dict:
     parser.add_argument("--workers", type=int, default=1, help="derive processes")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    if args.select_geometric:
+        sel = select_geometric(args.data, args.weights, args.val_pairs)
+        Path(args.select_geometric).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.select_geometric).write_text(json.dumps(sel, indent=1))
+        print(json.dumps({"nce": sel["nce"], "chosen": sel["chosen"]}, indent=1))
+        return sel
     methods = tuple(m for m in args.methods.split(",") if m)
-    bad = [m for m in methods if m not in METHODS]
+    bad = [m for m in methods if m not in ALL_METHODS]
     if bad:
-        raise SystemExit(f"unknown methods {bad}; choose from {METHODS}")
+        raise SystemExit(f"unknown methods {bad}; choose from {ALL_METHODS}")
     config = planner.PlannerConfig(time_limit=args.time_limit, goal_radius=args.goal_radius)
     out = Path(args.out)
     (out / "scenes").mkdir(parents=True, exist_ok=True)
+    geo = collision.GeometricConfig()
+    if args.geometric:
+        chosen = json.loads(Path(args.geometric).read_text())["chosen"]
+        geo = dataclasses.replace(geo, **{k: chosen[k] for k in ("depth", "radius", "min_points")})
     est = load_estimators(
-        args.weights, args.nce_threshold, args.nce_far_threshold, args.nce_goal_ball
+        args.weights, args.nce_threshold, args.nce_far_threshold, args.nce_goal_ball, geo
     )
     cases = load_pairs(args.data, args.pairs, args.workers, not args.no_progress)
     jsonl = out / "pairs.jsonl"
@@ -429,6 +615,8 @@ def main(argv=None) -> dict:
         nce_config=est.nce_config.__dict__,
         normal_config=est.normal_config.__dict__,
         hce_true_normals_threshold=est.true_threshold,
+        geometric=dataclasses.asdict(est.geometric) if "nce_geometric" in methods else None,
+        geometric_settings_from=args.geometric,
         nce_far_threshold=est.nce_far_threshold,
         nce_goal_ball_m=est.nce_goal_ball,
         goal="first stable pose of each held-out pair",

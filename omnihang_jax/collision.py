@@ -1,6 +1,6 @@
 """Collision estimators on partial point clouds: how the planner decides a pose is free.
 
-Three estimators share one signature, so that OMPL's planner (``omnihang_jax.planner``, host
+The estimators share one signature, so that OMPL's planner (``omnihang_jax.planner``, host
 side) sees them as interchangeable state-validity checkers::
 
     collides(params, object_cloud [N, 3], support_cloud [M, 3], poses [B, 7]) -> [B] bool
@@ -23,9 +23,18 @@ are pure and un-jitted; the caller wraps them in ``jax.jit`` once and then check
 - **HCE with true normals**: the same score with the support cloud's ray-cast normals, a
   reference for how much the normal net loses. ``params`` = those normals ``[M, 3]``.
 
+- **NCE + observed-cloud check** (``nce_geometric``, not in the paper): the NCE OR a
+  penetration test on the observed clouds (:class:`GeometricConfig`): the pose collides when
+  an object point lies more than ``depth`` behind its nearest observed support point's
+  surface (along that point's ray-cast outward normal) and within ``radius`` of it sideways.
+  The NCE calls most poses a few mm inside a rod free; this catches them. ``params`` =
+  :class:`NCEGeometricParams` (the NCE's, a denser object cloud, a per-pair nearest-support
+  lookup table :func:`support_grid`).
+
 Factories (:func:`make_nce`, :func:`make_normal_net`) hide the Flax modules and return plain
 init / apply functions; :func:`nce_collides`, :func:`hce_collides`,
-:func:`hce_true_normals_collides` return the ``collides`` functions.
+:func:`hce_true_normals_collides`, :func:`geometric_collides`,
+:func:`nce_geometric_collides` return the ``collides`` functions.
 """
 
 from __future__ import annotations
@@ -68,6 +77,16 @@ __all__ = [
     "nce_probability",
     "hce_collides",
     "hce_true_normals_collides",
+    "nearest_support_offsets",
+    "GeometricConfig",
+    "SupportGrid",
+    "support_grid",
+    "grid_offsets",
+    "inside_points",
+    "penetration_count",
+    "geometric_collides",
+    "NCEGeometricParams",
+    "nce_geometric_collides",
     "subsample_cloud",
     "save_estimator",
     "load_estimator",
@@ -294,6 +313,32 @@ def normal_loss(predicted: jax.Array, true: jax.Array) -> jax.Array:
     return -jnp.mean(jnp.sum(predicted * true, axis=-1))
 
 
+def nearest_support_offsets(
+    posed: jax.Array, support_cloud: jax.Array, support_normals: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """For every posed point [B, N, 3] (support frame), its offset to the nearest support
+    point s_k of ``support_cloud`` [M, 3]: (component along s_k's outward normal n_k [B, N]
+    (negative: behind the observed surface), length of the offset [B, N]). Shared by the
+    HCE score and, exactly, the observed-cloud penetration test (:func:`grid_offsets`)."""
+    support_cloud, support_normals = jnp.asarray(support_cloud), jnp.asarray(support_normals)
+
+    def one(points):
+        d2 = (
+            jnp.sum(points**2, -1)[:, None]
+            - 2.0 * points @ support_cloud.T
+            + jnp.sum(support_cloud**2, -1)[None, :]
+        )
+        k = jnp.argmin(d2, axis=1)
+        offset = points - support_cloud[k]
+        return jnp.sum(offset * support_normals[k], -1), jnp.linalg.norm(offset, axis=-1)
+
+    # poses in chunks of at most 2**24 distances (64 MB): memory stays bounded for large B
+    b, per_pose = posed.shape[0], posed.shape[1] * support_cloud.shape[0]
+    if b * per_pose > 2**24:
+        return jax.lax.map(one, posed, batch_size=max(1, min(b, 2**24 // per_pose)))
+    return jax.vmap(one)(posed)
+
+
 def heuristic_score(
     object_cloud: jax.Array, support_cloud: jax.Array, support_normals: jax.Array, poses
 ) -> jax.Array:
@@ -304,21 +349,8 @@ def heuristic_score(
     and n_k; the score is minus its mean over the object points (higher: deeper inside)."""
     support_cloud, support_normals = jnp.asarray(support_cloud), jnp.asarray(support_normals)
     posed = transform_points(jnp.asarray(poses), jnp.asarray(object_cloud))  # [B, N, 3]
-
-    def one(points):
-        d2 = (
-            jnp.sum(points**2, -1)[:, None]
-            - 2.0 * points @ support_cloud.T
-            + jnp.sum(support_cloud**2, -1)[None, :]
-        )
-        k = jnp.argmin(d2, axis=1)
-        offset = points - support_cloud[k]
-        cosine = jnp.sum(offset * support_normals[k], -1) / (
-            jnp.linalg.norm(offset, axis=-1) + 1e-9
-        )
-        return -jnp.mean(cosine)
-
-    return jax.lax.map(one, posed) if posed.shape[0] > 256 else jax.vmap(one)(posed)
+    along, length = nearest_support_offsets(posed, support_cloud, support_normals)
+    return -jnp.mean(along / (length + 1e-9), axis=-1)
 
 
 def hce_collides(config: NormalNetConfig) -> Callable:
@@ -339,6 +371,156 @@ def hce_true_normals_collides(threshold: float) -> Callable:
 
     def collides(params, object_cloud, support_cloud, poses):
         return heuristic_score(object_cloud, support_cloud, params, poses) > threshold
+
+    return collides
+
+
+# ----------------------------------------------------------------------------------------------
+# Observed-cloud penetration test, alone and OR-ed with the NCE (``nce_geometric``)
+
+
+@dataclasses.dataclass(frozen=True)
+class GeometricConfig:
+    """Observed-cloud penetration test: an object point is *inside* when, relative to its
+    nearest observed support point s (outward normal n), it lies more than ``depth`` behind
+    the surface (offset . n < -depth) and within ``radius`` of s sideways (the offset minus
+    its normal part): a point beside the observed surface, e.g. behind a rod whose nearest
+    observed point is on the rod's silhouette, does not count. The pose collides when more
+    than ``min_points`` object points are inside.
+
+    object_points: size of the planner's fixed subset of the 4,096-point object cloud (seed
+    0). The support side is the whole observed support cloud through a nearest-point lookup
+    table (:func:`support_grid`: ``voxel`` m cells, at most ``max_voxels``, the cloud's box
+    grown by ``margin``). Defaults: the setting chosen on 60 training-split validation pairs
+    (``experiments.eval_paths --select-geometric``; docs/paths.md, "Hybrid NCE +
+    observed-cloud check").
+    """
+
+    depth: float = 0.001
+    radius: float = 0.003
+    min_points: int = 0
+    object_points: int = 4096
+    voxel: float = 0.001
+    max_voxels: int = 2_000_000
+    margin: float = 0.01
+
+
+class SupportGrid(NamedTuple):
+    """Nearest observed support point of every cell of a voxel grid over the support cloud
+    (host-built once per pair, :func:`support_grid`): the lookup replaces a search over all
+    M support points per object point (~25 ms a pose on this CPU for 1,024 x 4,096)."""
+
+    origin: jax.Array  # [3] corner of cell (0, 0, 0)
+    voxel: jax.Array  # [] cell size, m
+    dims: jax.Array  # [3] int32 cells per axis (X, Y, Z)
+    # [max_voxels] int32: index of the support point nearest the centre of cell (i, j, k) at
+    # (i * Y + j) * Z + k, -1 beyond ``reach`` and in the padding: one shape for every pair,
+    # so the planner's jitted checker compiles once, not per pair
+    nearest: jax.Array
+    points: jax.Array  # [M, 3] support cloud (support frame)
+    normals: jax.Array  # [M, 3] its outward normals
+
+
+def support_grid(
+    support_cloud: np.ndarray,
+    support_normals: np.ndarray,
+    voxel: float = 0.001,
+    max_voxels: int = 2_000_000,
+    margin: float = 0.01,
+    reach: float = 0.015,
+) -> SupportGrid:
+    """Host: the :class:`SupportGrid` of a support cloud [M, 3] with outward normals; cells of
+    ``voxel`` m (coarsened until the grid has at most ``max_voxels`` cells) over the cloud's
+    box grown by ``margin``. A point's nearest support point is that of its cell's centre:
+    within half a cell diagonal of the true nearest distance."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(support_cloud, np.float32)
+    lo = points.min(0) - margin
+    extent = points.max(0) + margin - lo
+    while np.prod(np.ceil(extent / voxel)) > max_voxels:
+        voxel *= 1.25
+    shape = tuple(int(x) for x in np.ceil(extent / voxel))
+    axes = [lo[i] + voxel * (np.arange(shape[i]) + 0.5) for i in range(3)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    # cells farther than ``reach`` from every support point: -1, never inside
+    _, idx = cKDTree(points).query(centres, distance_upper_bound=reach)
+    flat = np.full(max_voxels, -1, np.int32)
+    flat[: len(idx)] = np.where(idx < len(points), idx, -1)
+    return SupportGrid(
+        jnp.asarray(lo, jnp.float32),
+        jnp.asarray(voxel, jnp.float32),
+        jnp.asarray(shape, jnp.int32),
+        jnp.asarray(flat),
+        jnp.asarray(points),
+        jnp.asarray(support_normals, jnp.float32),
+    )
+
+
+def grid_offsets(grid: SupportGrid, posed: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """:func:`nearest_support_offsets` through the lookup table: posed [B, N, 3] -> (along
+    the normal [B, N], offset length [B, N], in the grid and within its reach [B, N] bool)."""
+    cell = jnp.floor((posed - grid.origin) / grid.voxel).astype(jnp.int32)
+    dims = grid.dims
+    in_grid = jnp.all((cell >= 0) & (cell < dims), axis=-1)
+    cell = jnp.clip(cell, 0, dims - 1)
+    k = grid.nearest[(cell[..., 0] * dims[1] + cell[..., 1]) * dims[2] + cell[..., 2]]
+    in_grid = in_grid & (k >= 0)
+    k = jnp.maximum(k, 0)
+    offset = posed - grid.points[k]
+    return jnp.sum(offset * grid.normals[k], -1), jnp.linalg.norm(offset, axis=-1), in_grid
+
+
+def inside_points(along: jax.Array, length: jax.Array, depth: float, radius: float):
+    """[..., N] offsets to the nearest support points -> [...] int32 count of points more
+    than ``depth`` behind the surface and within ``radius`` of the point sideways."""
+    lateral2 = length**2 - along**2
+    return jnp.sum((along < -depth) & (lateral2 < radius**2), axis=-1, dtype=jnp.int32)
+
+
+def penetration_count(
+    object_cloud: jax.Array, grid: SupportGrid, poses: jax.Array, depth: float, radius: float
+) -> jax.Array:
+    """Object points inside the observed support (:class:`GeometricConfig`) per pose:
+    object_cloud [N, 3] (object frame), poses [B, 7] -> [B] int32."""
+    posed = transform_points(jnp.asarray(poses), jnp.asarray(object_cloud))
+    along, length, in_grid = grid_offsets(grid, posed)
+    return inside_points(jnp.where(in_grid, along, 0.0), length, depth, radius)
+
+
+def geometric_collides(config: GeometricConfig) -> Callable:
+    """``collides(SupportGrid, object_cloud, support_cloud, poses) -> [B] bool``: the
+    observed-cloud penetration test alone (the support cloud is the grid's; the argument is
+    there for the common signature and not read)."""
+
+    def collides(params, object_cloud, support_cloud, poses):
+        count = penetration_count(object_cloud, params, poses, config.depth, config.radius)
+        return count > config.min_points
+
+    return collides
+
+
+class NCEGeometricParams(NamedTuple):
+    """``nce_geometric``'s parameters: the NCE's, and the penetration test's own object cloud
+    (denser than the NCE's 256 points) and support lookup table."""
+
+    nce: dict
+    object_points: jax.Array  # [N', 3] object frame
+    grid: SupportGrid
+
+
+def nce_geometric_collides(config: NCEConfig, geometric: GeometricConfig) -> Callable:
+    """``collides(NCEGeometricParams, object_cloud, support_cloud, poses) -> [B] bool``: the
+    NCE on its clouds (``object_cloud``, ``support_cloud``: the NCE's subsets) OR the
+    observed-cloud penetration test. The test only adds "colliding" calls: a pose near
+    contact that the NCE lets through is caught when enough object points lie behind the
+    observed support surface."""
+    nce = nce_collides(config)
+    test = geometric_collides(geometric)
+
+    def collides(params, object_cloud, support_cloud, poses):
+        by_nce = nce(params.nce, object_cloud, support_cloud, poses)
+        return by_nce | test(params.grid, params.object_points, None, poses)
 
     return collides
 

@@ -3,6 +3,8 @@ outside, batched and unbatched calls agree, and the NCE learns collisions from l
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import jax
 import mujoco
 import numpy as np
@@ -254,3 +256,45 @@ def test_crop_support_keeps_the_points_nearest_to_the_object_and_batches_agree()
     batched = np.asarray(prob(params, oc, sc, poses))
     single = np.array([np.asarray(prob(params, oc, sc, p[None]))[0] for p in poses])
     np.testing.assert_allclose(batched, single, rtol=1e-4, atol=1e-5)
+
+
+def _patch(rng, n=3000, half=0.03):
+    """A 6 x 6 cm flat support patch at z = 0 (~1 mm apart), outward normals +z."""
+    pts = np.concatenate([rng.uniform(-half, half, (n, 2)), np.zeros((n, 1))], 1)
+    return pts.astype(np.float32), np.tile([0, 0, 1.0], (n, 1)).astype(np.float32)
+
+
+def test_penetration_test_calls_5mm_inside_colliding_and_5mm_above_free():
+    rng = np.random.default_rng(3)
+    patch, normals = _patch(rng)
+    grid = collision.support_grid(patch, normals, max_voxels=200_000)
+    # the lookup table finds the nearest support point (up to half a cell) like the search
+    pts = rng.uniform([-0.025, -0.025, -0.008], [0.025, 0.025, 0.008], (1, 200, 3))
+    along, length, ok = collision.grid_offsets(grid, jax.numpy.asarray(pts, jax.numpy.float32))
+    exact_along, exact_length = collision.nearest_support_offsets(pts, patch, normals)
+    assert np.all(np.asarray(ok))
+    np.testing.assert_allclose(np.asarray(along), np.asarray(exact_along), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(length), np.asarray(exact_length), atol=1.5e-3)
+    # a 2 x 2 cm flat object cloud 5 mm inside (below) the patch, and 5 mm above it
+    obj = np.concatenate([rng.uniform(-0.01, 0.01, (64, 2)), np.zeros((64, 1))], 1)
+    poses = np.array([[0, 0, -0.005, 1, 0, 0, 0], [0, 0, 0.005, 1, 0, 0, 0]], np.float32)
+    geo = collision.GeometricConfig(depth=0.002, radius=0.004, min_points=2, object_points=64)
+    test = jax.jit(collision.geometric_collides(geo))
+    np.testing.assert_array_equal(np.asarray(test(grid, obj, None, poses)), [True, False])
+    # beside the patch (5 cm off its edge, 5 mm lower): nothing observed there, free
+    beside = np.array([[0.08, 0, -0.005, 1, 0, 0, 0]], np.float32)
+    assert not bool(test(grid, obj, None, beside)[0])
+    # nce_geometric = NCE OR test: with an NCE that never collides it is the test; with one
+    # that always does, everything collides; batched == one pose at a time
+    cfg = collision.NCE_PRESETS["tiny"]
+    params = collision.make_nce(cfg).init(jax.random.key(0))
+    oc = rng.uniform(-0.01, 0.01, (cfg.object_points, 3)).astype(np.float32)
+    sc = patch[: cfg.support_points]
+    hybrid_params = collision.NCEGeometricParams(params, jax.numpy.asarray(obj), grid)
+    many = np.concatenate([poses, beside, _random_poses(rng, 5, 0.01)])
+    for threshold, want in ((1.1, np.asarray(test(grid, obj, None, many))), (-0.1, True)):
+        hybrid = jax.jit(collision.nce_geometric_collides(replace(cfg, threshold=threshold), geo))
+        batched = np.asarray(hybrid(hybrid_params, oc, sc, many))
+        np.testing.assert_array_equal(batched, np.broadcast_to(want, batched.shape))
+        single = [bool(hybrid(hybrid_params, oc, sc, p[None])[0]) for p in many]
+        np.testing.assert_array_equal(batched, single)
