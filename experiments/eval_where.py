@@ -22,11 +22,58 @@ later from the per-pair JSONL without the model:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from pathlib import Path
 
 from experiments import _cli
 from omnihang_jax import evaluate
+
+
+@contextlib.contextmanager
+def stage2_clearance(clearance: float | None):
+    """While active, ``evaluate.evaluate_where`` loads its predictor with
+    ``Stage2Config.clearance = clearance`` and passes each pair's observed support normals to
+    it (``Predictor(..., support_normals=...)``). None changes nothing.
+
+    (evaluate.EvalConfig has no Stage-2 field yet: the two module functions it looks up at
+    call time are swapped here and restored on exit.)
+    """
+    if clearance is None:
+        yield
+        return
+    import jax
+    import numpy as np
+
+    from omnihang_jax import predict as predict_lib
+
+    load, wrap = predict_lib.load_predictor, evaluate.predictor_fn
+
+    def load_with_clearance(folder, seed=0, stage2_overrides=None):
+        return load(folder, seed, {**(stage2_overrides or {}), "clearance": clearance})
+
+    def predictor_fn(predictor, num_proposals=None, seed=0):
+        base = jax.random.key(seed)
+
+        def predict(sample, meta):
+            out = predictor(
+                np.asarray(sample.object_points)[None],
+                np.asarray(sample.support_points)[None],
+                key=jax.random.fold_in(base, int(meta["pair_index"])),
+                num_proposals=num_proposals,
+                support_normals=np.asarray(sample.support_normals)[None],
+            )
+            return evaluate.PairPrediction(
+                np.asarray(out.stage1_poses[0]), np.asarray(out.stage2_poses[0])
+            )
+
+        return predict
+
+    predict_lib.load_predictor, evaluate.predictor_fn = load_with_clearance, predictor_fn
+    try:
+        yield
+    finally:
+        predict_lib.load_predictor, evaluate.predictor_fn = load, wrap
 
 
 def main(argv=None) -> dict:
@@ -55,6 +102,15 @@ def main(argv=None) -> dict:
         action="store_true",
         help="back every proposal out of the observed support cloud along its outward "
         "normal before it is scored (omnihang_jax.heuristics.separate; before --select)",
+    )
+    parser.add_argument(
+        "--stage2-clearance",
+        type=float,
+        default=None,
+        metavar="M",
+        help="Stage-2 clearance in metres (Stage2Config.clearance; default: the model's, 0): "
+        "the Stage-2 pose moves M along the mean outward normal of the observed support "
+        "cloud (the pair's support_normals) at its chosen support contact points",
     )
     parser.add_argument("--backend", choices=["cpu", "mjx"], default="cpu")
     parser.add_argument(
@@ -132,19 +188,24 @@ def main(argv=None) -> dict:
         seed=args.seed,
         split=args.split,
     )
-    results = evaluate.evaluate_where(
-        None if args.model == "ground_truth" else args.model,
-        args.data,
-        args.out,
-        errors_path=args.errors,
-        pairs_path=args.pairs_out,
-        config=config,
-        label=args.label,
-        reference=not args.no_reference,
-        limit=args.limit,
-        per_category=args.per_category,
-        progress=not args.no_progress,
-    )
+    with stage2_clearance(args.stage2_clearance):
+        results = evaluate.evaluate_where(
+            None if args.model == "ground_truth" else args.model,
+            args.data,
+            args.out,
+            errors_path=args.errors,
+            pairs_path=args.pairs_out,
+            config=config,
+            label=args.label,
+            reference=not args.no_reference,
+            limit=args.limit,
+            per_category=args.per_category,
+            progress=not args.no_progress,
+        )
+    if args.stage2_clearance is not None:
+        results["stage2_clearance_m"] = args.stage2_clearance
+        results["protocol"]["stage2_clearance_m"] = args.stage2_clearance
+        Path(args.out).write_text(json.dumps(results, indent=1) + "\n")
     brief = {k: results[k] for k in ("stage1", "stage1_2", "pairs")}
     if "by_judge" in results:
         brief["by_judge"] = {

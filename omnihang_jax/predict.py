@@ -8,6 +8,7 @@ on the host (NaN clouds raise ValueError here, not inside jit) and calls the jit
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -44,11 +45,21 @@ class Prediction(NamedTuple):
 
 def make_predict(stage1_config: Stage1Config, stage2_config: Stage2Config) -> Callable:
     """``predict(stage1_params, stage2_params, object_points [B,N,3], support_points [B,M,3],
-    key, num_proposals) -> Prediction``. Pure and un-jitted; ``num_proposals`` is static."""
+    key, num_proposals, support_normals=None [B,M,3]) -> Prediction``. Pure and un-jitted;
+    ``num_proposals`` is static. The support normals serve only Stage 2's clearance
+    (``Stage2Config.clearance``; without them Stage 2 estimates them)."""
     stage1 = make_stage1(stage1_config)
     stage2 = make_stage2(stage2_config)
 
-    def predict(stage1_params, stage2_params, object_points, support_points, key, num_proposals):
+    def predict(
+        stage1_params,
+        stage2_params,
+        object_points,
+        support_points,
+        key,
+        num_proposals,
+        support_normals=None,
+    ):
         batch, n, _ = object_points.shape
         m = support_points.shape[1]
         k = num_proposals
@@ -61,7 +72,11 @@ def make_predict(stage1_config: Stage1Config, stage2_config: Stage2Config) -> Ca
             return x.reshape((batch, k) + x.shape[1:])
 
         out = stage2.refine(
-            stage2_params, tile(object_points, n), tile(support_points, m), pose6.reshape(-1, 6)
+            stage2_params,
+            tile(object_points, n),
+            tile(support_points, m),
+            pose6.reshape(-1, 6),
+            None if support_normals is None else tile(support_normals, m),
         )
         return Prediction(
             stage1_poses=pose6_to_pose7(pose6),
@@ -78,8 +93,9 @@ def make_predict(stage1_config: Stage1Config, stage2_config: Stage2Config) -> Ca
 class Predictor:
     """Host-side wrapper: validated inputs, one jitted call, numpy outputs.
 
-    predictor(object_points [B,N,3], support_points [B,M,3], key=None, num_proposals=None)
-    -> Prediction of numpy arrays. Unbatched [N,3] / [M,3] clouds are accepted too (B = 1).
+    predictor(object_points [B,N,3], support_points [B,M,3], key=None, num_proposals=None,
+    support_normals=None [B,M,3]) -> Prediction of numpy arrays. Unbatched [N,3] / [M,3]
+    clouds are accepted too (B = 1). ``support_normals`` only matter for a Stage-2 clearance.
     """
 
     def __init__(self, stage1_config, stage1_params, stage2_config, stage2_params, seed: int = 0):
@@ -93,12 +109,31 @@ class Predictor:
             make_predict(stage1_config, stage2_config), static_argnames="num_proposals"
         )
 
-    def __call__(self, object_points, support_points, key=None, num_proposals: int | None = None):
+    def __call__(
+        self,
+        object_points,
+        support_points,
+        key=None,
+        num_proposals: int | None = None,
+        support_normals=None,
+    ):
         object_points = np.asarray(object_points, np.float32)
         support_points = np.asarray(support_points, np.float32)
+        if support_normals is not None:
+            support_normals = np.asarray(support_normals, np.float32)
+            if support_normals.ndim == 2:
+                support_normals = support_normals[None]
         if object_points.ndim == 2 and support_points.ndim == 2:
             object_points, support_points = object_points[None], support_points[None]
         check_point_clouds(object_points, support_points)
+        if support_normals is not None and (
+            support_normals.shape != support_points.shape
+            or not np.all(np.isfinite(support_normals))
+        ):
+            raise ValueError(
+                f"support_normals must be finite and shaped like the support cloud "
+                f"{support_points.shape}, got {support_normals.shape}"
+            )
         if object_points.shape[0] != support_points.shape[0]:
             raise ValueError(
                 f"batch sizes differ: {object_points.shape[0]} objects, "
@@ -110,14 +145,18 @@ class Predictor:
         k = num_proposals or self.stage1_config.num_eval_samples
         out = self._predict(
             self.stage1_params, self.stage2_params, object_points, support_points, key,
-            num_proposals=k,
+            num_proposals=k, support_normals=support_normals,
         )  # fmt: skip
         return Prediction(*(np.asarray(x) for x in out))
 
 
-def load_predictor(folder: str | os.PathLike, seed: int = 0) -> Predictor:
+def load_predictor(
+    folder: str | os.PathLike, seed: int = 0, stage2_overrides: dict | None = None
+) -> Predictor:
     """Rebuild the predictor from a training folder holding ``stage1/`` and ``stage2b/``
-    (each with config.json + checkpoints/), as written by ``train.train_where``."""
+    (each with config.json + checkpoints/), as written by ``train.train_where``.
+    ``stage2_overrides``: inference-only ``Stage2Config`` fields to replace, e.g.
+    ``{"clearance": 0.004}``."""
     folder = os.fspath(folder)
     stages = {}
     for stage in ("stage1", "stage2b"):
@@ -129,7 +168,8 @@ def load_predictor(folder: str | os.PathLike, seed: int = 0) -> Predictor:
             )
         stages[stage] = restore_stage(path)
     (config1, params1, _), (config2, params2, _) = stages["stage1"], stages["stage2b"]
-    return Predictor(config1.stage1, params1, config2.stage2, params2, seed=seed)
+    stage2_config = dataclasses.replace(config2.stage2, **(stage2_overrides or {}))
+    return Predictor(config1.stage1, params1, stage2_config, params2, seed=seed)
 
 
 def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.PathLike,

@@ -56,6 +56,8 @@ __all__ = [
     "positive_scores",
     "select_correspondences",
     "solve_translation",
+    "estimate_support_normals",
+    "clearance_offset",
 ]
 
 
@@ -91,6 +93,14 @@ class Stage2Config:
     # offsets, so without this 2b cannot tell which object point sits next to which support
     # point; with it the near pairs of the (roughly posed) clouds are the natural candidates.
     pair_offset_scale: float = 0.0
+    # Clearance (ours, issue 14; 0 = paper, bit-identical): after the translation is solved,
+    # the object moves this far (metres) along the mean outward normal of the observed support
+    # cloud at the chosen (weighted) support correspondence points: contact points solved ON
+    # each other leave no gap, and a posed object then often starts > 3 mm inside the support.
+    # Normals: the cloud's own (``refine(..., support_normals=...)``) or, without them, a PCA
+    # estimate over ``clearance_neighbours`` support points (``estimate_support_normals``).
+    clearance: float = 0.0
+    clearance_neighbours: int = 16
 
     @property
     def feature_dim(self) -> int:
@@ -333,6 +343,44 @@ def solve_translation(
     return jnp.sum(w * residual, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1e-12)
 
 
+def estimate_support_normals(
+    support_points: jax.Array, query_indices: jax.Array, away_from: jax.Array, neighbours: int
+) -> jax.Array:
+    """PCA normals of the support cloud at some of its points (fallback without normals).
+
+    support_points [B, M, 3], query_indices [B, K] int32, away_from [B, 3]: the posed object's
+    centroid (a hanging object's centroid lies below / beyond its contacts, so the support's
+    outward normal there points away from it), neighbours: points per neighbourhood. The
+    normal at a query point is the least-variance axis of its ``neighbours`` nearest support
+    points, signed so that it points away from ``away_from``. Returns unit normals [B, K, 3].
+    """
+    query = gather_points(support_points, query_indices)  # [B, K, 3]
+    d2 = squared_distance(query[:, :, None], support_points[:, None])  # [B, K, M]
+    _, near = jax.lax.top_k(-d2, neighbours)  # [B, K, nb]
+    batch, k, _ = near.shape
+    local = gather_points(support_points, near.reshape(batch, k * neighbours)).reshape(
+        batch, k, neighbours, 3
+    )
+    centred = local - jnp.mean(local, axis=2, keepdims=True)
+    cov = jnp.einsum("bkni,bknj->bkij", centred, centred)
+    _, vectors = jnp.linalg.eigh(cov)  # ascending eigenvalues
+    normal = vectors[..., :, 0]
+    side = jnp.sum(normal * (query - away_from[:, None]), axis=-1, keepdims=True)
+    return jnp.where(side < 0, -normal, normal)
+
+
+def clearance_offset(support_normals: jax.Array, weights: jax.Array, clearance: float) -> jax.Array:
+    """Translation offset [B, 3] = clearance * unit(sum_i w_i n_i).
+
+    support_normals [B, K, 3] outward normals at the chosen support points, weights [B, K]
+    (``Correspondences.weight``). A zero mean normal gives a zero offset.
+    """
+    mean = jnp.sum(weights[..., None] * support_normals, axis=1)
+    norm = jnp.sqrt(jnp.sum(mean * mean, axis=-1, keepdims=True))
+    unit = jnp.where(norm > 1e-9, mean / jnp.maximum(norm, 1e-9), 0.0)
+    return clearance * unit
+
+
 class Stage2Output(NamedTuple):
     """Result of ``Stage2Network.refine`` for B poses.
 
@@ -359,7 +407,9 @@ class Stage2Network(NamedTuple):
     correspond(params, object_features [B,K1,W], support_features [B,K2,W], object_xyz=None,
       support_xyz=None) -> logits [B,K1,K2,2] (xyz: posed candidate positions, needed when
       ``pair_offset_scale > 0``).
-    refine(params, object_points [B,N,3], support_points [B,M,3], pose6 [B,6]) -> Stage2Output.
+    refine(params, object_points [B,N,3], support_points [B,M,3], pose6 [B,6],
+      support_normals=None [B,M,3]) -> Stage2Output (normals: only for ``config.clearance``;
+      without them a PCA estimate is used).
     """
 
     config: Stage2Config
@@ -397,7 +447,7 @@ def make_stage2(config: Stage2Config) -> Stage2Network:
             method=Stage2Net.correspond,
         )
 
-    def refine(params, object_points, support_points, pose6):
+    def refine(params, object_points, support_points, pose6, support_normals=None):
         n = object_points.shape[1]
         points, flags = combine_clouds(transform_points(pose6, object_points), support_points)
         features, scores = contact(params, points, flags)
@@ -420,6 +470,17 @@ def make_stage2(config: Stage2Config) -> Stage2Network:
             gather_points(support_points, support_indices),
             chosen.weight,
         )
+        if config.clearance != 0.0:  # static: clearance 0 traces today's function exactly
+            if support_normals is None:
+                # PCA normals, signed away from the posed object's centroid.
+                posed = jnp.concatenate([translation, pose6[:, 3:]], axis=-1)
+                centroid = jnp.mean(transform_points(posed, object_points), axis=1)
+                normals = estimate_support_normals(
+                    support_points, support_indices, centroid, config.clearance_neighbours
+                )
+            else:
+                normals = gather_points(support_normals.astype(jnp.float32), support_indices)
+            translation = translation + clearance_offset(normals, chosen.weight, config.clearance)
         return Stage2Output(
             pose6=jnp.concatenate([translation, pose6[:, 3:]], axis=-1),
             object_indices=object_indices,

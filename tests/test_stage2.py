@@ -10,6 +10,7 @@ from omnihang_jax import data, losses, poses, train
 from omnihang_jax.stage2 import (
     STAGE2_ORIGINAL,
     STAGE2_TINY,
+    clearance_offset,
     combine_clouds,
     correspondence_labels,
     make_stage2,
@@ -136,6 +137,40 @@ def test_refine_shapes_and_combined_cloud():
     s = np.take_along_axis(batch.support_points, np.asarray(out.support_indices)[..., None], 1)
     t = solve_translation(poses.rotation_matrix(pose6[:, 3:]), o, s, out.weight)
     np.testing.assert_allclose(out.pose6[:, :3], t, atol=1e-6)
+
+
+def test_clearance_moves_along_support_normal_and_zero_is_identical():
+    """Flat support patch (z = 0, normals +z), object points on it: a clearance c moves the
+    Stage-2 translation by exactly c along +z; c = 0 leaves the result bit-identical."""
+    rng = np.random.default_rng(0)
+    m = n = 128
+    support = np.zeros((2, m, 3), np.float32)
+    support[..., :2] = rng.uniform(-0.05, 0.05, (2, m, 2))
+    normals = np.broadcast_to(np.array([0, 0, 1], np.float32), (2, m, 3))
+    obj = np.zeros((2, n, 3), np.float32)  # object hangs below its contact points
+    obj[..., :2] = rng.uniform(-0.03, 0.03, (2, n, 2))
+    obj[:, n // 2 :, 2] = -rng.uniform(0.01, 0.1, (2, n - n // 2))
+    pose6 = np.concatenate([rng.normal(0, 0.01, (2, 3)), np.zeros((2, 3))], -1).astype(np.float32)
+    params = jax.jit(make_stage2(STAGE2_TINY).init)(jax.random.key(0))
+
+    def refine(clearance, with_normals=True):
+        net = make_stage2(dataclasses.replace(STAGE2_TINY, clearance=clearance))
+        return jax.jit(net.refine)(params, obj, support, pose6, normals if with_normals else None)
+
+    base = jax.jit(make_stage2(STAGE2_TINY).refine)(params, obj, support, pose6)
+    for out in (refine(0.0), refine(0.0, with_normals=False)):
+        for a, b in zip(out, base, strict=True):
+            np.testing.assert_array_equal(a, b)  # bit-identical
+    c = 0.004
+    for with_normals in (True, False):  # given normals, then the PCA fallback
+        out = refine(c, with_normals)
+        np.testing.assert_array_equal(out.support_indices, base.support_indices)
+        np.testing.assert_array_equal(out.pose6[:, 3:], base.pose6[:, 3:])
+        np.testing.assert_allclose(out.pose6[:, :3] - base.pose6[:, :3], [[0, 0, c]] * 2, atol=1e-7)
+    np.testing.assert_allclose(
+        clearance_offset(jnp.asarray(normals[:, :3]), jnp.asarray([[1, 1, 0], [0, 0, 0]]), c),
+        [[0, 0, c], [0, 0, 0]],  # zero weights -> no offset
+    )
 
 
 def _memorise_config():
