@@ -22,58 +22,11 @@ later from the per-pair JSONL without the model:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 from pathlib import Path
 
 from experiments import _cli
 from omnihang_jax import evaluate
-
-
-@contextlib.contextmanager
-def stage2_clearance(clearance: float | None):
-    """While active, ``evaluate.evaluate_where`` loads its predictor with
-    ``Stage2Config.clearance = clearance`` and passes each pair's observed support normals to
-    it (``Predictor(..., support_normals=...)``). None changes nothing.
-
-    (evaluate.EvalConfig has no Stage-2 field yet: the two module functions it looks up at
-    call time are swapped here and restored on exit.)
-    """
-    if clearance is None:
-        yield
-        return
-    import jax
-    import numpy as np
-
-    from omnihang_jax import predict as predict_lib
-
-    load, wrap = predict_lib.load_predictor, evaluate.predictor_fn
-
-    def load_with_clearance(folder, seed=0, stage2_overrides=None):
-        return load(folder, seed, {**(stage2_overrides or {}), "clearance": clearance})
-
-    def predictor_fn(predictor, num_proposals=None, seed=0):
-        base = jax.random.key(seed)
-
-        def predict(sample, meta):
-            out = predictor(
-                np.asarray(sample.object_points)[None],
-                np.asarray(sample.support_points)[None],
-                key=jax.random.fold_in(base, int(meta["pair_index"])),
-                num_proposals=num_proposals,
-                support_normals=np.asarray(sample.support_normals)[None],
-            )
-            return evaluate.PairPrediction(
-                np.asarray(out.stage1_poses[0]), np.asarray(out.stage2_poses[0])
-            )
-
-        return predict
-
-    predict_lib.load_predictor, evaluate.predictor_fn = load_with_clearance, predictor_fn
-    try:
-        yield
-    finally:
-        predict_lib.load_predictor, evaluate.predictor_fn = load, wrap
 
 
 def main(argv=None) -> dict:
@@ -187,21 +140,21 @@ def main(argv=None) -> dict:
         judge=args.judge,
         seed=args.seed,
         split=args.split,
+        stage2_clearance=args.stage2_clearance,
     )
-    with stage2_clearance(args.stage2_clearance):
-        results = evaluate.evaluate_where(
-            None if args.model == "ground_truth" else args.model,
-            args.data,
-            args.out,
-            errors_path=args.errors,
-            pairs_path=args.pairs_out,
-            config=config,
-            label=args.label,
-            reference=not args.no_reference,
-            limit=args.limit,
-            per_category=args.per_category,
-            progress=not args.no_progress,
-        )
+    results = evaluate.evaluate_where(
+        None if args.model == "ground_truth" else args.model,
+        args.data,
+        args.out,
+        errors_path=args.errors,
+        pairs_path=args.pairs_out,
+        config=config,
+        label=args.label,
+        reference=not args.no_reference,
+        limit=args.limit,
+        per_category=args.per_category,
+        progress=not args.no_progress,
+    )
     if args.stage2_clearance is not None:
         results["stage2_clearance_m"] = args.stage2_clearance
         results["protocol"]["stage2_clearance_m"] = args.stage2_clearance

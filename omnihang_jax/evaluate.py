@@ -100,6 +100,9 @@ class EvalConfig:
     judge: str = "mujoco"
     seed: int = 0  # Stage-1 noise: key = fold_in(key(seed), pair_index)
     split: str = "test"
+    # Stage2Config.clearance for the loaded model (None: the model's own, 0 unless trained
+    # otherwise): the Stage-2 pose moves this far along the observed support normal
+    stage2_clearance: float | None = None
 
 
 class PairPrediction(NamedTuple):
@@ -115,7 +118,8 @@ PredictFn = Callable[[HangSample, dict], PairPrediction]
 
 def predictor_fn(predictor, num_proposals: int | None = None, seed: int = 0) -> PredictFn:
     """Wrap an ``omnihang_jax.predict.Predictor`` as a per-pair ``PredictFn`` (deterministic:
-    the Stage-1 noise of a pair depends only on ``seed`` and its pair index)."""
+    the Stage-1 noise of a pair depends only on ``seed`` and its pair index). The pair's
+    observed support normals go with the clouds (Stage 2's clearance direction)."""
     import jax
 
     base = jax.random.key(seed)
@@ -126,6 +130,7 @@ def predictor_fn(predictor, num_proposals: int | None = None, seed: int = 0) -> 
             np.asarray(sample.support_points)[None],
             key=jax.random.fold_in(base, int(meta["pair_index"])),
             num_proposals=num_proposals,
+            support_normals=np.asarray(sample.support_normals)[None],
         )
         return PairPrediction(np.asarray(out.stage1_poses[0]), np.asarray(out.stage2_poses[0]))
 
@@ -536,7 +541,10 @@ def evaluate_where(
     if model_dir is not None:
         from omnihang_jax.predict import load_predictor
 
-        predictor = load_predictor(model_dir, seed=config.seed)
+        overrides = None
+        if config.stage2_clearance is not None:
+            overrides = {"clearance": float(config.stage2_clearance)}
+        predictor = load_predictor(model_dir, seed=config.seed, stage2_overrides=overrides)
         k = config.num_proposals or predictor.stage1_config.num_eval_samples
         predict = predictor_fn(predictor, k, config.seed)
         if config.separate:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -246,6 +247,21 @@ def test_evaluate_where_writes_results(derived, library, tmp_path):
     for stage in ("stage1", "stage1_2"):
         assert records[0][stage]["status"] in kernels.STATUS_NAMES
         assert np.isfinite(records[0][stage]["pose"]).all()
+
+    # EvalConfig.stage2_clearance reaches Stage 2 with the pair's observed support normals:
+    # the Stage-2 translation moves by exactly the clearance, Stage 1 is untouched.
+    sample, meta = dataset_bridge.load_pair_file(files[0])
+    moved = Predictor(
+        STAGE1_TINY,
+        predictor.stage1_params,
+        dataclasses.replace(STAGE2_TINY, clearance=0.006),
+        predictor.stage2_params,
+    )
+    a = evaluate.predictor_fn(predictor, 2)(sample, meta)
+    b = evaluate.predictor_fn(moved, 2)(sample, meta)
+    np.testing.assert_array_equal(a.stage1_poses, b.stage1_poses)
+    shift = np.linalg.norm(b.stage2_poses[:, :3] - a.stage2_poses[:, :3], axis=-1)
+    np.testing.assert_allclose(shift, 0.006, atol=1e-5)
 
 
 def test_stage2_from_ground_truth_diagnostic(derived):
