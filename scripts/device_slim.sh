@@ -14,6 +14,8 @@ LIST=(
     results/hanging_success_stage3_k10.pairs.jsonl.gz results/hanging_success_stage3_separated.pairs.jsonl.gz
     results/hanging_success_stage3_cem2rounds.pairs.jsonl.gz results/hanging_success_stage3.pairs.jsonl.gz
     weights/collision_fast_cpu weights/collision_fast_cpu_far weights/collision_fast_cpu_stable
+    results/hanging_success_stage3_s8.pairs.jsonl.gz results/hanging_success_stage2_clearance_8mm.pairs.jsonl.gz
+    results/paths_hybrid.pairs.jsonl results/train_where_session8 results/stage3_train_s8
 )
 case ${1:-} in
 out)
