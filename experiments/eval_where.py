@@ -155,10 +155,6 @@ def main(argv=None) -> dict:
         per_category=args.per_category,
         progress=not args.no_progress,
     )
-    if args.stage2_clearance is not None:
-        results["stage2_clearance_m"] = args.stage2_clearance
-        results["protocol"]["stage2_clearance_m"] = args.stage2_clearance
-        Path(args.out).write_text(json.dumps(results, indent=1) + "\n")
     brief = {k: results[k] for k in ("stage1", "stage1_2", "pairs")}
     if "by_judge" in results:
         brief["by_judge"] = {

@@ -14,27 +14,20 @@ No simulation: the per-pair outcomes are the evaluation's.
 from __future__ import annotations
 
 import argparse
-import gzip
 import json
 import os
 
 import numpy as np
 
 from experiments import _cli
+from experiments.summarise_heldout import STAGES, category_mean, read_rows
 
-STAGES = ("stage1", "stage1_2", "stage1_3", "all_stages")
 GROUPS = {
     (False, True): "unseen object, seen support",
     (True, False): "seen object, unseen support",
     (False, False): "unseen object, unseen support",
     (True, True): "seen object, seen support",
 }
-
-
-def _rows(path: str) -> list[dict]:
-    opener = gzip.open if path.endswith(".gz") else open
-    with opener(path, "rt") as f:
-        return [json.loads(line) for line in f if line.strip()]
 
 
 def readings(rows: list[dict], recipe: dict) -> dict:
@@ -49,13 +42,10 @@ def readings(rows: list[dict], recipe: dict) -> dict:
     for name, members in groups.items():
         entry = {"pairs": len(members)}
         for stage in stages:
-            per_cat: dict[str, list[bool]] = {}
-            for r in members:
-                per_cat.setdefault(r["category"], []).append(bool(r[stage]["success"]))
             entry[stage] = {
-                "mean_over_categories": 100 * float(np.mean([np.mean(v) for v in per_cat.values()])),
+                "mean_over_categories": category_mean(members, stage),
                 "mean_over_pairs": 100 * float(np.mean([bool(r[stage]["success"]) for r in members])),
-                "categories": len(per_cat),
+                "categories": len({r["category"] for r in members}),
             }  # fmt: skip
         out[name] = entry
     return out
@@ -71,9 +61,7 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     with open(os.path.join(args.data, "recipe.json")) as f:
         recipe = json.load(f)
-    rows = _rows(args.pairs)
-    if not rows:
-        raise ValueError(f"{args.pairs}: no pairs")
+    rows = read_rows(args.pairs)  # raises on an empty file
     missing = [k for k in ("object", "support", "category") if k not in rows[0]]
     if missing:
         raise ValueError(f"{args.pairs}: rows lack {missing}; not an evaluation's per-pair file")

@@ -25,7 +25,7 @@ from experiments import _cli
 
 
 def main(argv=None) -> dict:
-    from omnihang_jax import data, evaluate, predict
+    from omnihang_jax import dataset_bridge, evaluate, predict
     from omnihang_jax.poses import pose6_to_pose7
     from omnihang_jax.stage1 import make_stage1
 
@@ -46,7 +46,7 @@ def main(argv=None) -> dict:
     rows: dict[str, list] = {"random_first": [], "zero": [], "best_of_4_random": []}
     key = jax.random.key(args.seed)
     for f in tqdm(files, desc="pairs"):
-        s = data._load_npz_sample(f)
+        s, _ = dataset_bridge.load_pair_file(f)
         key, k = jax.random.split(key)
         z = jax.random.normal(k, (1, 5, where.stage1_config.noise_dim)).at[:, 1].set(0.0)
         obj, sup = jnp.asarray(s.object_points)[None], jnp.asarray(s.support_points)[None]

@@ -29,14 +29,19 @@ STAGES = ("stage1", "stage1_2", "stage1_3", "all_stages")
 ERRORS = ("translation_error_m", "rotation_error_deg", "min_rotation_error_deg")
 
 
-def read_pairs(path: str) -> dict[int, dict]:
-    """Rows of a per-pair JSONL (optionally gzipped), by pair index."""
+def read_rows(path: str) -> list[dict]:
+    """Rows of a per-pair JSONL (optionally gzipped); ValueError when it has none."""
     opener = gzip.open if path.endswith(".gz") else open
     with opener(path, "rt") as f:
         rows = [json.loads(line) for line in f if line.strip()]
     if not rows:
         raise ValueError(f"{path}: no pairs")
-    return {int(r["pair_index"]): r for r in rows}
+    return rows
+
+
+def read_pairs(path: str) -> dict[int, dict]:
+    """Rows of a per-pair JSONL (optionally gzipped), by pair index."""
+    return {int(r["pair_index"]): r for r in read_rows(path)}
 
 
 def category_mean(rows: list[dict], stage: str, key: str = "success") -> float:

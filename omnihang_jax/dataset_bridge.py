@@ -216,6 +216,12 @@ def derive_dataset(
     if view and not clouds_only:
         raise ValueError("view >= 1 is only for clouds-only derives (training inputs)")
     config = scaled_config(dataset_config_from_recipe(recipe), camera_scale)
+
+    def folder(split: str) -> str:  # e.g. train, train_clouds, train_clouds_r50_v1
+        name = f"{split}_clouds" if clouds_only else split
+        name += f"_r{round(camera_scale * 100)}" if camera_scale != 1.0 else ""
+        return name + (f"_v{view}" if view else "")
+
     out = Path(out_dir) if out_dir is not None else dataset_dir / DERIVED_DIRNAME
     records = _records(dataset_dir)
     pairs = recipe["pairs"]
@@ -237,12 +243,7 @@ def derive_dataset(
         if len(record["stable_poses"]) == 0:
             no_stable.append(index)
             continue
-        folder = f"{split}_clouds" if clouds_only else split
-        if camera_scale != 1.0:
-            folder += f"_r{round(camera_scale * 100)}"
-        if view:
-            folder += f"_v{view}"
-        path = out / folder / pair_file_name(index, obj_name, sup_name)
+        path = out / folder(split) / pair_file_name(index, obj_name, sup_name)
         counts[split] += 1
         if path.exists():
             skipped_existing += 1
@@ -276,12 +277,7 @@ def derive_dataset(
         "preset": recipe.get("preset"),
         "pairs_in_shards": len(records),
         "pairs_planned": len(pairs),
-        "files_per_split": {
-            (f"{k}_clouds" if clouds_only else k)
-            + (f"_r{round(camera_scale * 100)}" if camera_scale != 1.0 else "")
-            + (f"_v{view}" if view else ""): v
-            for k, v in counts.items()
-        },
+        "files_per_split": {folder(k): v for k, v in counts.items()},
         "clouds_only": clouds_only,
         "camera_resolution": [config.camera.width, config.camera.height],
         "view": view,

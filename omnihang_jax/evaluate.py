@@ -593,6 +593,7 @@ def evaluate_where(
             ),
             "select": config.select,
             "separate": config.separate,
+            "stage2_clearance_m": config.stage2_clearance,
             "stage1_2": "Stage-2 refinement of the same proposal",
             "success": "status stable after 1 s from rest; fails if initial penetration > 3 mm, "
             "boxes stop overlapping, ground touched or simulation diverged",

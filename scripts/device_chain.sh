@@ -25,26 +25,10 @@
 # here, .venv first on PATH), CHAIN_TINY=1 (tiny presets and sizes for a local dry run).
 set -uo pipefail
 CALL=${1:?usage: device_chain.sh train|eval}
-T0=$(date +%s)
-OUT=${OUT:-/tmp/out}
 C=/tmp/chain
 END_S=${END_S:-575}
-mkdir -p "$OUT" "$C/logs"
-log() { echo "[$(($(date +%s) - T0)) s] $*" | tee -a "$OUT/chain.log"; }
-left() { echo $((END_S - $(date +%s) + T0)); }
-PY=${PY:-python3}
-
-if [ -z "${SKIP_INSTALL:-}" ] && [ ! -e /tmp/site/mujoco ]; then
-    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
-        .whl_min/*.whl .whl_train/*.whl || { log "wheel install failed"; exit 5; }
-fi
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
-log "call $CALL; earlier calls on this machine: $(tr '\n' ' ' <"$C/calls" 2>/dev/null)"
-echo "$CALL" >>"$C/calls"
-command -v nvidia-smi >/dev/null && nvidia-smi -L | tee -a "$OUT/chain.log"
-if [ ! -e "$C/ds/recipe.json" ]; then
-    mkdir -p "$C/ds" && cp -r datasets/paper/recipe.json datasets/paper/shards "$C/ds/"
-fi
+LOG=chain.log
+. scripts/device_preamble.sh
 
 TINY=${CHAIN_TINY:-}
 PRESETS1=${PRESETS1:-small}
@@ -114,7 +98,7 @@ if [ "$CALL" = eval ]; then
     timeout $(($(left) - 10)) $PY -m experiments.eval_stage3 --data "$C/ds" --weights "$W" \
         --value "$V" --pairs-from results/hanging_success.pairs.jsonl --workers 15 --batch 16 \
         --out "$OUT/hanging_success_stage3.json" --label "${LABEL:-seventh session, held-out}" \
-        --no-progress 2>&1 | tail -30 | tee -a "$OUT/chain.log"
+        --no-progress 2>&1 | tail -30 | tee -a "$OUT/$LOG"
     gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
     log "done"
     exit 0
@@ -152,5 +136,5 @@ bring_back_where
 wait "$DERIVE_PID"
 log "derive: $(n_train) train pairs"
 wait_parts
-ls -la "$OUT" | tee -a "$OUT/chain.log"
+ls -la "$OUT" | tee -a "$OUT/$LOG"
 log "done"

@@ -31,25 +31,10 @@
 # metrics, validation curve, logs), stage3.tgz, eval JSONs (+ pairs .jsonl.gz).
 set -uo pipefail
 CALL=${1:?usage: device_full.sh train|eval}
-T0=$(date +%s)
-OUT=${OUT:-/tmp/out}
 C=/tmp/full
 END_S=${END_S:-570}
-mkdir -p "$OUT" "$C/logs"
-log() { echo "[$(($(date +%s) - T0)) s] $*" | tee -a "$OUT/full.log"; }
-left() { echo $((END_S - $(date +%s) + T0)); }
-PY=${PY:-python3}
-if [ -z "${SKIP_INSTALL:-}" ] && [ ! -e /tmp/site/mujoco ]; then
-    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
-        .whl_min/*.whl .whl_train/*.whl || { log "wheel install failed"; exit 5; }
-fi
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
-log "call $CALL; earlier calls on this machine: $(cat "$C/calls" 2>/dev/null | tr "\n" " ")"
-echo "$CALL" >>"$C/calls"
-command -v nvidia-smi >/dev/null && nvidia-smi -L | tee -a "$OUT/full.log"
-if [ ! -e "$C/ds/recipe.json" ]; then
-    mkdir -p "$C/ds" && cp -r datasets/paper/recipe.json datasets/paper/shards "$C/ds/"
-fi
+LOG=full.log
+. scripts/device_preamble.sh
 SCALE=${CAMERA_SCALE:-0.5}
 CLOUDS=train_clouds_r$($PY -c "print(round($SCALE * 100))")
 INIT1=${INIT1:-weights/where_small_paper}
@@ -115,7 +100,7 @@ if [ "$CALL" = train ]; then
     export_where
     wait "$TEST_PID"
     [ -n "${S3_PID:-}" ] && { wait "$S3_PID"; log "Stage-3 part: exit $?"; }
-    ls -la "$OUT" | tee -a "$OUT/full.log"
+    ls -la "$OUT" | tee -a "$OUT/$LOG"
     log "done"
     exit 0
 fi
@@ -137,7 +122,7 @@ NEWV=$C/stage3/run/value
 evaluate() {  # value label out
     timeout $(($(left) - 10)) $PY -m experiments.eval_stage3 --data "$C/ds" --weights "$W" \
         --value "$1" --pairs-from "$HELDOUT" --workers 15 --batch 16 --out "$OUT/$3.json" \
-        --label "$2" --no-progress 2>&1 | tail -12 | tee -a "$OUT/full.log"
+        --label "$2" --no-progress 2>&1 | tail -12 | tee -a "$OUT/$LOG"
 }
 log "eval: Stages 1-2 $W"
 evaluate weights/value_small_paper "eighth session: Stage 1 fine-tuned on all training pairs, committed V" \

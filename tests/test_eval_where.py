@@ -226,6 +226,7 @@ def test_evaluate_where_writes_results(derived, library, tmp_path):
         assert saved[stage]["mean"] == 100.0
     for key in ("pairs", "model", "dataset", "protocol"):
         assert key in saved
+    assert saved["protocol"]["stage2_clearance_m"] is None  # the model's own
     errors = json.loads((tmp_path / "errors.json").read_text())
     assert {"stage1", "stage2"} <= set(errors)
     lines = (tmp_path / "success.pairs.jsonl").read_text().splitlines()
