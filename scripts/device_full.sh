@@ -45,21 +45,31 @@ derive_test() {  # workers
         --workers "$1" --pairs-from "$HELDOUT" --no-progress >>"$C/logs/derive_test.log" 2>&1
     log "held-out pairs derived: $(ls "$C/ds/derived/test" | wc -l)"
 }
-export_where() {
-    $PY - >>"$C/logs/export.log" 2>&1 <<EOF
+export_where() {  # RUN NAME: stage-1 best + latest (+ Stage 2b) -> $C/export_NAME (base: also $C/export)
+    local run=$1 name=$2 ex=$C/export_$2 rel=${1#"$C"/}
+    local s2b=$INIT1/stage2b
+    [ "$INIT1" = none ] && s2b=weights/where_small_paper/stage2b
+    $PY - >>"$C/logs/export_$name.log" 2>&1 <<EOF
 import shutil
 from omnihang_jax import train
 for which in ("best", "latest"):
-    dst = "$C/export/" + which
-    print(which, train.export_weights("$C/where", dst, ("1",), which=which))
-    shutil.copytree("$INIT1/stage2b", dst + "/stage2b", dirs_exist_ok=True)
+    dst = "$ex/" + which
+    print(which, train.export_weights("$run", dst, ("1",), which=which))
+    shutil.copytree("$s2b", dst + "/stage2b", dirs_exist_ok=True)
 EOF
-    (cd "$C" && tar -czf "$OUT/where.tgz" export logs where/stage1/config.json \
-        where/stage1/metrics.jsonl where/stage1/val_metrics.jsonl where/stage1/throughput.json \
-        where/stage1/loss.png where/stage1/best 2>/dev/null)
+    [ "$name" = base ] && ln -sfn "$ex" "$C/export"
+    (cd "$C" && tar -czf "$OUT/where_$name.tgz" "export_$name" logs "$rel/stage1/config.json" \
+        "$rel/stage1/metrics.jsonl" "$rel/stage1/val_metrics.jsonl" "$rel/stage1/throughput.json" \
+        "$rel/stage1/loss.png" 2>/dev/null)
     # the resumable checkpoint (params + Adam state, ~9 MB) for a bare next machine
-    (cd "$C" && tar -czf "$OUT/where_ckpt.tgz" where/stage1 2>/dev/null)
-    log "exported: $(tr '\n' ' ' <"$C/logs/export.log" | tail -c 300)"
+    (cd "$C" && tar -czf "$OUT/where_${name}_ckpt.tgz" "$rel/stage1" 2>/dev/null)
+    log "exported $name: $(tr '\n' ' ' <"$C/logs/export_$name.log" | tail -c 300)"
+}
+VALPAIRS=results/validation_pairs.jsonl
+derive_val() {  # WORKERS: the 396 pairs of validation OBJECTS (36 a category), full recipe
+    timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split train \
+        --workers "${1:-2}" --pairs-from "$VALPAIRS" --no-progress >>"$C/logs/derive_val.log" 2>&1
+    log "validation pairs derived: $(ls "$C/ds/derived/train" 2>/dev/null | wc -l)"
 }
 
 if [ "$CALL" = train ]; then
@@ -87,17 +97,27 @@ if [ "$CALL" = train ]; then
             >>"$C/logs/stage3_part.log" 2>&1 &
         S3_PID=$!
     fi
-    derive_test 3 &
+    (derive_test 3; derive_val 3) &
     TEST_PID=$!
     BUDGET=$(($(left) - 45))
-    log "Stage 1 for ${BUDGET} s from $INIT1"
-    $PY -m experiments.train_where --data "$C/pack" --out "$C/where" --preset small --stage 1 \
-        --steps "${STEPS1:-30000}" --batch "${BATCH1:-128}" --lr-stage1 "${LR1:-5e-4}" \
-        --warmup 300 --time-budget "1=$BUDGET" --eval-every 500 --checkpoint-every 1000 \
-        $([ "$INIT1" != none ] && echo --init-from "$INIT1") ${S1_ARGS:-} --no-progress \
-        >>"$C/logs/where.log" 2>&1
-    log "Stage 1: exit $? ($(tail -1 "$C/logs/where.log" | cut -c1-160))"
-    export_where
+    # S1_VARIANTS: Stage-1 runs side by side on the one GPU, same data and budget; name -> flags
+    declare -A S1V=([base]="" [aa]="" [6d]="--stage1 rotation=6d" [mean]="--stage1 set_loss_mean=true")
+    PIDS=
+    for name in ${S1_VARIANTS:-base}; do
+        dir=$C/where$([ "$name" != base ] && echo "_$name")
+        log "Stage 1 ($name) for ${BUDGET} s from $INIT1 into $dir"
+        $PY -m experiments.train_where --data "$C/pack" --out "$dir" --preset small --stage 1 \
+            --steps "${STEPS1:-30000}" --batch "${BATCH1:-128}" --lr-stage1 "${LR1:-5e-4}" \
+            --warmup 300 --time-budget "1=$BUDGET" --eval-every 500 --checkpoint-every 1000 \
+            $([ "$INIT1" != none ] && echo --init-from "$INIT1") ${S1V[$name]} ${S1_ARGS:-} \
+            --no-progress >>"$C/logs/where_$name.log" 2>&1 &
+        PIDS="$PIDS $!"
+    done
+    for p in $PIDS; do wait "$p"; log "Stage 1 run $p: exit $?"; done
+    for name in ${S1_VARIANTS:-base}; do
+        log "Stage 1 ($name): $(tail -1 "$C/logs/where_$name.log" | cut -c1-200)"
+        export_where "$C/where$([ "$name" != base ] && echo "_$name")" "$name"
+    done
     wait "$TEST_PID"
     [ -n "${S3_PID:-}" ] && { wait "$S3_PID"; log "Stage-3 part: exit $?"; }
     ls -la "$OUT" | tee -a "$OUT/$LOG"
