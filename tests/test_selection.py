@@ -1,0 +1,130 @@
+"""omnihang_jax.selection: the observed-cloud inside counts and the answer rules, and
+experiments.rerank_stage3 on synthetic records."""
+
+import gzip
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from experiments import rerank_stage3
+from omnihang_jax import selection
+
+IDENTITY = [1.0, 0.0, 0.0, 0.0]
+
+
+def plane_support(size=0.04, step=0.002):
+    """A flat observed support: points on z = 0, outward normal +z."""
+    xs = np.arange(-size, size + 1e-9, step)
+    pts = np.stack(np.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+    points = np.concatenate([pts, np.zeros((len(pts), 1))], 1).astype(np.float32)
+    normals = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (len(points), 1))
+    return points, normals
+
+
+def small_object():
+    rng = np.random.default_rng(0)
+    return rng.uniform(-0.005, 0.005, (64, 3)).astype(np.float32)
+
+
+def test_inside_counts_follow_the_observed_surface():
+    sup, nrm = plane_support()
+    obj = small_object()
+    poses = np.array([
+        [0.0, 0.0, 0.05] + IDENTITY,  # 5 cm above: nothing inside
+        [0.0, 0.0, -0.02] + IDENTITY,  # 2 cm below: every point inside
+        [0.0, 0.0, 0.0] + IDENTITY,  # straddling: the points below -1 mm
+        [0.2, 0.0, -0.02] + IDENTITY,  # below the plane's level but far beside it
+    ], np.float32)  # fmt: skip
+    counts = np.asarray(selection.inside_counts(obj, sup, nrm, poses, 0.001, 0.003))
+    assert counts[0] == 0
+    assert counts[1] == len(obj)
+    assert counts[2] == int(np.sum(obj[:, 2] < -0.001))
+    assert counts[3] == 0  # beside the observed surface: not inside
+
+
+def test_grid_counts_equal_single_counts_and_jit():
+    sup, nrm = plane_support()
+    obj = small_object()
+    poses = np.array([[0.0, 0.0, z] + IDENTITY for z in (-0.004, -0.001, 0.0, 0.003)], np.float32)
+    grid = selection.INSIDE_GRID[:4]
+    many = jax.jit(selection.inside_counts_grid, static_argnames="grid")(
+        obj, sup, nrm, poses, grid=grid
+    )
+    for g, (d, r) in enumerate(grid):
+        one = selection.inside_counts(obj, sup, nrm, poses, d, r)
+        np.testing.assert_array_equal(np.asarray(many[g]), np.asarray(one))
+    # deeper thresholds never count more points
+    full = np.asarray(selection.inside_counts_grid(obj, sup, nrm, poses))
+    depths = sorted({d for d, _ in selection.INSIDE_GRID})
+    for r in {r for _, r in selection.INSIDE_GRID}:
+        rows = [selection.INSIDE_GRID.index((d, r)) for d in depths]
+        assert np.all(np.diff(full[rows], axis=0) <= 0)
+
+
+def test_rules():
+    v = jnp.array([0.9, 0.8, 0.3, 0.1])
+    counts = jnp.array([12, 0, 0, 3])
+    assert int(selection.select(v, counts, selection.SelectConfig())) == 0
+    clear = selection.SelectConfig("value_clear", max_points=0)
+    assert int(selection.select(v, counts, clear)) == 1
+    assert (
+        int(selection.select(v, counts, selection.SelectConfig("value_clear", max_points=20))) == 0
+    )
+    # every candidate inside: the fewest inside points, ties by V
+    assert int(selection.select(v, jnp.array([5, 4, 4, 9]), clear)) == 1
+    # batched over leading axes
+    both = selection.select(jnp.stack([v, v]), jnp.stack([counts, jnp.zeros(4, int)]), clear)
+    np.testing.assert_array_equal(np.asarray(both), [1, 0])
+
+
+def test_config_is_checked():
+    with pytest.raises(ValueError, match="rule"):
+        selection.SelectConfig("best")
+    with pytest.raises(ValueError, match="radius"):
+        selection.SelectConfig("value_clear", radius=0.0)
+
+
+def _records(n_per_cat=6, k=5):
+    """Pairs where V's favourite refined candidate is inside the support and falls, while a
+    clear one (lower V) hangs in half the pairs."""
+    rows = []
+    for c in ("mug", "cap"):
+        for i in range(n_per_cat):
+            v = np.linspace(0.1, 0.2, 4 * k + 1)
+            stable = np.zeros(4 * k + 1, bool)
+            counts = np.zeros(4 * k + 1, int)
+            counts[3 * k + 4] = 30  # the highest-V refined candidate: inside, falls
+            v[3 * k + 4] = 0.99
+            if i % 2 == 0:
+                stable[3 * k + 3] = True  # the clear candidate of the highest V hangs
+            rows.append({
+                "category": c, "v": v.tolist(), "stable_all": stable.tolist(),
+                "inside_counts": {selection.grid_key(d, r): counts.tolist()
+                                  for d, r in selection.INSIDE_GRID},
+            })  # fmt: skip
+    return rows
+
+
+def test_rerank_picks_the_clear_rule(tmp_path):
+    path = tmp_path / "val.pairs.jsonl.gz"
+    with gzip.open(path, "wt") as f:
+        f.writelines(json.dumps(r) + "\n" for r in _records())
+    out = rerank_stage3.main(["--select-on", str(path), "--apply-to", str(path),
+                              "--out", str(tmp_path / "r.json")])  # fmt: skip
+    assert out["paper_rule"]["mean"] == 0.0
+    assert out["chosen"]["rule"] == "value_clear"
+    assert out["chosen"]["mean"] == pytest.approx(50.0)
+    assert out["held_out"]["paper_rule"]["mean"] == 0.0
+    assert out["held_out"]["chosen"]["mean"] == pytest.approx(50.0)
+    assert out["held_out"]["any_refined"] == pytest.approx(50.0)
+    assert json.loads((tmp_path / "r.json").read_text())["chosen"] == out["chosen"]
+
+
+def test_rerank_refuses_old_records(tmp_path):
+    path = tmp_path / "old.pairs.jsonl"
+    path.write_text(json.dumps({"category": "mug", "v": [0.5], "stable_all": [True]}) + "\n")
+    with pytest.raises(ValueError, match="inside_counts"):
+        rerank_stage3.main(["--select-on", str(path), "--out", str(tmp_path / "r.json")])
