@@ -121,6 +121,20 @@ def main(argv=None) -> dict:
     parser.add_argument("--warmup", type=int, default=None, help="lr warm-up steps")
     parser.add_argument("--clip-norm", type=float, default=None, help="0 = no clipping")
     parser.add_argument(
+        "--augment-jitter",
+        type=float,
+        default=None,
+        metavar="M",
+        help="Stage 1: Gaussian noise (m) on every training point (omnihang_jax.augment)",
+    )
+    parser.add_argument(
+        "--augment-yaw",
+        type=float,
+        default=None,
+        metavar="RAD",
+        help="Stage 1: turn each training pair about the vertical by U(-RAD, RAD)",
+    )
+    parser.add_argument(
         "--val-fraction", type=float, default=None, help="fraction of objects held out (0.1)"
     )
     parser.add_argument("--eval-every", type=int, default=None, help="steps between val checks")
@@ -167,6 +181,8 @@ def main(argv=None) -> dict:
         ("val_fraction", args.val_fraction),
         ("eval_every", args.eval_every),
         ("checkpoint_every", args.checkpoint_every),
+        ("augment_jitter", args.augment_jitter),
+        ("augment_yaw", args.augment_yaw),
     ):
         if value is not None:
             overrides[name] = value

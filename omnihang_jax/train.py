@@ -34,8 +34,8 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
+from omnihang_jax import augment, losses
 from omnihang_jax import data as data_lib
-from omnihang_jax import losses
 from omnihang_jax.config import config_from_dict, config_to_dict
 from omnihang_jax.data import HangSample
 from omnihang_jax.pointnet2 import gather_points
@@ -112,6 +112,11 @@ class TrainConfig:
     val_fraction: float = 0.1
     eval_every: int = 1000
     val_batches: int = 8
+    # Stage-1 training augmentation (ours, ``omnihang_jax.augment``): point noise (m) and a
+    # random turn of the whole pair about the vertical in [-augment_yaw, augment_yaw] (rad).
+    # 0 = off: the step is then exactly the unaugmented one (same keys).
+    augment_jitter: float = 0.0
+    augment_yaw: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -405,7 +410,13 @@ def make_train_step(stage: str, config: WhereConfig) -> Callable:
     tx = make_optimizer(stage, config)
     schedule = learning_rate_schedule(stage, config)  # logged per step
 
+    cfg = config.train
+    augmenting = stage == "1" and (cfg.augment_jitter > 0 or cfg.augment_yaw > 0)
+
     def train_step(state: TrainState, batch: HangSample, key):
+        if augmenting:
+            key, k_aug = jax.random.split(key)
+            batch = augment.augment_pair(batch, k_aug, cfg.augment_jitter, cfg.augment_yaw)
         grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, batch, key)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
