@@ -37,6 +37,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--rounds", type=int, default=1, help="CEM rounds (1 = facts)")
     parser.add_argument("--batch", type=int, default=16, help="pairs per network call")
     parser.add_argument("--workers", type=int, default=0, help="simulation processes")
+    parser.add_argument(
+        "--stage2-clearance", type=float, default=None, metavar="M",
+        help="Stage 2 moves its pose M metres along the observed support normal at its chosen "
+        "contacts (Stage2Config.clearance; default: the model's own)",
+    )  # fmt: skip
     parser.add_argument("--label", default="")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -61,11 +66,12 @@ def main(argv=None) -> dict:
     records, timings = eval_pipeline.evaluate_pipeline(
         files, args.weights, args.value, dataset_dir, num_proposals=args.proposals,
         cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
-        progress=not args.no_progress,
+        progress=not args.no_progress, stage2_clearance=args.stage2_clearance,
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
-                   cem_rounds=args.rounds, num_proposals=args.proposals)  # fmt: skip
+                   cem_rounds=args.rounds, num_proposals=args.proposals,
+                   stage2_clearance_m=args.stage2_clearance)  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     refine.write_json(out, summary)

@@ -81,6 +81,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--num-proposals", type=int, default=d.num_proposals,
         help=f"Stage-1 proposals; each is also refined by Stage 2 (default {d.num_proposals})",
     )  # fmt: skip
+    p.add_argument(
+        "--stage2-clearance", type=float, default=None, metavar="M",
+        help="Stage 2 moves each pose M metres along the observed support normal at its chosen "
+        "contacts (e.g. 0.008; default: the model's own, Stage2Config.clearance)",
+    )  # fmt: skip
     p.add_argument("--noise", type=float, default=0.0, help="depth noise std of rendered views, m")
     p.add_argument(
         "--seed", type=int, default=0, help="views, noise, proposals, search (default 0)"
@@ -175,6 +180,7 @@ def main(argv=None) -> int:
         coacd=args.coacd,
         cache_dir=args.cache,
         value=args.value,
+        stage2_clearance=args.stage2_clearance,
     )
     if args.noise < 0:
         raise ValueError(f"--noise must be >= 0, got {args.noise}")

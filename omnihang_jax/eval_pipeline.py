@@ -74,14 +74,17 @@ def evaluate_pipeline(
     workers: int = 0,
     seed: int = 0,
     progress: bool = True,
+    stage2_clearance: float | None = None,
 ) -> tuple[list[dict], dict]:
     """Run Stages 1-3 on every pair file and simulate every candidate. Returns (records,
-    timings)."""
+    timings). ``stage2_clearance`` (m): replaces the model's ``Stage2Config.clearance`` (None:
+    the model's own); Stage 2 gets each pair's observed support normals either way."""
     from omnihang_jax.predict import load_predictor
     from sim import kernels
 
     t0 = time.time()
-    predictor = load_predictor(weights)
+    overrides = None if stage2_clearance is None else {"clearance": float(stage2_clearance)}
+    predictor = load_predictor(weights, stage2_overrides=overrides)
     value_config, value_params = refine.load_value(value_dir)
     refine_fn = jax.jit(stage3.make_refiner(value_config, cem))
     value_fn = jax.jit(stage3.make_value(value_config).value)
@@ -113,7 +116,8 @@ def evaluate_pipeline(
                                       "support_normals")))  # fmt: skip
         tn = time.time()
         pred = predictor(full.object_points, full.support_points,
-                         key=jax.random.fold_in(key, i), num_proposals=k)  # fmt: skip
+                         key=jax.random.fold_in(key, i), num_proposals=k,
+                         support_normals=full.support_normals)  # fmt: skip
         small = stage3.subsample_clouds(jax.tree.map(jnp.asarray, full), value_config)
         r2 = refine_fn(value_params, jax.random.fold_in(key, 2 * i + 1), small,
                        jnp.asarray(pred.stage2_poses))  # fmt: skip

@@ -135,10 +135,19 @@ class HangConfig:
     coacd: str = "default"  # "default" or "fast" (sim.decompose.FAST: previews, tests)
     value: str | None = None  # Stage-3 value weights; None: find_value_weights(model); "off"
     cache_dir: str | None = None  # CoACD cache; None: out/cache/coacd in the working directory
+    # m: Stage 2 moves its pose this far along the observed support normal at its chosen
+    # contacts (Stage2Config.clearance); None: the model's own
+    stage2_clearance: float | None = None
 
     def scale_of(self, kind: str) -> float | None:
         own = self.object_scale if kind == "object" else self.support_scale
         return own if own is not None else self.scale
+
+    def stage2_overrides(self) -> dict | None:
+        """``load_predictor``'s ``stage2_overrides`` (None: the model's Stage 2 as trained)."""
+        if self.stage2_clearance is None:
+            return None
+        return {"clearance": float(self.stage2_clearance)}
 
 
 class Body(NamedTuple):
@@ -766,7 +775,7 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
     def where(obj: Body, sup: Body, seed: int) -> Candidates:
         out = predictor(
             obj.points[None], sup.points[None], key=jax.random.key(seed),
-            num_proposals=num_proposals,
+            num_proposals=num_proposals, support_normals=sup.normals[None],
         )  # fmt: skip
         poses = np.concatenate([out.stage1_poses[0], out.stage2_poses[0]]).astype(np.float64)
         poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
@@ -1103,7 +1112,9 @@ def hang(
         from omnihang_jax.predict import load_predictor
 
         _say(log, f"loading the where-to-hang networks from {config.model}")
-        predictor = load_predictor(config.model, seed=config.seed)
+        predictor = load_predictor(
+            config.model, seed=config.seed, stage2_overrides=config.stage2_overrides()
+        )
     timings["load_model"] = time.perf_counter() - t
     obj_asset, sup_asset = (
         None if isinstance(loaded[k], Body) else loaded[k][1] for k in ("object", "support")
@@ -1577,7 +1588,9 @@ def run_heldout(
     pairs = heldout_pairs(n, dataset_dir, config.seed)
     _say(log, f"{len(pairs)} held-out pairs over {len({s.rsplit('_', 1)[0] for _, s in pairs})} "
               f"support families and {len({o.rsplit('_', 1)[0] for o, _ in pairs})} object categories")  # fmt: skip
-    predictor = load_predictor(config.model, seed=config.seed)
+    predictor = load_predictor(
+        config.model, seed=config.seed, stage2_overrides=config.stage2_overrides()
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
     tmp.chmod(0o755)

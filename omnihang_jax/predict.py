@@ -173,14 +173,16 @@ def load_predictor(
 
 
 def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.PathLike,
-                       config=None):  # fmt: skip
+                       config=None, stage2_overrides: dict | None = None):  # fmt: skip
     """(hang, params): the jitted Stages 1-3 pipeline (``stage3.make_hang_pipeline``) and its
     parameters, from the Stage 1/2 weights and a value folder (``refine.save_value``).
+    ``stage2_overrides``: as in :func:`load_predictor`, e.g. ``{"clearance": 0.008}`` (the
+    pipeline takes the support normals from its clouds).
 
     ``hang(params, key, clouds: stage3.PairClouds [B, ...]) -> stage3.HangOutput``."""
     from omnihang_jax import refine, stage3
 
-    where = load_predictor(where_folder)
+    where = load_predictor(where_folder, stage2_overrides=stage2_overrides)
     value_config, value_params = refine.load_value(value_folder)
     config = config or stage3.PipelineConfig()
     hang = jax.jit(

@@ -473,7 +473,9 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
                        config: PipelineConfig = PipelineConfig()) -> Callable:  # fmt: skip
     """``hang(params, key, clouds: PairClouds [B, ...]) -> HangOutput``; params =
     ``{"stage1", "stage2", "value"}``. Pure and un-jitted: ``jax.jit(hang)`` runs Stages 1, 2
-    and CEM on V in one XLA program, batched over pairs."""
+    and CEM on V in one XLA program, batched over pairs. The observed support normals
+    (``clouds.support_normals``) reach Stage 2 for its clearance (``Stage2Config.clearance``;
+    0 leaves them unused)."""
     from omnihang_jax.predict import make_predict
 
     predict = make_predict(stage1_config, stage2_config)
@@ -483,7 +485,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
         k1, k3 = jax.random.split(key)
         pred = predict(
             params["stage1"], params["stage2"], clouds.object_points, clouds.support_points,
-            k1, config.num_proposals,
+            k1, config.num_proposals, support_normals=clouds.support_normals,
         )  # fmt: skip
         small = subsample_clouds(clouds, value_config)
         starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
