@@ -13,11 +13,12 @@ run (the committed figures use the 1,814 pairs of results/hanging_success.json).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
 from experiments import _cli
-from omnihang_jax import dataset_bridge, eval_pipeline, evaluate, refine
+from omnihang_jax import dataset_bridge, eval_pipeline, evaluate, refine, selection
 from omnihang_jax.stage3 import CEMConfig
 
 
@@ -42,6 +43,15 @@ def main(argv=None) -> dict:
         help="Stage 2 moves its pose M metres along the observed support normal at its chosen "
         "contacts (Stage2Config.clearance; default: the model's own)",
     )  # fmt: skip
+    parser.add_argument(
+        "--select", choices=selection.RULES, default="value",
+        help="the answer among the refined candidates: 'value' = the highest V (paper); "
+        "'value_clear' = the highest V among candidates with at most --select-max-points "
+        "object points inside the observed support (omnihang_jax.selection)",
+    )  # fmt: skip
+    parser.add_argument("--select-depth", type=float, default=0.001, metavar="M")
+    parser.add_argument("--select-radius", type=float, default=0.003, metavar="M")
+    parser.add_argument("--select-max-points", type=int, default=0, metavar="N")
     parser.add_argument("--label", default="")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -63,15 +73,19 @@ def main(argv=None) -> dict:
         files = files[: args.limit]
     if not files:
         raise FileNotFoundError(f"no derived {args.split} pairs under {derived_dir}")
+    select = selection.SelectConfig(
+        args.select, args.select_depth, args.select_radius, args.select_max_points
+    )
     records, timings = eval_pipeline.evaluate_pipeline(
         files, args.weights, args.value, dataset_dir, num_proposals=args.proposals,
         cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
-        progress=not args.no_progress, stage2_clearance=args.stage2_clearance,
+        progress=not args.no_progress, stage2_clearance=args.stage2_clearance, select=select,
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
                    cem_rounds=args.rounds, num_proposals=args.proposals,
-                   stage2_clearance_m=args.stage2_clearance)  # fmt: skip
+                   stage2_clearance_m=args.stage2_clearance,
+                   select=dataclasses.asdict(select))  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     refine.write_json(out, summary)

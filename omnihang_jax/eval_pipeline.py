@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from omnihang_jax import dataset_bridge, refine, stage3
+from omnihang_jax import dataset_bridge, refine, selection, stage3
 from omnihang_jax.evaluate import pose_errors, summarize_success
 from omnihang_jax.stage3 import PairClouds
 
@@ -75,10 +75,16 @@ def evaluate_pipeline(
     seed: int = 0,
     progress: bool = True,
     stage2_clearance: float | None = None,
+    select: selection.SelectConfig = selection.SelectConfig(),
 ) -> tuple[list[dict], dict]:
     """Run Stages 1-3 on every pair file and simulate every candidate. Returns (records,
     timings). ``stage2_clearance`` (m): replaces the model's ``Stage2Config.clearance`` (None:
-    the model's own); Stage 2 gets each pair's observed support normals either way."""
+    the model's own); Stage 2 gets each pair's observed support normals either way. ``select``:
+    the rule that picks the Stages 1+3 and all-stages answers among the refined candidates
+    (``omnihang_jax.selection``; default the paper's highest V). Every record also holds
+    every candidate's V (``v``) and observed-cloud inside counts (``inside_counts``, for each
+    (depth, radius) of ``selection.INSIDE_GRID``): rules can be studied after the run
+    (``experiments.rerank_stage3``)."""
     from omnihang_jax.predict import load_predictor
     from sim import kernels
 
@@ -96,6 +102,20 @@ def evaluate_pipeline(
         def one(args):
             op, sp, sn, pose = args
             return separate(op, sp, sn, pose)[0]
+
+        return jax.lax.map(one, (full.object_points, full.support_points,
+                                 full.support_normals, poses))  # fmt: skip
+
+    grid = selection.INSIDE_GRID
+    if (select.depth, select.radius) not in grid:
+        grid = grid + ((select.depth, select.radius),)
+    g_select = grid.index((select.depth, select.radius))
+
+    @jax.jit
+    def counts_fn(full, poses):  # [B, ...] full clouds, [B, P, 7] -> [B, G, P] int32
+        def one(args):
+            op, sp, sn, p = args
+            return selection.inside_counts_grid(op, sp, sn, p, grid)
 
         return jax.lax.map(one, (full.object_points, full.support_points,
                                  full.support_normals, poses))  # fmt: skip
@@ -123,16 +143,23 @@ def evaluate_pipeline(
                        jnp.asarray(pred.stage2_poses))  # fmt: skip
         r1 = refine_fn(value_params, jax.random.fold_in(key, 2 * i + 2), small,
                        jnp.asarray(pred.stage1_poses))  # fmt: skip
+        # the answers: the rule over the refined candidates' final V and inside counts
+        fullj = jax.tree.map(jnp.asarray, full)
+        cand = jnp.concatenate([jnp.asarray(pred.stage1_poses), jnp.asarray(pred.stage2_poses),
+                                r1.poses, r2.poses], axis=1)  # [B, 4K, 7]  # fmt: skip
+        counts = counts_fn(fullj, cand)  # [B, G, 4K]
+        best1 = selection.select(r1.scores, counts[:, g_select, 2 * k : 3 * k], select)
+        best2 = selection.select(r2.scores, counts[:, g_select, 3 * k :], select)
         # V of the unrefined Stage-2 proposals is r2.initial_scores; V of every candidate:
-        chosen = jnp.take_along_axis(r2.poses, r2.best[:, None, None], axis=1)[:, 0]
-        separated = separate_fn(jax.tree.map(jnp.asarray, full), chosen)
-        allp = jnp.concatenate([jnp.asarray(pred.stage1_poses), jnp.asarray(pred.stage2_poses),
-                                r1.poses, r2.poses, separated[:, None]], axis=1)  # [B, 4K+1, 7]  # fmt: skip
+        chosen = jnp.take_along_axis(r2.poses, best2[:, None, None], axis=1)[:, 0]
+        separated = separate_fn(fullj, chosen)
+        allp = jnp.concatenate([cand, separated[:, None]], axis=1)  # [B, 4K+1, 7]
         tiled = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0), small)
         v_all = value_fn(value_params, tiled, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1)
         jax.block_until_ready(v_all)
         t_net += time.time() - tn
-        allp, v_all = np.asarray(allp), np.asarray(v_all)
+        allp, v_all, counts = np.asarray(allp), np.asarray(v_all), np.asarray(counts)
+        best1, best2, best_v = np.asarray(best1), np.asarray(best2), np.asarray(r2.best)
         for j in range(m):
             sample, meta = loaded[j]
             records.append({
@@ -142,10 +169,17 @@ def evaluate_pipeline(
                 "category": str(meta["object_category"]),
                 "family": str(meta["support_family"]),
                 "file": os.path.basename(os.fspath(chunk[j])),
-                "best_stage1_3": int(r1.best[j]),
-                "best_all_stages": int(r2.best[j]),
+                "best_stage1_3": int(best1[j]),
+                "best_all_stages": int(best2[j]),
+                "best_all_stages_value": int(best_v[j]),  # the paper's rule (highest V)
                 "best_initial_v": int(np.argmax(np.asarray(r2.initial_scores[j]))),
                 "v": v_all[j].tolist(),
+                # every candidate [4K+1, 7] (Stage 1, 1+2, 1+3, all stages, separated): for
+                # selection rules studied after the run (experiments.rerank_stage3)
+                "poses_all": np.round(allp[j], 6).tolist(),
+                # object points inside the observed support, candidates 0..4K-1, per setting
+                "inside_counts": {selection.grid_key(d, r): counts[j, g].tolist()
+                                  for g, (d, r) in enumerate(grid)},  # fmt: skip
                 # the ground truth only: the clouds of 1,814 pairs need not stay in memory
                 "_truth": _Truth(np.asarray(sample.stable_poses), np.asarray(sample.pose_mask)),
             })  # fmt: skip

@@ -403,11 +403,17 @@ def make_cem(score_fn: Callable, config: CEMConfig = CEMConfig(), keep_top: int 
 @dataclasses.dataclass(frozen=True)
 class PipelineConfig:
     """Stages 1-3 in one call. ``starts``: the proposals CEM refines: "stage2" (all stages,
-    the paper's pipeline) and/or "stage1" (the Stages 1+3 ablation)."""
+    the paper's pipeline) and/or "stage1" (the Stages 1+3 ablation). ``select``: how the
+    answer is picked among each start's refined candidates (``omnihang_jax.selection``;
+    default the paper's highest V)."""
 
     num_proposals: int = 5  # K Stage-1 proposals per pair (facts: 5 at evaluation)
     cem: CEMConfig = CEMConfig()
     starts: tuple[str, ...] = ("stage2",)
+    select: Any = None  # selection.SelectConfig; None = SelectConfig() (highest V)
+    # True: the answer is picked among the refined candidates of ALL starts (with starts
+    # ("stage2", "stage1"): 2K candidates), not only the first start's
+    pool_starts: bool = False
 
 
 class HangOutput(NamedTuple):
@@ -476,10 +482,12 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
     and CEM on V in one XLA program, batched over pairs. The observed support normals
     (``clouds.support_normals``) reach Stage 2 for its clearance (``Stage2Config.clearance``;
     0 leaves them unused)."""
+    from omnihang_jax import selection
     from omnihang_jax.predict import make_predict
 
     predict = make_predict(stage1_config, stage2_config)
     refine = make_refiner(value_config, config.cem)
+    rule = config.select or selection.SelectConfig()
 
     def hang(params, key, clouds: PairClouds) -> HangOutput:
         k1, k3 = jax.random.split(key)
@@ -489,13 +497,26 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
         )  # fmt: skip
         small = subsample_clouds(clouds, value_config)
         starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
-        refined, scores, initial, best = {}, {}, {}, {}
+        refined, scores, initial, best, keys_of = {}, {}, {}, {}, {}
         for i, name in enumerate(config.starts):
             res = refine(params["value"], jax.random.fold_in(k3, i), small, starts[name])
             refined[name], scores[name] = res.poses, res.scores
             initial[name], best[name] = res.initial_scores, res.best
+            keys_of[name] = res.scores
+            if rule.rule != "value":  # static: the paper's rule traces today's function
+                counts = jax.vmap(selection.inside_counts, in_axes=(0, 0, 0, 0, None, None))(
+                    clouds.object_points, clouds.support_points, clouds.support_normals,
+                    res.poses, rule.depth, rule.radius,
+                )  # fmt: skip
+                keys_of[name] = selection.select_key(res.scores, counts, rule)
+                best[name] = jnp.argmax(keys_of[name], axis=1)
         first = config.starts[0]
         pose = jnp.take_along_axis(refined[first], best[first][:, None, None], axis=1)[:, 0]
+        if config.pool_starts and len(config.starts) > 1:
+            cands = jnp.concatenate([refined[n] for n in config.starts], axis=1)  # [B, SK, 7]
+            keys = jnp.concatenate([keys_of[n] for n in config.starts], axis=1)
+            pick = jnp.argmax(keys, axis=1)
+            pose = jnp.take_along_axis(cands, pick[:, None, None], axis=1)[:, 0]
         return HangOutput(
             pred.stage1_poses, pred.stage2_poses, refined, scores, initial, best, pose
         )

@@ -23,6 +23,9 @@
 #   eval   derive the held-out pairs if absent; eval_stage3 on all 1,794 of them (the 1,814 of
 #          results/hanging_success.pairs.jsonl that keep stable poses under labels v3) for the new
 #          Stage 1 (+ the committed Stage 2b) with the committed V, and with the new V.
+#   val    the 396 validation-object pairs (results/validation_pairs.jsonl; derived if absent)
+#          through eval_stage3 with WHERE_W / VALUE (VAL_ARGS: more flags): the records
+#          experiments.rerank_stage3 chooses the answer rule on.
 # INIT1=none trains Stage 1 from scratch; S1_ARGS adds train_where flags, e.g. S1_ARGS="--stage1
 # rotation=6d --stage1 set_loss_mean=true" (a changed head needs INIT1=none).
 # VIEWS=2: also derive every pair's next candidate view (`--view 1`, ~100 s more) and train on
@@ -30,7 +33,7 @@
 # Back in $OUT: full.log, where.tgz (stage-1 best + latest exports, the resumable checkpoint,
 # metrics, validation curve, logs), stage3.tgz, eval JSONs (+ pairs .jsonl.gz).
 set -uo pipefail
-CALL=${1:?usage: device_full.sh train|eval}
+CALL=${1:?usage: device_full.sh train|eval|val}
 C=/tmp/full
 END_S=${END_S:-570}
 LOG=full.log
@@ -121,6 +124,28 @@ if [ "$CALL" = train ]; then
     wait "$TEST_PID"
     [ -n "${S3_PID:-}" ] && { wait "$S3_PID"; log "Stage-3 part: exit $?"; }
     ls -la "$OUT" | tee -a "$OUT/$LOG"
+    log "done"
+    exit 0
+fi
+
+if [ "$CALL" = val ]; then
+    # the validation-object pairs (derive if absent) through eval_stage3 with the committed
+    # weights: records with every candidate's V and observed-cloud inside counts, for
+    # experiments.rerank_stage3 (the answer rule chosen on validation objects)
+    [ "$(ls "$C/ds/derived/train" 2>/dev/null | wc -l)" -ge 300 ] || derive_val 16
+    $PY - "$VALPAIRS" "$C/ds/derived/train" >"$C/val.jsonl" <<'EOF2'
+import json, os, sys
+for line in open(sys.argv[1]):
+    if os.path.exists(os.path.join(sys.argv[2], json.loads(line)["file"])):
+        print(line, end="")
+EOF2
+    log "validation pairs to evaluate: $(wc -l <"$C/val.jsonl")"
+    timeout $(($(left) - 5)) $PY -m experiments.eval_stage3 --data "$C/ds" --split train \
+        --weights "${WHERE_W:-weights/where_small_paper}" --value "${VALUE:-weights/value_small_paper}" \
+        --pairs-from "$C/val.jsonl" --workers 15 --batch 16 --out "$OUT/val_${VAL_NAME:-where}.json" \
+        --label "validation objects, ${VAL_NAME:-committed weights}" ${VAL_ARGS:-} --no-progress 2>&1 |
+        tail -12 | tee -a "$OUT/$LOG"
+    gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
     log "done"
     exit 0
 fi
