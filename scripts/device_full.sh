@@ -21,8 +21,11 @@
 #            most S3_PAIRS = 4000 pairs seeded) on the same clouds;
 #          - the held-out pairs derived (3 workers) for the eval call.
 #   eval   derive the held-out pairs if absent; eval_stage3 on all 1,794 of them (the 1,814 of
-#          results/hanging_success.pairs.jsonl that keep stable poses under labels v3) for the new
-#          Stage 1 (+ the committed Stage 2b) with the committed V, and with the new V.
+#          results/hanging_success.pairs.jsonl that keep stable poses under labels v3) for
+#          WHERE_W (default: the train call's best export) with the committed V (EVAL_ARGS: more
+#          eval_stage3 flags, e.g. "--stage2-clearance 0.012"; EVAL_TAG names the outputs), the
+#          Stage-3 answer rule chosen on validation objects applied to its records
+#          (experiments.rerank_stage3 -> TAG_rerank.json), then with the train call's new V.
 #   val    the 396 validation-object pairs (results/validation_pairs.jsonl; derived if absent)
 #          through eval_stage3 with WHERE_W / VALUE (VAL_ARGS: more flags): the records
 #          experiments.rerank_stage3 chooses the answer rule on.
@@ -163,17 +166,25 @@ EOF
 HELDOUT=$C/heldout.jsonl
 log "held-out pairs to evaluate: $(wc -l <"$HELDOUT")"
 W=${WHERE_W:-$C/export/best}
+[ -d "$W" ] || W=weights/where_small_paper  # no train call on this machine: the committed weights
 NEWV=$C/stage3/run/value
-evaluate() {  # value label out
+evaluate() {  # value label out [eval_stage3 flags]
+    local value=$1 label=$2 out=$3
+    shift 3
     timeout $(($(left) - 10)) $PY -m experiments.eval_stage3 --data "$C/ds" --weights "$W" \
-        --value "$1" --pairs-from "$HELDOUT" --workers 15 --batch 16 --out "$OUT/$3.json" \
-        --label "$2" --no-progress 2>&1 | tail -12 | tee -a "$OUT/$LOG"
+        --value "$value" --pairs-from "$HELDOUT" --workers 15 --batch 16 --out "$OUT/$out.json" \
+        --label "$label" "$@" --no-progress 2>&1 | tail -12 | tee -a "$OUT/$LOG"
 }
 log "eval: Stages 1-2 $W"
-evaluate weights/value_small_paper "eighth session: Stage 1 fine-tuned on all training pairs, committed V" \
-    hanging_success_stage3_s8_where
+TAG=${EVAL_TAG:-heldout}
+evaluate weights/value_small_paper "${EVAL_LABEL:-Stages 1-2 $W, committed V} ${EVAL_ARGS:-}" \
+    "${TAG}_where" ${EVAL_ARGS:-}
+# the Stage-3 answer rule chosen on the validation objects, applied once to these records
+# (device_slim.sh keeps results/validation_where_s9/val_s9_counts.pairs.jsonl.gz in the tree)
+$PY -m experiments.rerank_stage3 --select-on results/validation_where_s9/val_s9_counts.pairs.jsonl.gz \
+    --apply-to "$OUT/${TAG}_where.pairs.jsonl" --out "$OUT/${TAG}_rerank.json" 2>&1 | tail -2 | tee -a "$OUT/$LOG"
 if [ -d "$NEWV" ] && [ "$(left)" -gt 200 ]; then
-    evaluate "$NEWV" "eighth session: Stage 1 fine-tuned, hard-negative V" hanging_success_stage3_s8_both
+    evaluate "$NEWV" "Stages 1-2 $W, the train call's hard-negative V" "${TAG}_both" ${EVAL_ARGS:-}
 fi
 gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
 log "done"

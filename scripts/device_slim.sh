@@ -17,7 +17,7 @@ LIST=(
     results/hanging_success_stage3_s8.pairs.jsonl.gz results/hanging_success_stage2_clearance_8mm.pairs.jsonl.gz
     results/paths_hybrid.pairs.jsonl results/train_where_session8 results/stage3_train_s8
     results/train_where_session9 results/stage3_train_s9 results/heldout_cpu_s9
-    results/validation_where_s9/val_6d.pairs.jsonl.gz results/validation_where_s9/val_s9_counts.pairs.jsonl.gz
+    results/validation_where_s9/val_6d.pairs.jsonl.gz
     results/hanging_success_stage3_s9.pairs.jsonl.gz results/hanging_success_stage2_clearance_s9_0.pairs.jsonl.gz
     results/hanging_success_stage2_clearance_s9_12mm.pairs.jsonl.gz results/hanging_success_stage2_clearance_s9_8mm.pairs.jsonl.gz
 )
