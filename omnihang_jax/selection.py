@@ -82,11 +82,8 @@ def inside_counts(
     [M, 3] (support frame, unit outward normals), poses [P, 7] (xyz + wxyz) -> [P] int32:
     object points more than ``depth`` behind the nearest observed support point's surface
     and within ``radius`` of it sideways (``collision.inside_points``)."""
-    from omnihang_jax import collision
-
-    posed = collision.transform_points(poses, object_points)
-    along, length = collision.nearest_support_offsets(posed, support_points, support_normals)
-    return collision.inside_points(along, length, depth, radius)
+    grid = ((depth, radius),)
+    return inside_counts_grid(object_points, support_points, support_normals, poses, grid)[0]
 
 
 def inside_counts_grid(

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 
-from omnihang_jax import pointnet2
+from omnihang_jax import pointnet2, selection
 from omnihang_jax.pointnet2 import PointNet2Config, PointNet2Encoder, squared_distance
 
 __all__ = [
@@ -410,7 +410,7 @@ class PipelineConfig:
     num_proposals: int = 5  # K Stage-1 proposals per pair (facts: 5 at evaluation)
     cem: CEMConfig = CEMConfig()
     starts: tuple[str, ...] = ("stage2",)
-    select: Any = None  # selection.SelectConfig; None = SelectConfig() (highest V)
+    select: selection.SelectConfig = selection.SelectConfig()
     # True: the answer is picked among the refined candidates of ALL starts (with starts
     # ("stage2", "stage1"): 2K candidates), not only the first start's
     pool_starts: bool = False
@@ -482,12 +482,11 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
     and CEM on V in one XLA program, batched over pairs. The observed support normals
     (``clouds.support_normals``) reach Stage 2 for its clearance (``Stage2Config.clearance``;
     0 leaves them unused)."""
-    from omnihang_jax import selection
     from omnihang_jax.predict import make_predict
 
     predict = make_predict(stage1_config, stage2_config)
     refine = make_refiner(value_config, config.cem)
-    rule = config.select or selection.SelectConfig()
+    rule = config.select
 
     def hang(params, key, clouds: PairClouds) -> HangOutput:
         k1, k3 = jax.random.split(key)

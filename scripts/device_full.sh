@@ -71,6 +71,15 @@ EOF
     (cd "$C" && tar -czf "$OUT/where_${name}_ckpt.tgz" "$rel/stage1" 2>/dev/null)
     log "exported $name: $(tr '\n' ' ' <"$C/logs/export_$name.log" | tail -c 300)"
 }
+derived_only() {  # PAIRS_JSONL DERIVED_DIR: the lines whose pair file was derived (pairs
+    # without a stable pose are not; eval_stage3 refuses a list with missing files)
+    $PY - "$1" "$2" <<'EOF'
+import json, os, sys
+for line in open(sys.argv[1]):
+    if os.path.exists(os.path.join(sys.argv[2], json.loads(line)["file"])):
+        print(line, end="")
+EOF
+}
 VALPAIRS=results/validation_pairs.jsonl
 derive_val() {  # WORKERS: the 396 pairs of validation OBJECTS (36 a category), full recipe
     timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split train \
@@ -136,12 +145,7 @@ if [ "$CALL" = val ]; then
     # weights: records with every candidate's V and observed-cloud inside counts, for
     # experiments.rerank_stage3 (the answer rule chosen on validation objects)
     [ "$(ls "$C/ds/derived/train" 2>/dev/null | wc -l)" -ge 300 ] || derive_val 16
-    $PY - "$VALPAIRS" "$C/ds/derived/train" >"$C/val.jsonl" <<'EOF2'
-import json, os, sys
-for line in open(sys.argv[1]):
-    if os.path.exists(os.path.join(sys.argv[2], json.loads(line)["file"])):
-        print(line, end="")
-EOF2
+    derived_only "$VALPAIRS" "$C/ds/derived/train" >"$C/val.jsonl"
     log "validation pairs to evaluate: $(wc -l <"$C/val.jsonl")"
     timeout $(($(left) - 5)) $PY -m experiments.eval_stage3 --data "$C/ds" --split train \
         --weights "${WHERE_W:-weights/where_small_paper}" --value "${VALUE:-weights/value_small_paper}" \
@@ -157,12 +161,7 @@ fi
 [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1794 ] || derive_test 16
 # the 1,814 pairs of the earlier runs minus the 20 without a stable pose under labels v3
 # (not derived): 1,794
-$PY - "$HELDOUT" "$C/ds/derived/test" >"$C/heldout.jsonl" <<'EOF'
-import json, os, sys
-for line in open(sys.argv[1]):
-    if os.path.exists(os.path.join(sys.argv[2], json.loads(line)["file"])):
-        print(line, end="")
-EOF
+derived_only "$HELDOUT" "$C/ds/derived/test" >"$C/heldout.jsonl"
 HELDOUT=$C/heldout.jsonl
 log "held-out pairs to evaluate: $(wc -l <"$HELDOUT")"
 W=${WHERE_W:-$C/export/best}
