@@ -27,8 +27,9 @@
 #          Stage-3 answer rule chosen on validation objects applied to its records
 #          (experiments.rerank_stage3 -> TAG_rerank.json), then with the train call's new V.
 #   val    the 396 validation-object pairs (results/validation_pairs.jsonl; derived if absent)
-#          through eval_stage3 with WHERE_W / VALUE (VAL_ARGS: more flags): the records
-#          experiments.rerank_stage3 chooses the answer rule on.
+#          through eval_stage3 with WHERE_W / VALUE (VAL_ARGS: more flags), or with each of
+#          VAL_WS="NAME=WEIGHTS ..." in turn: Stage-1 variants are chosen on these figures, and
+#          experiments.rerank_stage3 chooses the answer rule on their records.
 # INIT1=none trains Stage 1 from scratch; S1_ARGS adds train_where flags, e.g. S1_ARGS="--stage1
 # rotation=6d --stage1 set_loss_mean=true" (a changed head needs INIT1=none).
 # VIEWS=2: also derive every pair's next candidate view (`--view 1`, ~100 s more) and train on
@@ -112,11 +113,16 @@ if [ "$CALL" = train ]; then
             >>"$C/logs/stage3_part.log" 2>&1 &
         S3_PID=$!
     fi
-    (derive_test 3; derive_val 3) &
+    (derive_test "${TEST_W:-3}"; derive_val "${TEST_W:-3}") &
     TEST_PID=$!
     BUDGET=$(($(left) - 45))
     # S1_VARIANTS: Stage-1 runs side by side on the one GPU, same data and budget; name -> flags
-    declare -A S1V=([base]="" [aa]="" [6d]="--stage1 rotation=6d" [mean]="--stage1 set_loss_mean=true")
+    # (6daug / 6dyaw / 6dmean: the 6-D head with issue 14's augmentation or the mean set loss;
+    # with INIT1 = the committed 6-D weights they fine-tune it, beside the plain 6d control)
+    declare -A S1V=([base]="" [aa]="" [6d]="--stage1 rotation=6d" [mean]="--stage1 set_loss_mean=true"
+        [6daug]="--stage1 rotation=6d --augment-jitter 0.002 --augment-yaw 0.5"
+        [6dyaw]="--stage1 rotation=6d --augment-yaw 3.1416"
+        [6dmean]="--stage1 rotation=6d --stage1 set_loss_mean=true")
     PIDS=
     for name in ${S1_VARIANTS:-base}; do
         dir=$C/where$([ "$name" != base ] && echo "_$name")
@@ -147,11 +153,18 @@ if [ "$CALL" = val ]; then
     [ "$(ls "$C/ds/derived/train" 2>/dev/null | wc -l)" -ge 300 ] || derive_val 16
     derived_only "$VALPAIRS" "$C/ds/derived/train" >"$C/val.jsonl"
     log "validation pairs to evaluate: $(wc -l <"$C/val.jsonl")"
-    timeout $(($(left) - 5)) $PY -m experiments.eval_stage3 --data "$C/ds" --split train \
-        --weights "${WHERE_W:-weights/where_small_paper}" --value "${VALUE:-weights/value_small_paper}" \
-        --pairs-from "$C/val.jsonl" --workers 15 --batch 16 --out "$OUT/val_${VAL_NAME:-where}.json" \
-        --label "validation objects, ${VAL_NAME:-committed weights}" ${VAL_ARGS:-} --no-progress 2>&1 |
-        tail -12 | tee -a "$OUT/$LOG"
+    # VAL_WS="NAME=WEIGHTS ...": several Stage-1/2 weights in turn (e.g. the train call's
+    # variants: "6d=/tmp/full/export_6d/best"); default: WHERE_W as VAL_NAME
+    for spec in ${VAL_WS:-${VAL_NAME:-where}=${WHERE_W:-weights/where_small_paper}}; do
+        name=${spec%%=*} w=${spec#*=}
+        [ "$(left)" -gt 60 ] || { log "no time left for $name"; break; }
+        log "validation objects: $name ($w)"
+        timeout $(($(left) - 5)) $PY -m experiments.eval_stage3 --data "$C/ds" --split train \
+            --weights "$w" --value "${VALUE:-weights/value_small_paper}" \
+            --pairs-from "$C/val.jsonl" --workers 15 --batch 16 --out "$OUT/val_$name.json" \
+            --label "validation objects, $name ($w)" ${VAL_ARGS:-} --no-progress 2>&1 |
+            tail -12 | tee -a "$OUT/$LOG"
+    done
     gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
     log "done"
     exit 0
