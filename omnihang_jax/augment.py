@@ -9,7 +9,8 @@
   object's own frame and does not change.
 
 Pure and jit-friendly: ``augment_pair(batch, key, jitter, yaw) -> batch`` on a batched
-``data.HangSample`` (leading B axis); with ``jitter = yaw = 0`` the batch is returned as is.
+``data.HangSample`` (leading B axis; fields a packed Stage-1 set leaves off, e.g. support normals
+as [B, 1] zeros, pass through); with ``jitter = yaw = 0`` the batch is returned as is.
 Used by ``train.make_train_step`` for Stage 1 when ``TrainConfig.augment_jitter`` /
 ``augment_yaw`` are set (``train_where --augment-jitter M --augment-yaw RAD``).
 """
@@ -58,7 +59,8 @@ def augment_pair(batch, key: jax.Array, jitter: float, yaw: float):
         angle = jax.random.uniform(k_yaw, (obj.shape[0],), minval=-yaw, maxval=yaw)
         rot = yaw_matrix(angle).astype(sup.dtype)
         sup = jnp.einsum("bij,bnj->bni", rot, sup)
-        sup_n = jnp.einsum("bij,bnj->bni", rot, sup_n.astype(sup.dtype)).astype(sup_n.dtype)
+        if sup_n.shape == sup.shape:  # Stage-1 batches of a packed set carry [B, 1] zeros
+            sup_n = jnp.einsum("bij,bnj->bni", rot, sup_n.astype(sup.dtype)).astype(sup_n.dtype)
         poses = turn_poses(poses, angle).astype(poses.dtype)
     return batch._replace(
         object_points=obj, support_points=sup, support_normals=sup_n, stable_poses=poses

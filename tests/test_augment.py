@@ -84,3 +84,11 @@ def test_train_step_augments_stage1_only_when_asked():
     )
     aug = jax.jit(train.make_train_step("1", aug_cfg))(state, batch, key)[1]["loss"]
     assert np.isfinite(float(aug)) and float(aug) != float(plain)
+
+
+def test_turn_passes_fields_a_stage1_pack_leaves_off():
+    # data.PackedDataset(fields=...) gives the fields Stage 1 does not use as [B, 1] zeros
+    batch = _batch()._replace(support_normals=np.zeros((3, 1), np.float32))
+    out = augment.augment_pair(batch, jax.random.key(1), jitter=0.001, yaw=np.pi)
+    np.testing.assert_array_equal(np.asarray(out.support_normals), batch.support_normals)
+    assert not np.allclose(np.asarray(out.support_points)[..., :2], batch.support_points[..., :2])
