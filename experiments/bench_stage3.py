@@ -12,6 +12,7 @@ holds B x K x 32 states per iteration; the reported pairs/s includes that split)
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import time
@@ -37,11 +38,17 @@ def main(argv=None) -> dict:
     parser.add_argument("--repeat", type=int, default=10)
     parser.add_argument("--proposals", type=int, default=5)
     parser.add_argument("--points", type=int, default=4096)
+    parser.add_argument(
+        "--answer", choices=("chosen", "paper"), default="chosen",
+        help="chosen: stage3.ANSWER_PIPELINE (both starts refined, observed-cloud rule); "
+        "paper: Stage-2 starts, highest V",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     pred = load_predictor(args.weights)
     vcfg, vparams = refine.load_value(args.value)
     params = {"stage1": pred.stage1_params, "stage2": pred.stage2_params, "value": vparams}
-    cfg = stage3.PipelineConfig(num_proposals=args.proposals)
+    base = stage3.ANSWER_PIPELINE if args.answer == "chosen" else stage3.PipelineConfig()
+    cfg = dataclasses.replace(base, num_proposals=args.proposals)
     hang = jax.jit(stage3.make_hang_pipeline(pred.stage1_config, pred.stage2_config, vcfg, cfg))
     rows = []
     for batch in (int(b) for b in args.batches.split(",")):
@@ -75,7 +82,15 @@ def main(argv=None) -> dict:
         })  # fmt: skip
         print(json.dumps(rows[-1]))
     result = {
-        "what": "Stages 1-3 (K proposals, Stage 2, CEM on V from every Stage-2 proposal)",
+        "what": "Stages 1-3 (K proposals, Stage 2, CEM on V from every Stage-2 proposal"
+        + (
+            ", and from every Stage-1 proposal, the answer by selection.CHOSEN)"
+            if args.answer == "chosen"
+            else ", the highest V)"
+        ),
+        "answer": args.answer,
+        "starts": list(cfg.starts),
+        "select": dataclasses.asdict(cfg.select),
         "cem": vars(cfg.cem) if hasattr(cfg.cem, "__dict__") else str(cfg.cem),
         "proposals": args.proposals,
         "points": args.points,

@@ -44,14 +44,23 @@ def main(argv=None) -> dict:
         "contacts (Stage2Config.clearance; default: the model's own)",
     )  # fmt: skip
     parser.add_argument(
-        "--select", choices=selection.RULES, default="value",
+        "--select", choices=selection.RULES, default=selection.CHOSEN.rule,
         help="the answer among the refined candidates: 'value' = the highest V (paper); "
         "'value_clear' = the highest V among candidates with at most --select-max-points "
-        "object points inside the observed support (omnihang_jax.selection)",
+        "object points inside the observed support (omnihang_jax.selection); the defaults "
+        "are selection.CHOSEN, chosen on validation objects",
     )  # fmt: skip
-    parser.add_argument("--select-depth", type=float, default=0.001, metavar="M")
-    parser.add_argument("--select-radius", type=float, default=0.003, metavar="M")
-    parser.add_argument("--select-max-points", type=int, default=0, metavar="N")
+    parser.add_argument("--select-depth", type=float, default=selection.CHOSEN.depth, metavar="M")
+    parser.add_argument("--select-radius", type=float, default=selection.CHOSEN.radius, metavar="M")
+    parser.add_argument(
+        "--select-max-points", type=int, default=selection.CHOSEN.max_points, metavar="N"
+    )
+    parser.add_argument(
+        "--pool-starts", action=argparse.BooleanOptionalAction, default=True,
+        help="the all-stages answer among the candidates refined from Stages 1 AND 2 (default, "
+        "stage3.ANSWER_PIPELINE); --no-pool-starts --select value: the paper's answer (it is "
+        "also reported as all_stages_paper either way)",
+    )  # fmt: skip
     parser.add_argument("--label", default="")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -80,12 +89,14 @@ def main(argv=None) -> dict:
         files, args.weights, args.value, dataset_dir, num_proposals=args.proposals,
         cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
         progress=not args.no_progress, stage2_clearance=args.stage2_clearance, select=select,
+        pool_starts=args.pool_starts,
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
                    cem_rounds=args.rounds, num_proposals=args.proposals,
                    stage2_clearance_m=args.stage2_clearance,
-                   select=dataclasses.asdict(select))  # fmt: skip
+                   select=dataclasses.asdict(select),
+                   pool_starts=args.pool_starts)  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     refine.write_json(out, summary)

@@ -14,6 +14,7 @@ predicted position to the nearest stable pose.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 
@@ -72,8 +73,9 @@ def main(argv=None) -> dict:
 
         k = args.proposals or predictor.stage1_config.num_eval_samples
         hang, params = predict.load_hang_pipeline(
-            args.model, args.value, stage3.PipelineConfig(num_proposals=k)
-        )
+            args.model, args.value,
+            dataclasses.replace(stage3.ANSWER_PIPELINE, num_proposals=k),
+        )  # fmt: skip
         clouds = stage3.PairClouds(
             batch.object_points, batch.object_normals, batch.support_points, batch.support_normals
         )

@@ -13,6 +13,14 @@ with at most ``max_points`` object points inside the observed support, else the 
 OBJECTS, never trained on); the best by mean success over categories is applied once to
 --apply-to (the held-out pairs) beside the paper's rule (highest V). Mean over categories as
 everywhere (docs/evaluation.md).
+
+``--write-pairs OUT.pairs.jsonl.gz --summary OUT.json``: the --apply-to records rewritten with
+the chosen rule as the all-stages answer, as ``eval_stage3`` (whose defaults are that rule,
+``selection.CHOSEN``, pooled) writes them: ``all_stages`` = the rule's pick (success, status,
+any of the pool, statuses, pose; its pose errors are not recorded), ``all_stages_paper`` = the
+run's highest-V answer; and the run's summary with those figures (``eval_pipeline.
+summarize_pipeline``). A run of the paper's rule is so turned into the chosen rule's without
+a new simulation: every candidate was simulated.
 """
 
 from __future__ import annotations
@@ -26,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import _cli
-from omnihang_jax import refine, selection
+from omnihang_jax import eval_pipeline, refine, selection
 
 POOLS = {"stage2": ("all_stages",), "stage1_2": ("stage1_3", "all_stages")}
 
@@ -81,6 +89,34 @@ def any_refined(rows: list[dict], k: int, pool: str) -> float:
     return 100.0 * float(np.mean([np.mean(x) for x in by_cat.values()]))
 
 
+def answer_records(rows: list[dict], k: int, pool: str, config: selection.SelectConfig):
+    """The records with the rule's pick over ``pool`` as the all-stages answer (module
+    docstring); the recorded answer of the run moves to ``all_stages_paper`` unless there."""
+    idx = pool_indices(k, pool)
+    key = selection.grid_key(config.depth, config.radius)
+    v = np.asarray([r["v"] for r in rows], np.float32)[:, idx]
+    counts = np.asarray([r["inside_counts"][key] for r in rows], np.int32)[:, idx]
+    picks = np.asarray(selection.select(v, counts, config))
+    out = []
+    for r, pick in zip(rows, picks, strict=True):
+        r = dict(r)
+        paper = r.setdefault("all_stages_paper", r["all_stages"])
+        statuses = paper["statuses"][-k:]  # the Stage-2 starts' refined candidates
+        if pool == "stage1_2":
+            statuses = r["stage1_3"]["statuses"] + statuses
+        c = int(idx[pick])
+        r["all_stages"] = {
+            "success": bool(r["stable_all"][c]),
+            "status": statuses[int(pick)],
+            "any_of_k": any(r["stable_all"][i] for i in idx),
+            "statuses": statuses,
+            "pose": r["poses_all"][c],
+        }
+        r["answer_index"] = c
+        out.append(r)
+    return out
+
+
 def settings(rows: list[dict], max_points: list[int]) -> list[tuple[str, selection.SelectConfig]]:
     out = [(pool, selection.SelectConfig()) for pool in POOLS]
     grid = sorted({tuple(float(x) for x in key.split("_")) for key in rows[0]["inside_counts"]})
@@ -100,6 +136,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--proposals", type=int, default=5, help="K of the runs")
     parser.add_argument("--max-points", default="0,2,5,10,20,50", help="comma-separated")
     parser.add_argument("--out", required=True, help="JSON")
+    parser.add_argument(
+        "--write-pairs", default=None, metavar="PAIRS_JSONL",
+        help="the --apply-to records with the chosen rule as the all-stages answer (.gz ok)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--summary", default=None, metavar="JSON",
+        help="with --write-pairs: eval_stage3's summary of those records",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     k = args.proposals
     val = read_records(args.select_on)
@@ -132,6 +176,19 @@ def main(argv=None) -> dict:
         h = result["held_out"]
         print(f"held-out ({len(held)} pairs): paper's rule {h['paper_rule']['mean']:.1f} %, "
               f"chosen {h['chosen']['mean']:.1f} %, any refined {h['any_refined']:.1f} %")  # fmt: skip
+        if args.write_pairs:
+            rows = answer_records(held, k, best["pool"], chosen)
+            opener = gzip.open if args.write_pairs.endswith(".gz") else open
+            with opener(args.write_pairs, "wt") as f:
+                f.writelines(json.dumps(r) + "\n" for r in rows)
+            if args.summary:
+                summary = eval_pipeline.summarize_pipeline(rows, k)
+                summary.update(
+                    select={**_describe(chosen), "pool": best["pool"]},
+                    pool_starts=best["pool"] == "stage1_2",
+                    source=args.apply_to, rule_chosen_on=args.select_on,
+                )  # fmt: skip
+                refine.write_json(Path(args.summary), summary)
     refine.write_json(Path(args.out), result)
     return result
 

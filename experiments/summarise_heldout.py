@@ -25,7 +25,7 @@ import numpy as np
 
 from experiments import _cli
 
-STAGES = ("stage1", "stage1_2", "stage1_3", "all_stages")
+STAGES = ("stage1", "stage1_2", "stage1_3", "all_stages", "all_stages_paper")
 ERRORS = ("translation_error_m", "rotation_error_deg", "min_rotation_error_deg")
 
 

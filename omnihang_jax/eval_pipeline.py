@@ -38,7 +38,9 @@ STAGES = ("stage1", "stage1_2", "stage1_3", "all_stages")
 # training-free variant of the answer: the all-stages pose backed out of the observed support
 # along its normals (omnihang_jax.heuristics.separate; 703 of 1,814 answers of the first
 # evaluation failed by > 3 mm of penetration)
-VARIANTS = ("all_stages_separated",)
+VARIANTS = ("all_stages_separated", "all_stages_paper")
+# all_stages_paper: the paper's answer (highest final V among the Stage-2 starts' refined
+# candidates) recorded beside the configured one (``select`` / ``pool_starts``)
 PAPER = {"stage1": 36.0, "stage1_2": 34.2, "stage1_3": 56.2, "all_stages": 68.3}
 
 
@@ -76,12 +78,16 @@ def evaluate_pipeline(
     progress: bool = True,
     stage2_clearance: float | None = None,
     select: selection.SelectConfig = selection.SelectConfig(),
+    pool_starts: bool = False,
 ) -> tuple[list[dict], dict]:
     """Run Stages 1-3 on every pair file and simulate every candidate. Returns (records,
     timings). ``stage2_clearance`` (m): replaces the model's ``Stage2Config.clearance`` (None:
     the model's own); Stage 2 gets each pair's observed support normals either way. ``select``:
     the rule that picks the Stages 1+3 and all-stages answers among the refined candidates
-    (``omnihang_jax.selection``; default the paper's highest V). Every record also holds
+    (``omnihang_jax.selection``; default the paper's highest V); ``pool_starts``: the
+    all-stages answer is picked among the 2K candidates refined from Stages 1 and 2 (as
+    ``stage3.ANSWER_PIPELINE``), not only the Stage-2 starts'; the paper's answer is recorded
+    beside it either way (``all_stages_paper``). Every record also holds
     every candidate's V (``v``) and observed-cloud inside counts (``inside_counts``, for each
     (depth, radius) of ``selection.INSIDE_GRID``): rules can be studied after the run
     (``experiments.rerank_stage3``)."""
@@ -150,8 +156,16 @@ def evaluate_pipeline(
         counts = counts_fn(fullj, cand)  # [B, G, 4K]
         best1 = selection.select(r1.scores, counts[:, g_select, 2 * k : 3 * k], select)
         best2 = selection.select(r2.scores, counts[:, g_select, 3 * k :], select)
+        if pool_starts:  # the answer among all 2K refined candidates (stage3.ANSWER_PIPELINE)
+            keys = jnp.concatenate(
+                [selection.select_key(r1.scores, counts[:, g_select, 2 * k : 3 * k], select),
+                 selection.select_key(r2.scores, counts[:, g_select, 3 * k :], select)], axis=1,
+            )  # fmt: skip
+            answer = 2 * k + jnp.argmax(keys, axis=1)  # index into the 4K candidates
+        else:
+            answer = 3 * k + best2
         # V of the unrefined Stage-2 proposals is r2.initial_scores; V of every candidate:
-        chosen = jnp.take_along_axis(r2.poses, best2[:, None, None], axis=1)[:, 0]
+        chosen = jnp.take_along_axis(cand, answer[:, None, None], axis=1)[:, 0]
         separated = separate_fn(fullj, chosen)
         allp = jnp.concatenate([cand, separated[:, None]], axis=1)  # [B, 4K+1, 7]
         tiled = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0), small)
@@ -160,6 +174,7 @@ def evaluate_pipeline(
         t_net += time.time() - tn
         allp, v_all, counts = np.asarray(allp), np.asarray(v_all), np.asarray(counts)
         best1, best2, best_v = np.asarray(best1), np.asarray(best2), np.asarray(r2.best)
+        answer = np.asarray(answer)
         for j in range(m):
             sample, meta = loaded[j]
             records.append({
@@ -172,6 +187,7 @@ def evaluate_pipeline(
                 "best_stage1_3": int(best1[j]),
                 "best_all_stages": int(best2[j]),
                 "best_all_stages_value": int(best_v[j]),  # the paper's rule (highest V)
+                "answer_index": int(answer[j]),  # the all-stages answer in the 4K+1 candidates
                 "best_initial_v": int(np.argmax(np.asarray(r2.initial_scores[j]))),
                 "v": v_all[j].tolist(),
                 # every candidate [4K+1, 7] (Stage 1, 1+2, 1+3, all stages, separated): for
@@ -198,10 +214,14 @@ def evaluate_pipeline(
         names = kernels.STATUS_NAMES
         gt = np.asarray(sample.stable_poses)[np.asarray(sample.pose_mask, bool)]
         sl = {"stage1": slice(0, k), "stage1_2": slice(k, 2 * k),
-              "stage1_3": slice(2 * k, 3 * k), "all_stages": slice(3 * k, 4 * k),
-              "all_stages_separated": slice(4 * k, 4 * k + 1)}  # fmt: skip
+              "stage1_3": slice(2 * k, 3 * k),
+              "all_stages": slice(2 * k if pool_starts else 3 * k, 4 * k),
+              "all_stages_separated": slice(4 * k, 4 * k + 1),
+              "all_stages_paper": slice(3 * k, 4 * k)}  # fmt: skip
         pick = {"stage1": 0, "stage1_2": 0, "stage1_3": rec["best_stage1_3"],
-                "all_stages": rec["best_all_stages"], "all_stages_separated": 0}  # fmt: skip
+                "all_stages": rec["answer_index"] - sl["all_stages"].start,
+                "all_stages_separated": 0,
+                "all_stages_paper": rec["best_all_stages_value"]}  # fmt: skip
         for stage, s in sl.items():
             c = pick[stage]
             err = pose_errors(poses[s], sample)

@@ -174,7 +174,7 @@ class Candidates(NamedTuple):
     """C candidate poses of the where-to-hang step, in ranking order (best first).
 
     poses: [C, 7] object frame in support frame (xyz m + quaternion wxyz); stage: [C] str
-    ("stage1", "stage1_2", "stage3"); proposal: [C] int, the Stage-1 draw each comes from;
+    ("stage1", "stage1_2", "stage1_3", "stage3"); proposal: [C] int, the Stage-1 draw each comes from;
     score: [C] float, higher is better, of kind ``score_name``.
     """
 
@@ -687,8 +687,9 @@ def _clearance_scores(obj: Body, sup: Body, poses: np.ndarray) -> np.ndarray:
 # where Stage-3 value weights are looked for (scripts/device_stage3.sh writes the first);
 # then any weights/value_* folder
 VALUE_WEIGHTS = ("weights/value_small_paper", "weights/value_paper", "weights/stage3_paper")
-CEM_STARTS = 5  # Stage-2 proposals CEM refines (the paper's K at evaluation); CEM costs
-# population x iterations = 320 value-network states per start
+# CEM refines every Stage-1 and Stage-2 proposal (2K starts; population x iterations = 320
+# value-network states each), and the refined candidates are ranked by the answer rule chosen
+# on validation objects (omnihang_jax.selection.CHOSEN, as stage3.ANSWER_PIPELINE)
 
 
 def find_value_weights(model: str | os.PathLike = DEFAULT_MODEL) -> Path | None:
@@ -759,17 +760,22 @@ def stage3_scorer(config: HangConfig | None = None):
             + ")"
         )
     try:
-        return load_stage3(folder), f"Stage-3 value network {folder} (CEM on the best {CEM_STARTS})"
+        return load_stage3(folder), (
+            f"Stage-3 value network {folder} (CEM from every proposal, the answer by the "
+            "observed-cloud rule selection.CHOSEN)"
+        )
     except Exception as exc:  # present but unusable weights: say so, rank without them
         return None, f"Stage-3 weights {folder} not loadable ({type(exc).__name__}: {exc})"
 
 
 def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) -> WhereFn:
     """The where-to-hang step on the committed networks: K Stage-1 proposals and their
-    Stage-2 refinements (2K candidates). With ``stage3``: every candidate scored by the value
-    network (log P(hang)) and the CEM_STARTS best Stage-2 proposals refined by CEM on it (K'
-    more candidates, stage "stage3"), ranked by the value; without: ranked by the observed-
-    cloud clearance."""
+    Stage-2 refinements (2K candidates). With ``stage3``: every candidate refined by CEM on the
+    value network (2K more: stage "stage1_3" from Stage 1, "stage3" from Stage 2) and ranked
+    as ``stage3.ANSWER_PIPELINE`` picks its answer: the refined candidates first, by
+    ``selection.select_key`` of ``selection.CHOSEN`` (log V, minus 1e4 per object point more
+    than 0.5 mm inside the observed support), then the unrefined ones by the same key; without:
+    ranked by the observed-cloud clearance."""
     import jax
 
     def where(obj: Body, sup: Body, seed: int) -> Candidates:
@@ -783,16 +789,25 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
         stage = np.array(["stage1"] * k + ["stage1_2"] * k)
         proposal = np.concatenate([np.arange(k), np.arange(k)])
         if stage3 is not None:
-            score, name = stage3.score(obj, sup, poses).astype(np.float64), "stage3_log_value"
-            best = np.argsort(-score[k:], kind="stable")[: min(CEM_STARTS, k)]
-            refined, refined_score = stage3.refine(obj, sup, poses[k + best], seed)
+            from omnihang_jax import selection
+
+            rule = selection.CHOSEN
+            log_v = stage3.score(obj, sup, poses).astype(np.float64)
+            refined, refined_v = stage3.refine(obj, sup, poses, seed)
             refined[:, 3:] /= np.linalg.norm(refined[:, 3:], axis=1, keepdims=True)
             poses = np.concatenate([poses, refined])
-            stage = np.concatenate([stage, ["stage3"] * len(best)])
-            proposal = np.concatenate([proposal, best])
-            score = np.concatenate([score, refined_score])
-        else:
-            score, name = _clearance_scores(obj, sup, poses), "observed_clearance"
+            stage = np.concatenate([stage, ["stage1_3"] * k + ["stage3"] * k])
+            proposal = np.concatenate([proposal, proposal])
+            inside = selection.inside_counts(
+                obj.points, sup.points, sup.normals, poses, rule.depth, rule.radius
+            )
+            log_v = np.concatenate([log_v, refined_v])
+            key = selection.select_key(log_v.astype(np.float32), inside, rule)
+            score = np.asarray(key, np.float64)
+            name = "stage3_value_clear"
+            order = np.lexsort((-score, np.arange(len(score)) < 2 * k))  # refined first
+            return Candidates(poses[order], stage[order], proposal[order], score[order], name)
+        score, name = _clearance_scores(obj, sup, poses), "observed_clearance"
         order = np.argsort(-score, kind="stable")
         return Candidates(poses[order], stage[order], proposal[order], score[order], name)
 
@@ -1179,7 +1194,8 @@ def hang(
             f"Stages 1-2 ({config.model}), {config.num_proposals} proposals + their Stage-2 "
             f"refinements"
             + (
-                f", the best {CEM_STARTS} refined by CEM on the Stage-3 value, ranked by it"
+                ", each refined by CEM on the Stage-3 value, the refined ones ranked by the "
+                "observed-cloud rule selection.CHOSEN"
                 if scorer
                 else ", ranked by observed-cloud clearance"
             )

@@ -177,14 +177,17 @@ def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.P
     """(hang, params): the jitted Stages 1-3 pipeline (``stage3.make_hang_pipeline``) and its
     parameters, from the Stage 1/2 weights and a value folder (``refine.save_value``).
     ``stage2_overrides``: as in :func:`load_predictor`, e.g. ``{"clearance": 0.008}`` (the
-    pipeline takes the support normals from its clouds).
+    pipeline takes the support normals from its clouds). ``config``: a
+    ``stage3.PipelineConfig``, default ``stage3.ANSWER_PIPELINE`` (both starts refined, the
+    answer by the observed-cloud rule chosen on validation objects; ``PipelineConfig()`` is
+    the paper's).
 
     ``hang(params, key, clouds: stage3.PairClouds [B, ...]) -> stage3.HangOutput``."""
     from omnihang_jax import refine, stage3
 
     where = load_predictor(where_folder, stage2_overrides=stage2_overrides)
     value_config, value_params = refine.load_value(value_folder)
-    config = config or stage3.PipelineConfig()
+    config = config or stage3.ANSWER_PIPELINE
     hang = jax.jit(
         stage3.make_hang_pipeline(where.stage1_config, where.stage2_config, value_config, config)
     )

@@ -12,11 +12,16 @@ camera can tell (the test of :class:`omnihang_jax.collision.GeometricConfig`, on
 
 Rules (:class:`SelectConfig`):
 
-* ``"value"``: the highest V (the paper's rule, the default).
+* ``"value"``: the highest V (the paper's rule, ``SelectConfig()``).
 * ``"value_clear"``: the highest V among candidates with at most ``max_points`` object points
   inside the observed support; when every candidate has more, the one with the fewest (ties
   by V). One key does both: ``score - 1e4 * max(count - max_points, 0)`` (log V lies in
   [-50, 0] in practice, so one extra inside point outweighs any V difference).
+
+:data:`CHOSEN` is the rule chosen on validation objects (``experiments.rerank_stage3``, ninth
+session): ``value_clear`` at depth 0.5 mm, radius 5 mm, no point inside, pooled over the
+candidates refined from Stages 1 and 2 (``stage3.ANSWER_PIPELINE``); the pipeline's default
+answer since the tenth session (held-out: results/hanging_success.json, docs/evaluation.md).
 
 Both are pure: :func:`inside_counts` ([P] poses of one pair) and :func:`select_key`
 broadcast over leading axes, so the jitted pipeline and the after-the-run study
@@ -32,6 +37,7 @@ import jax.numpy as jnp
 
 __all__ = [
     "SelectConfig",
+    "CHOSEN",
     "RULES",
     "INSIDE_GRID",
     "grid_key",
@@ -68,6 +74,10 @@ class SelectConfig:
                 f"SelectConfig needs depth >= 0, radius > 0, max_points >= 0; got depth "
                 f"{self.depth}, radius {self.radius}, max_points {self.max_points}"
             )
+
+
+# chosen on 345 validation-object pairs (results/rerank_stage3_val.json): 58.5 -> 68.9 %
+CHOSEN = SelectConfig("value_clear", depth=0.0005, radius=0.005, max_points=0)
 
 
 def inside_counts(

@@ -61,6 +61,7 @@ __all__ = [
     "contact_pivot",
     "make_cem",
     "PipelineConfig",
+    "ANSWER_PIPELINE",
     "HangOutput",
     "make_hang_pipeline",
     "Refined",
@@ -405,7 +406,8 @@ class PipelineConfig:
     """Stages 1-3 in one call. ``starts``: the proposals CEM refines: "stage2" (all stages,
     the paper's pipeline) and/or "stage1" (the Stages 1+3 ablation). ``select``: how the
     answer is picked among each start's refined candidates (``omnihang_jax.selection``;
-    default the paper's highest V)."""
+    default the paper's highest V). ``ANSWER_PIPELINE`` is the chosen default of the entry
+    points (``predict.load_hang_pipeline``, ``predict_where``, ``bench_stage3``)."""
 
     num_proposals: int = 5  # K Stage-1 proposals per pair (facts: 5 at evaluation)
     cem: CEMConfig = CEMConfig()
@@ -414,6 +416,14 @@ class PipelineConfig:
     # True: the answer is picked among the refined candidates of ALL starts (with starts
     # ("stage2", "stage1"): 2K candidates), not only the first start's
     pool_starts: bool = False
+
+
+# The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
+# answer picked among all of them by the observed-cloud rule chosen on validation objects
+# (selection.CHOSEN). PipelineConfig() keeps the paper's: Stage-2 starts, highest V.
+ANSWER_PIPELINE = PipelineConfig(
+    starts=("stage2", "stage1"), select=selection.CHOSEN, pool_starts=True
+)
 
 
 class HangOutput(NamedTuple):

@@ -202,27 +202,41 @@ def test_output_folder_is_complete_or_absent(tmp_path, monkeypatch):
 
 @pytest.mark.slow  # compiles the full Stage 1 + 2 networks and CEM: ~60 s on 2 cores
 def test_stage3_is_wired_in_when_value_weights_exist(tmp_path):
-    """With value weights present (here a tiny random network: wiring, not learning), the
-    candidates are ranked by log V and the best Stage-2 proposals come back refined by CEM,
-    never scoring below their start (CEM scores the start first)."""
+    """With value weights present (here a tiny random network: wiring, not learning), every
+    Stage-1 and Stage-2 proposal comes back refined by CEM, never below its start in V (CEM
+    scores the start first), and the refined candidates rank first by the chosen answer rule
+    (selection.CHOSEN: log V minus 1e4 per object point inside the observed support)."""
     import jax
 
-    from omnihang_jax import refine, stage3
+    from omnihang_jax import refine, selection, stage3
 
     folder = tmp_path / "value"
     net = stage3.make_value(stage3.VALUE_TINY)
     refine.save_value(folder, stage3.VALUE_TINY, net.init(jax.random.key(0)))
-    config = H.HangConfig(num_proposals=3, value=str(folder), plan=False, verify=False,
+    k = 3
+    config = H.HangConfig(num_proposals=k, value=str(folder), plan=False, verify=False,
                           image_width=160, image_height=120)  # fmt: skip
     result = H.hang(None, None, None, config, log=None)
     c = result.candidates
-    assert c.score_name == "stage3_log_value" and "Stage-3 value network" in result.steps["stage3"]
-    assert sorted(set(c.stage)) == ["stage1", "stage1_2", "stage3"]
-    assert (np.diff(c.score) <= 1e-6).all()  # ranked by the value, best first
+    assert (
+        c.score_name == "stage3_value_clear" and "Stage-3 value network" in result.steps["stage3"]
+    )
+    assert sorted(set(c.stage)) == ["stage1", "stage1_2", "stage1_3", "stage3"]
+    refined = np.isin(c.stage, ["stage1_3", "stage3"])
+    assert refined[: 2 * k].all() and not refined[2 * k :].any()  # refined ones first
+    for group in (refined, ~refined):
+        assert (np.diff(c.score[group]) <= 1e-6).all()  # each group ranked by the rule's key
     s3 = H.load_stage3(folder)
-    for i in np.flatnonzero(c.stage == "stage3"):
-        start = c.poses[(c.stage == "stage1_2") & (c.proposal == c.proposal[i])][0]
-        assert c.score[i] >= s3.score(result.object, result.support, start[None])[0] - 1e-4
+    obj, sup = result.object, result.support
+    log_v = s3.score(obj, sup, c.poses)
+    inside = selection.inside_counts(obj.points, sup.points, sup.normals, c.poses,
+                                     selection.CHOSEN.depth, selection.CHOSEN.radius)  # fmt: skip
+    key = np.asarray(selection.select_key(log_v, inside, selection.CHOSEN))
+    np.testing.assert_allclose(key, c.score, rtol=1e-4, atol=1e-3)
+    for i in np.flatnonzero(refined):
+        source = "stage1" if c.stage[i] == "stage1_3" else "stage1_2"
+        start = c.poses[(c.stage == source) & (c.proposal == c.proposal[i])][0]
+        assert log_v[i] >= s3.score(obj, sup, start[None])[0] - 1e-4
 
 
 # ----------------------------------------------------------------------------- the page

@@ -128,3 +128,31 @@ def test_rerank_refuses_old_records(tmp_path):
     path.write_text(json.dumps({"category": "mug", "v": [0.5], "stable_all": [True]}) + "\n")
     with pytest.raises(ValueError, match="inside_counts"):
         rerank_stage3.main(["--select-on", str(path), "--out", str(tmp_path / "r.json")])
+
+
+def test_answer_records_make_the_rule_the_all_stages_answer():
+    k = 5
+    rows = _records(n_per_cat=2, k=k)
+    for r in rows:  # what eval_stage3 records beside (paper's answer: the highest V, 3K + 4)
+        names = ["stable" if s else "fallen" for s in r["stable_all"]]
+        names[3 * k + 4] = "penetrating"
+        r["poses_all"] = [[float(i)] * 7 for i in range(4 * k + 1)]
+        r["stage1_3"] = {"statuses": names[2 * k : 3 * k]}
+        r["all_stages"] = {
+            "success": False,
+            "status": "penetrating",
+            "statuses": names[3 * k : 4 * k],
+        }
+    cfg = selection.SelectConfig("value_clear", 0.001, 0.003, 0)
+    out = rerank_stage3.answer_records(rows, k, "stage1_2", cfg)
+    for r, o in zip(rows, out, strict=True):
+        assert o["all_stages_paper"] == r["all_stages"]  # the run's answer kept beside
+        assert o["answer_index"] == 3 * k + 3  # the clear candidate of the highest V
+        assert o["all_stages"]["pose"] == r["poses_all"][3 * k + 3]
+        assert o["all_stages"]["success"] == r["stable_all"][3 * k + 3]
+        assert o["all_stages"]["status"] == ("stable" if r["stable_all"][3 * k + 3] else "fallen")
+        assert len(o["all_stages"]["statuses"]) == 2 * k
+        assert "answer_index" not in r  # the input records are not changed
+    # rewriting rewritten records keeps the run's (paper's) answer where it was
+    again = rerank_stage3.answer_records(out, k, "stage1_2", cfg)
+    assert [o["all_stages_paper"] for o in again] == [r["all_stages"] for r in rows]
