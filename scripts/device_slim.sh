@@ -20,6 +20,8 @@ LIST=(
     results/validation_where_s9/val_6d.pairs.jsonl.gz
     results/hanging_success_stage3_s9.pairs.jsonl.gz results/hanging_success_stage2_clearance_s9_0.pairs.jsonl.gz
     results/hanging_success_stage2_clearance_s9_12mm.pairs.jsonl.gz results/hanging_success_stage2_clearance_s9_8mm.pairs.jsonl.gz
+    results/hanging_success_stage3_s10_answer.pairs.jsonl.gz results/validation_where_s10/val_6dlatest.pairs.jsonl.gz
+    results/train_where_session10 results/device
 )
 case ${1:-} in
 out)
@@ -29,7 +31,7 @@ out)
         mkdir -p "$ASIDE/$(dirname "$p")" && mv "$p" "$ASIDE/$p"
     done
     (git ls-files -z; git ls-files -z --others --exclude-standard) | xargs -0 stat -c %s 2>/dev/null |
-        awk '{s+=$1} END {printf "tree now %.1f MiB\n", s/1048576}'
+        awk '{s+=$1} END {printf "tree now %.1f MiB\n", s/1048576}' || true  # (stat fails on the files aside)
     ;;
 in)
     [ -d "$ASIDE" ] || { echo "nothing aside in $ASIDE"; exit 0; }
