@@ -43,6 +43,7 @@ __all__ = [
     "grid_key",
     "inside_counts",
     "inside_counts_grid",
+    "support_inside_counts_grid",
     "select_key",
     "select",
 ]
@@ -109,6 +110,27 @@ def inside_counts_grid(
 
     posed = collision.transform_points(poses, object_points)
     along, length = collision.nearest_support_offsets(posed, support_points, support_normals)
+    return jnp.stack([collision.inside_points(along, length, d, r) for d, r in grid])
+
+
+def support_inside_counts_grid(
+    object_points: jax.Array,
+    object_normals: jax.Array,
+    support_points: jax.Array,
+    poses: jax.Array,
+    grid=INSIDE_GRID,
+) -> jax.Array:
+    """The symmetric test: observed SUPPORT points more than ``depth`` behind the posed
+    observed OBJECT surface (its nearest point's outward normal) and within ``radius`` of it
+    sideways, for every (depth, radius) of ``grid`` -> [G, P] int32. One pair: object
+    points / normals [N, 3] (object frame), support points [M, 3], poses [P, 7]. Catches a
+    thin support (a rod, a hook's tip) passing through the object where the object's points
+    straddle it and none lies behind the observed support surface."""
+    from omnihang_jax import collision
+
+    rot = collision.quaternion_matrix(poses[:, 3:])  # [P, 3, 3] object -> support
+    local = jnp.einsum("pji,pmj->pmi", rot, support_points[None] - poses[:, None, :3])
+    along, length = collision.nearest_support_offsets(local, object_points, object_normals)
     return jnp.stack([collision.inside_points(along, length, d, r) for d, r in grid])
 
 

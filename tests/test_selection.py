@@ -175,3 +175,23 @@ def test_learned_ranker_learns_to_avoid_inside_candidates(tmp_path):
     assert out["held_out"]["learned"]["mean"] == pytest.approx(50.0)
     assert out["held_out"]["any_refined"] == pytest.approx(50.0)
     assert {row["loss"] for row in out["cross_validation"]["table"]} == {"pointwise", "listwise"}
+
+
+def test_support_inside_counts_see_a_rod_through_the_object():
+    # the object: a flat patch (normals +z) at z = 0 in its frame; a "support" of 4 points
+    # 5 mm under the patch (inside the object) and 4 points 5 mm above it (outside)
+    g = np.linspace(-0.02, 0.02, 9)
+    obj = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    obj = np.concatenate([obj, np.zeros((len(obj), 1))], 1).astype(np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (len(obj), 1))
+    sup = np.float32([[0, 0, -0.005], [0.005, 0, -0.005], [0, 0.005, -0.005], [0.01, 0, -0.005],
+                      [0, 0, 0.005], [0.005, 0, 0.005], [0, 0.005, 0.005], [0.01, 0, 0.005]])  # fmt: skip
+    # pose: the object lifted by 1 cm and turned 90 deg about z: the support moves with it
+    q = np.float32([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])
+    rz = np.float32([[0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    pose = np.concatenate([np.float32([0.0, 0.0, 0.01]), q])[None]
+    sup_world = sup @ rz.T + pose[0, :3]
+    counts = selection.support_inside_counts_grid(obj, nrm, sup_world, pose, ((0.001, 0.005),))
+    assert counts.shape == (1, 1) and int(counts[0, 0]) == 4
+    none = selection.support_inside_counts_grid(obj, nrm, sup_world, pose, ((0.006, 0.005),))
+    assert int(none[0, 0]) == 0  # deeper than the points: nothing inside
