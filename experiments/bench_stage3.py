@@ -39,17 +39,26 @@ def main(argv=None) -> dict:
     parser.add_argument("--proposals", type=int, default=5)
     parser.add_argument("--points", type=int, default=4096)
     parser.add_argument(
-        "--answer", choices=("chosen", "paper"), default="chosen",
-        help="chosen: stage3.ANSWER_PIPELINE (both starts refined, observed-cloud rule); "
-        "paper: Stage-2 starts, highest V",
+        "--answers", default="chosen,paper",
+        help="comma-separated pipelines timed side by side (interleaved, same clouds): chosen "
+        "= stage3.ANSWER_PIPELINE (both starts refined, the observed-cloud rule), paper = "
+        "Stage-2 starts, highest V; the first is the reference of the ratios",
     )  # fmt: skip
     args = parser.parse_args(argv)
+    answers = args.answers.split(",")
+    bad = [a for a in answers if a not in ("chosen", "paper")]
+    if bad:
+        parser.error(f"unknown --answers {bad}; known: chosen, paper")
     pred = load_predictor(args.weights)
     vcfg, vparams = refine.load_value(args.value)
     params = {"stage1": pred.stage1_params, "stage2": pred.stage2_params, "value": vparams}
-    base = stage3.ANSWER_PIPELINE if args.answer == "chosen" else stage3.PipelineConfig()
-    cfg = dataclasses.replace(base, num_proposals=args.proposals)
-    hang = jax.jit(stage3.make_hang_pipeline(pred.stage1_config, pred.stage2_config, vcfg, cfg))
+    configs, hangs = {}, {}
+    for a in answers:
+        base = stage3.ANSWER_PIPELINE if a == "chosen" else stage3.PipelineConfig()
+        configs[a] = dataclasses.replace(base, num_proposals=args.proposals)
+        hangs[a] = jax.jit(
+            stage3.make_hang_pipeline(pred.stage1_config, pred.stage2_config, vcfg, configs[a])
+        )
     rows = []
     for batch in (int(b) for b in args.batches.split(",")):
         b = min(batch, args.chunk)
@@ -63,35 +72,41 @@ def main(argv=None) -> dict:
 
         (op, on), (sp, sn) = cloud(0.05), cloud(0.1)
         clouds = stage3.PairClouds(op, on, sp, sn)
-        t = time.perf_counter()
-        jax.block_until_ready(hang(params, jax.random.key(0), clouds))
-        first = time.perf_counter() - t
-        times = []
-        for r in range(args.repeat):
+        first, times = {}, {a: [] for a in answers}
+        for a in answers:
             t = time.perf_counter()
-            for c in range(calls):
-                out = hang(params, jax.random.key(r * 1000 + c), clouds)
-            jax.block_until_ready(out)
-            times.append(time.perf_counter() - t)
-        ms = np.asarray(times) * 1000
-        rows.append({
-            "batch": batch, "jitted_batch": b, "calls": calls, "first_call_s": first,
-            "median_ms": float(np.median(ms)), "p10_ms": float(np.percentile(ms, 10)),
-            "p90_ms": float(np.percentile(ms, 90)),
-            "pairs_per_s": float(batch / np.median(ms) * 1000), "repeat": args.repeat,
-        })  # fmt: skip
-        print(json.dumps(rows[-1]))
+            jax.block_until_ready(hangs[a](params, jax.random.key(0), clouds))
+            first[a] = time.perf_counter() - t
+        for r in range(args.repeat):
+            for a in answers:  # interleaved: both see the same machine load
+                t = time.perf_counter()
+                for c in range(calls):
+                    out = hangs[a](params, jax.random.key(r * 1000 + c), clouds)
+                jax.block_until_ready(out)
+                times[a].append(time.perf_counter() - t)
+        for a in answers:
+            ms = np.asarray(times[a]) * 1000
+            rows.append({
+                "answer": a, "batch": batch, "jitted_batch": b, "calls": calls,
+                "first_call_s": first[a], "median_ms": float(np.median(ms)),
+                "p10_ms": float(np.percentile(ms, 10)), "p90_ms": float(np.percentile(ms, 90)),
+                "pairs_per_s": float(batch / np.median(ms) * 1000), "repeat": args.repeat,
+                "ratio_to_first": float(np.median(ms) / np.median(np.asarray(times[answers[0]]) * 1000)),
+            })  # fmt: skip
+            print(json.dumps(rows[-1]))
     result = {
-        "what": "Stages 1-3 (K proposals, Stage 2, CEM on V from every Stage-2 proposal"
-        + (
-            ", and from every Stage-1 proposal, the answer by selection.CHOSEN)"
-            if args.answer == "chosen"
-            else ", the highest V)"
-        ),
-        "answer": args.answer,
-        "starts": list(cfg.starts),
-        "select": dataclasses.asdict(cfg.select),
-        "cem": vars(cfg.cem) if hasattr(cfg.cem, "__dict__") else str(cfg.cem),
+        "what": "Stages 1-3 in one jitted call; chosen: CEM from every Stage-1 and Stage-2 "
+        "proposal, the answer by selection.CHOSEN (stage3.ANSWER_PIPELINE); paper: CEM from "
+        "every Stage-2 proposal, the highest V",
+        "answers": {
+            a: {
+                "starts": list(configs[a].starts),
+                "select": dataclasses.asdict(configs[a].select),
+                "pool_starts": configs[a].pool_starts,
+            }
+            for a in answers
+        },  # fmt: skip
+        "cem": dataclasses.asdict(configs[answers[0]].cem),
         "proposals": args.proposals,
         "points": args.points,
         "device": str(jax.devices()[0]),

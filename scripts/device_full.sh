@@ -30,6 +30,8 @@
 #          through eval_stage3 with WHERE_W / VALUE (VAL_ARGS: more flags), or with each of
 #          VAL_WS="NAME=WEIGHTS ..." in turn: Stage-1 variants are chosen on these figures, and
 #          experiments.rerank_stage3 chooses the answer rule on their records.
+#   bench  bench_stage3: Stages 1-3 latency at batch 1 / 16 / 256, the answer pipeline
+#          (stage3.ANSWER_PIPELINE) and the paper's side by side (~3 min with compilation).
 # INIT1=none trains Stage 1 from scratch; S1_ARGS adds train_where flags, e.g. S1_ARGS="--stage1
 # rotation=6d --stage1 set_loss_mean=true" (a changed head needs INIT1=none).
 # VIEWS=2: also derive every pair's next candidate view (`--view 1`, ~100 s more) and train on
@@ -37,7 +39,7 @@
 # Back in $OUT: full.log, where.tgz (stage-1 best + latest exports, the resumable checkpoint,
 # metrics, validation curve, logs), stage3.tgz, eval JSONs (+ pairs .jsonl.gz).
 set -uo pipefail
-CALL=${1:?usage: device_full.sh train|eval|val}
+CALL=${1:?usage: device_full.sh train|eval|val|bench}
 C=/tmp/full
 END_S=${END_S:-570}
 LOG=full.log
@@ -142,6 +144,14 @@ if [ "$CALL" = train ]; then
     wait "$TEST_PID"
     [ -n "${S3_PID:-}" ] && { wait "$S3_PID"; log "Stage-3 part: exit $?"; }
     ls -la "$OUT" | tee -a "$OUT/$LOG"
+    log "done"
+    exit 0
+fi
+
+if [ "$CALL" = bench ]; then
+    # issue 12's latency: the answer pipeline and the paper's, side by side (bench_stage3)
+    timeout $(($(left) - 5)) $PY -m experiments.bench_stage3 --batches 1,16,256 \
+        --out "$OUT/bench_stage3.json" 2>&1 | tail -8 | tee -a "$OUT/$LOG"
     log "done"
     exit 0
 fi
