@@ -687,9 +687,11 @@ def _clearance_scores(obj: Body, sup: Body, poses: np.ndarray) -> np.ndarray:
 # where Stage-3 value weights are looked for (scripts/device_stage3.sh writes the first);
 # then any weights/value_* folder
 VALUE_WEIGHTS = ("weights/value_small_paper", "weights/value_paper", "weights/stage3_paper")
-# CEM refines every Stage-1 and Stage-2 proposal (2K starts; population x iterations = 320
+# CEM refines the CEM_STARTS best-V Stage-1 proposals and as many Stage-2 proposals (with the
+# evaluation's K = 5: all of them, as stage3.ANSWER_PIPELINE; population x iterations = 320
 # value-network states each), and the refined candidates are ranked by the answer rule chosen
-# on validation objects (omnihang_jax.selection.CHOSEN, as stage3.ANSWER_PIPELINE)
+# on validation objects (omnihang_jax.selection.CHOSEN)
+CEM_STARTS = 5
 
 
 def find_value_weights(model: str | os.PathLike = DEFAULT_MODEL) -> Path | None:
@@ -761,8 +763,9 @@ def stage3_scorer(config: HangConfig | None = None):
         )
     try:
         return load_stage3(folder), (
-            f"Stage-3 value network {folder} (CEM from every proposal, the answer by the "
-            "observed-cloud rule selection.CHOSEN)"
+            f"Stage-3 value network {folder} (CEM from the best {CEM_STARTS} Stage-1 and "
+            f"{CEM_STARTS} Stage-2 proposals, the answer by the observed-cloud rule "
+            "selection.CHOSEN)"
         )
     except Exception as exc:  # present but unusable weights: say so, rank without them
         return None, f"Stage-3 weights {folder} not loadable ({type(exc).__name__}: {exc})"
@@ -770,9 +773,10 @@ def stage3_scorer(config: HangConfig | None = None):
 
 def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) -> WhereFn:
     """The where-to-hang step on the committed networks: K Stage-1 proposals and their
-    Stage-2 refinements (2K candidates). With ``stage3``: every candidate refined by CEM on the
-    value network (2K more: stage "stage1_3" from Stage 1, "stage3" from Stage 2) and ranked
-    as ``stage3.ANSWER_PIPELINE`` picks its answer: the refined candidates first, by
+    Stage-2 refinements (2K candidates). With ``stage3``: the CEM_STARTS best-V candidates of
+    each stage refined by CEM on the value network (stage "stage1_3" from Stage 1, "stage3"
+    from Stage 2; with K = 5 every one, as ``stage3.ANSWER_PIPELINE``) and ranked as that
+    pipeline picks its answer: the refined candidates first, by
     ``selection.select_key`` of ``selection.CHOSEN`` (log V, minus 1e4 per object point more
     than 0.5 mm inside the observed support), then the unrefined ones by the same key; without:
     ranked by the observed-cloud clearance."""
@@ -793,11 +797,14 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
 
             rule = selection.CHOSEN
             log_v = stage3.score(obj, sup, poses).astype(np.float64)
-            refined, refined_v = stage3.refine(obj, sup, poses, seed)
+            n = min(CEM_STARTS, k)
+            starts = np.concatenate([np.argsort(-log_v[:k], kind="stable")[:n],
+                                     k + np.argsort(-log_v[k:], kind="stable")[:n]])  # fmt: skip
+            refined, refined_v = stage3.refine(obj, sup, poses[starts], seed)
             refined[:, 3:] /= np.linalg.norm(refined[:, 3:], axis=1, keepdims=True)
             poses = np.concatenate([poses, refined])
-            stage = np.concatenate([stage, ["stage1_3"] * k + ["stage3"] * k])
-            proposal = np.concatenate([proposal, proposal])
+            stage = np.concatenate([stage, ["stage1_3"] * n + ["stage3"] * n])
+            proposal = np.concatenate([proposal, proposal[starts]])
             inside = selection.inside_counts(
                 obj.points, sup.points, sup.normals, poses, rule.depth, rule.radius
             )
@@ -805,7 +812,7 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
             key = selection.select_key(log_v.astype(np.float32), inside, rule)
             score = np.asarray(key, np.float64)
             name = "stage3_value_clear"
-            order = np.lexsort((-score, np.arange(len(score)) < 2 * k))  # refined first
+            order = np.lexsort((-score, np.arange(len(score)) < 2 * k))  # refined first (>= 2K)
             return Candidates(poses[order], stage[order], proposal[order], score[order], name)
         score, name = _clearance_scores(obj, sup, poses), "observed_clearance"
         order = np.argsort(-score, kind="stable")
@@ -1194,8 +1201,8 @@ def hang(
             f"Stages 1-2 ({config.model}), {config.num_proposals} proposals + their Stage-2 "
             f"refinements"
             + (
-                ", each refined by CEM on the Stage-3 value, the refined ones ranked by the "
-                "observed-cloud rule selection.CHOSEN"
+                f", the best {CEM_STARTS} of each refined by CEM on the Stage-3 value, the "
+                "refined ones ranked by the observed-cloud rule selection.CHOSEN"
                 if scorer
                 else ", ranked by observed-cloud clearance"
             )
