@@ -25,35 +25,34 @@ from tests.test_stage2_clearance_pipeline import (
 CLEAR = selection.SelectConfig("value_clear", depth=0.001, radius=0.003, max_points=0)
 
 
-def test_pipeline_value_clear_picks_by_v_and_inside_counts(params):  # noqa: F811
+def _counts(clouds, poses, config):
+    return np.stack([
+        np.asarray(selection.inside_counts(
+            clouds.object_points[i], clouds.support_points[i], clouds.support_normals[i],
+            poses[i], config.depth, config.radius))
+        for i in range(len(poses))
+    ])  # fmt: skip
+
+
+def test_pipeline_value_clear_per_start_and_pooled(params):  # noqa: F811
+    """One compiled pipeline (CLEAR, pooled starts; the paper's rule is test_stage3's): each
+    start's pick is the rule over its own refined candidates, the answer the rule over all."""
     clouds = _plane_pairs()
-    key = jax.random.key(7)
-    paper = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, PIPE))
-    cfg = dataclasses.replace(PIPE, select=CLEAR)
-    clear = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg))
-    a, b = paper(params, key, clouds), clear(params, key, clouds)
-    for name in PIPE.starts:  # same candidates and scores, only the pick differs
-        np.testing.assert_array_equal(np.asarray(a.refined[name]), np.asarray(b.refined[name]))
-        np.testing.assert_array_equal(np.asarray(a.scores[name]), np.asarray(b.scores[name]))
-        np.testing.assert_array_equal(
-            np.asarray(a.best[name]), np.argmax(np.asarray(a.scores[name]), axis=1)
-        )
-        counts = np.stack([
-            np.asarray(selection.inside_counts(
-                clouds.object_points[i], clouds.support_points[i], clouds.support_normals[i],
-                b.refined[name][i], CLEAR.depth, CLEAR.radius))
-            for i in range(len(clouds.object_points))
-        ])  # fmt: skip
-        want = np.asarray(selection.select(b.scores[name], counts, CLEAR))
-        np.testing.assert_array_equal(np.asarray(b.best[name]), want)
-    first = PIPE.starts[0]
-    pick = np.take_along_axis(
-        np.asarray(b.refined[first]), np.asarray(b.best[first])[:, None, None], 1
+    cfg = dataclasses.replace(PIPE, select=CLEAR, pool_starts=True)
+    out = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg))(
+        params, jax.random.key(8), clouds
     )
-    np.testing.assert_array_equal(np.asarray(b.pose), pick[:, 0])
+    for name in cfg.starts:
+        counts = _counts(clouds, np.asarray(out.refined[name]), CLEAR)
+        want = np.asarray(selection.select(out.scores[name], counts, CLEAR))
+        np.testing.assert_array_equal(np.asarray(out.best[name]), want)
+    cands = np.concatenate([np.asarray(out.refined[n]) for n in cfg.starts], axis=1)
+    scores = np.concatenate([np.asarray(out.scores[n]) for n in cfg.starts], axis=1)
+    pick = np.asarray(selection.select(scores, _counts(clouds, cands, CLEAR), CLEAR))
+    np.testing.assert_array_equal(np.asarray(out.pose), cands[np.arange(len(cands)), pick])
 
 
-def _evaluate(monkeypatch, select):
+def _evaluate(monkeypatch, select, pool_starts=False):
     monkeypatch.setattr(predict, "load_predictor", _fake_load_predictor([]))
     monkeypatch.setattr(refine, "load_value", _fake_load_value)
     monkeypatch.setattr(refine, "Labeller", _FakeLabeller)
@@ -61,46 +60,37 @@ def _evaluate(monkeypatch, select):
     files = ["00003_x.npz", "00004_x.npz"]
     return eval_pipeline.evaluate_pipeline(
         files, "W", "V", "D", num_proposals=2, batch=2, progress=False, select=select,
-        cem=stage3.CEMConfig(population=8, iterations=2, elites=3),
+        cem=stage3.CEMConfig(population=8, iterations=2, elites=3), pool_starts=pool_starts,
     )[0]  # fmt: skip
 
 
 def test_evaluation_records_counts_and_applies_the_rule(monkeypatch):
+    """One evaluation with the chosen kind of answer (CLEAR over the pooled starts): the
+    records hold every candidate's V and counts, the rule per start, the pooled answer and
+    the paper's answer (highest V) beside it."""
     k = 2
-    paper = _evaluate(monkeypatch, selection.SelectConfig())
-    clear = _evaluate(monkeypatch, CLEAR)
-    for rp, rc in zip(paper, clear, strict=True):
-        assert len(rp["poses_all"]) == 4 * k + 1 and len(rp["v"]) == 4 * k + 1
-        assert set(rp["inside_counts"]) == {
+    records = _evaluate(monkeypatch, CLEAR, pool_starts=True)
+    for rc in records:
+        assert len(rc["poses_all"]) == 4 * k + 1 and len(rc["v"]) == 4 * k + 1
+        assert set(rc["inside_counts"]) == {
             selection.grid_key(d, r) for d, r in selection.INSIDE_GRID
         }
-        assert all(len(c) == 4 * k for c in rp["inside_counts"].values())
-        # the paper's rule: the highest V; same candidates (same keys) under both rules
-        assert rp["best_all_stages"] == rp["best_all_stages_value"]
-        np.testing.assert_allclose(rp["poses_all"][: 4 * k], rc["poses_all"][: 4 * k])
+        assert all(len(c) == 4 * k for c in rc["inside_counts"].values())
         counts = np.asarray(rc["inside_counts"][selection.grid_key(CLEAR.depth, CLEAR.radius)])
-        v = np.asarray(rc["v"], np.float32)
-        want = int(
-            np.argmax(np.asarray(selection.select_key(v[3 * k : 4 * k], counts[3 * k :], CLEAR)))
-        )
-        # v is V on the final poses = CEM's final score: the same order
-        assert rc["best_all_stages"] == want
+        v = np.asarray(rc["v"], np.float32)  # V on the final poses = CEM's final score
 
+        def rule(lo, hi, v=v, counts=counts):
+            return int(np.argmax(np.asarray(selection.select_key(v[lo:hi], counts[lo:hi], CLEAR))))
 
-def test_pipeline_pools_the_starts(params):  # noqa: F811
-    clouds = _plane_pairs()
-    key = jax.random.key(8)
-    cfg = dataclasses.replace(PIPE, select=CLEAR, pool_starts=True)
-    out = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg))(
-        params, key, clouds
-    )
-    cands = np.concatenate([np.asarray(out.refined[n]) for n in cfg.starts], axis=1)
-    scores = np.concatenate([np.asarray(out.scores[n]) for n in cfg.starts], axis=1)
-    counts = np.stack([
-        np.asarray(selection.inside_counts(
-            clouds.object_points[i], clouds.support_points[i], clouds.support_normals[i],
-            cands[i], CLEAR.depth, CLEAR.radius))
-        for i in range(len(cands))
-    ])  # fmt: skip
-    pick = np.asarray(selection.select(scores, counts, CLEAR))
-    np.testing.assert_array_equal(np.asarray(out.pose), cands[np.arange(len(cands)), pick])
+        assert rc["best_all_stages"] == rule(3 * k, 4 * k)  # the rule over Stage 2's starts
+        assert rc["best_stage1_3"] == rule(2 * k, 3 * k)
+        assert rc["best_all_stages_value"] == int(np.argmax(v[3 * k : 4 * k]))  # the paper's
+        assert rc["answer_index"] == 2 * k + rule(2 * k, 4 * k)  # pooled over both starts
+        a = rc["answer_index"]
+        np.testing.assert_allclose(rc["all_stages"]["pose"], rc["poses_all"][a], atol=1e-6)
+        assert rc["all_stages"]["success"] == rc["stable_all"][a]
+        assert len(rc["all_stages"]["statuses"]) == 2 * k
+        paper = rc["all_stages_paper"]
+        want = rc["poses_all"][3 * k + rc["best_all_stages_value"]]
+        np.testing.assert_allclose(paper["pose"], want, atol=1e-6)
+        assert len(paper["statuses"]) == k

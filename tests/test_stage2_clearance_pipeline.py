@@ -93,7 +93,8 @@ def _expected_offset(params, clouds, key, clearance):
     return np.asarray(off).reshape(b, k, 3), pred
 
 
-def test_pipeline_clearance_zero_is_todays_output_and_c_moves_stage2_exactly(params):
+@pytest.mark.slow  # three more pipeline compilations (~40 s on 2 cores); a refactor guard
+def test_pipeline_clearance_zero_is_the_output_before_the_normals(params):
     clouds = _plane_pairs()
     key = jax.random.key(5)
     old = jax.jit(_old_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, PIPE))
@@ -102,6 +103,12 @@ def test_pipeline_clearance_zero_is_todays_output_and_c_moves_stage2_exactly(par
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))  # bit-identical
 
+
+def test_pipeline_clearance_c_moves_stage2_exactly(params):
+    clouds = _plane_pairs()
+    key = jax.random.key(5)
+    new = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, PIPE))
+    b = new(params, key, clouds)
     moved = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, _tiny2(C), stage3.VALUE_TINY, PIPE))
     m = moved(params, key, clouds)
     np.testing.assert_array_equal(np.asarray(m.stage1_poses), np.asarray(b.stage1_poses))
@@ -132,18 +139,26 @@ def _fake_load_value(folder):
 
 
 def test_load_hang_pipeline_takes_stage2_overrides(monkeypatch):
-    calls = []
+    """The overrides reach load_predictor and the pipeline is built on its Stage-2 config
+    (that config's clearance moves Stage 2: test_pipeline_clearance_c_moves_stage2_exactly);
+    the default pipeline is the answer pipeline."""
+    calls, built = [], []
     monkeypatch.setattr(predict, "load_predictor", _fake_load_predictor(calls))
     monkeypatch.setattr(refine, "load_value", _fake_load_value)
-    clouds, key = _plane_pairs(batch=1), jax.random.key(3)
-    outs = {}
+    make = stage3.make_hang_pipeline
+
+    def spy(stage1_config, stage2_config, value_config, config):
+        built.append((stage2_config.clearance, config))
+        return make(stage1_config, stage2_config, value_config, config)
+
+    monkeypatch.setattr(stage3, "make_hang_pipeline", spy)
     for clearance in (None, C):
         overrides = None if clearance is None else {"clearance": clearance}
         hang, params = predict.load_hang_pipeline("W", "V", PIPE, stage2_overrides=overrides)
-        outs[clearance] = hang(params, key, clouds)
-    assert calls == [None, {"clearance": C}]
-    shift = np.asarray(outs[C].stage2_poses)[..., :3] - np.asarray(outs[None].stage2_poses)[..., :3]
-    np.testing.assert_allclose(shift, np.broadcast_to([0, 0, C], shift.shape), atol=1e-7)
+        assert callable(hang) and set(params) == {"stage1", "stage2", "value"}
+    predict.load_hang_pipeline("W", "V")
+    assert calls == [None, {"clearance": C}, None]
+    assert built == [(0.0, PIPE), (C, PIPE), (0.0, stage3.ANSWER_PIPELINE)]
 
 
 class _FakeLabeller:
