@@ -66,6 +66,7 @@ __all__ = [
     "make_hang_pipeline",
     "Refined",
     "make_refiner",
+    "make_smoothed_value",
 ]
 
 
@@ -483,6 +484,35 @@ def make_refiner(
         )  # fmt: skip
 
     return refine
+
+
+def make_smoothed_value(
+    value_config: ValueConfig, samples: int = 16, sigma_translation: float = 0.002,
+    sigma_rotation: float = 0.05,
+) -> Callable:  # fmt: skip
+    """``smoothed(value_params, key, clouds unbatched subsampled, poses [P, 7]) -> ([P], [P])``:
+    V averaged over a neighbourhood of each pose, (mean P(hang), mean log P(hang)) over
+    ``samples`` actions (``apply_action`` about the pose's ``contact_pivot``): the first is the
+    pose itself, the others Gaussian with ``sigma_translation`` (m) / ``sigma_rotation`` (rad)
+    per axis. The same actions serve every pose of the call (common random numbers: a
+    comparison between candidates carries no sampling noise of its own). CEM maximises V,
+    so a refined pose may sit on a narrow peak of V that a real hang does not have; the
+    average prefers poses whose neighbourhood V also calls hanging. Pure, un-jitted."""
+    value = make_value(value_config)
+    scale = jnp.asarray([sigma_translation] * 3 + [sigma_rotation] * 3, jnp.float32)
+
+    def smoothed(value_params, key, clouds: PairClouds, poses):
+        actions = jax.random.normal(key, (samples, 6)) * scale
+        actions = actions.at[0].set(0.0)
+
+        def one(pose):
+            moved = apply_action(pose, contact_pivot(clouds, pose), actions)  # [S, 7]
+            log_v = value.score(value_params, clouds, moved)
+            return jnp.mean(jnp.exp(log_v)), jnp.mean(log_v)
+
+        return jax.lax.map(one, poses)
+
+    return smoothed
 
 
 def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,

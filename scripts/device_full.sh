@@ -30,16 +30,20 @@
 #          through eval_stage3 with WHERE_W / VALUE (VAL_ARGS: more flags), or with each of
 #          VAL_WS="NAME=WEIGHTS ..." in turn: Stage-1 variants are chosen on these figures, and
 #          experiments.rerank_stage3 chooses the answer rule on their records.
+#   smooth experiments.smooth_stage3: the answer by V averaged around each refined candidate,
+#          its width chosen on validation-object records, applied to held-out records (SMOOTH_VAL,
+#          SMOOTH_HELD, SMOOTH_ARGS); derives both pair sets if absent.
 #   bench  bench_stage3: Stages 1-3 latency at batch 1 / 16 / 256, the answer pipeline
 #          (stage3.ANSWER_PIPELINE) and the paper's side by side (~3 min with compilation).
 # INIT1=none trains Stage 1 from scratch; S1_ARGS adds train_where flags, e.g. S1_ARGS="--stage1
 # rotation=6d --stage1 set_loss_mean=true" (a changed head needs INIT1=none).
 # VIEWS=2: also derive every pair's next candidate view (`--view 1`, ~100 s more) and train on
-# both (augmentation with real renders; DERIVE_S is then the budget per view).
+# both (augmentation with real renders; DERIVE_S is then the budget per view). PACK_ONLY=1 stops
+# after the pack; SKIP_PACK=1 (next call, warm machine) trains on that pack as it is.
 # Back in $OUT: full.log, where.tgz (stage-1 best + latest exports, the resumable checkpoint,
 # metrics, validation curve, logs), stage3.tgz, eval JSONs (+ pairs .jsonl.gz).
 set -uo pipefail
-CALL=${1:?usage: device_full.sh train|eval|val|bench}
+CALL=${1:?usage: device_full.sh train|eval|val|bench|smooth}
 C=/tmp/full
 END_S=${END_S:-570}
 LOG=full.log
@@ -93,6 +97,10 @@ derive_val() {  # WORKERS: the 396 pairs of validation OBJECTS (36 a category), 
 if [ "$CALL" = train ]; then
     # VIEWS (1): views of every pair, view k >= 1 = the pair's k-th other candidate view
     SPLITS=
+    # SKIP_PACK=1: a warm machine's pack (e.g. of a PACK_ONLY=1 call) is reused as it is
+    if [ -n "${SKIP_PACK:-}" ] && [ -f "$C/pack/pack.json" ]; then
+        log "reusing $C/pack: $(tr -d '\n ' <"$C/logs/pack.log" | cut -c1-200)"
+    else
     for v in $(seq 0 $((${VIEWS:-1} - 1))); do
         sfx=$([ "$v" -gt 0 ] && echo "_v$v")
         timeout -k 5 $((${DERIVE_S:-240} * (v + 1) - $(date +%s) + T0)) $PY -m experiments.derive_dataset \
@@ -104,6 +112,9 @@ if [ "$CALL" = train ]; then
     $PY -m experiments.pack_dataset --data "$C/ds" --split "$SPLITS" --out "$C/pack_new" \
         --threads 16 --no-progress >"$C/logs/pack.log" 2>&1 && rm -rf "$C/pack" && mv "$C/pack_new" "$C/pack"
     log "packed: $(tr -d '\n ' <"$C/logs/pack.log" | cut -c1-200)"
+    fi
+    # PACK_ONLY=1: derive and pack, then stop (two views take most of a call)
+    [ -n "${PACK_ONLY:-}" ] && { log "done (pack only)"; exit 0; }
     # the Stage-3 part reads DS/derived/train: a dataset folder whose train is the clouds
     mkdir -p "$C/ds3/derived" && ln -sfn "$C/ds/recipe.json" "$C/ds3/recipe.json" &&
         ln -sfn "$C/ds/shards" "$C/ds3/shards" && ln -sfn "$C/ds/derived/$CLOUDS" "$C/ds3/derived/train"
@@ -119,12 +130,13 @@ if [ "$CALL" = train ]; then
     TEST_PID=$!
     BUDGET=$(($(left) - 45))
     # S1_VARIANTS: Stage-1 runs side by side on the one GPU, same data and budget; name -> flags
-    # (6daug / 6dyaw / 6dmean: the 6-D head with issue 14's augmentation or the mean set loss;
+    # (6daug / 6dyaw / 6dmean / 6dlo: the 6-D head with issue 14's augmentation, the mean set loss or lr 1e-4;
     # with INIT1 = the committed 6-D weights they fine-tune it, beside the plain 6d control)
     declare -A S1V=([base]="" [aa]="" [6d]="--stage1 rotation=6d" [mean]="--stage1 set_loss_mean=true"
         [6daug]="--stage1 rotation=6d --augment-jitter 0.002 --augment-yaw 0.5"
         [6dyaw]="--stage1 rotation=6d --augment-yaw 3.1416"
-        [6dmean]="--stage1 rotation=6d --stage1 set_loss_mean=true")
+        [6dmean]="--stage1 rotation=6d --stage1 set_loss_mean=true"
+        [6dlo]="--stage1 rotation=6d --lr-stage1 1e-4")
     PIDS=
     for name in ${S1_VARIANTS:-base}; do
         dir=$C/where$([ "$name" != base ] && echo "_$name")
@@ -152,6 +164,21 @@ if [ "$CALL" = bench ]; then
     # issue 12's latency: the answer pipeline and the paper's, side by side (bench_stage3)
     timeout $(($(left) - 5)) $PY -m experiments.bench_stage3 --batches 1,16,256 \
         --out "$OUT/bench_stage3.json" 2>&1 | tail -8 | tee -a "$OUT/$LOG"
+    log "done"
+    exit 0
+fi
+
+if [ "$CALL" = smooth ]; then
+    # issue 12: the answer picked by V averaged around each refined candidate
+    # (experiments.smooth_stage3), chosen on the validation-object records of the committed
+    # weights, applied to the held-out records of results/hanging_success.json's run
+    [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1794 ] || derive_test 16
+    [ "$(ls "$C/ds/derived/train" 2>/dev/null | wc -l)" -ge 300 ] || derive_val 16
+    timeout $(($(left) - 5)) $PY -m experiments.smooth_stage3 --data "$C/ds" \
+        --select-on "${SMOOTH_VAL:-results/validation_where_s11/val_committed.pairs.jsonl.gz}" \
+        --apply-to "${SMOOTH_HELD:-results/hanging_success_stage3_s10_answer.pairs.jsonl.gz}" \
+        --batch 32 --out "$OUT/smooth_stage3.json" ${SMOOTH_ARGS:-} --no-progress 2>&1 |
+        tail -4 | tee -a "$OUT/$LOG"
     log "done"
     exit 0
 fi
@@ -204,6 +231,7 @@ evaluate weights/value_small_paper "${EVAL_LABEL:-Stages 1-2 $W, committed V} ${
 # the Stage-3 answer rule chosen on the validation objects, applied once to these records
 # (device_slim.sh keeps results/validation_where_s9/val_s9_counts.pairs.jsonl.gz in the tree)
 $PY -m experiments.rerank_stage3 --select-on results/validation_where_s9/val_s9_counts.pairs.jsonl.gz \
+    --proposals "$(echo "${EVAL_ARGS:-}" | grep -oE -- '--proposals [0-9]+' | grep -oE '[0-9]+' || echo 5)" \
     --apply-to "$OUT/${TAG}_where.pairs.jsonl" --out "$OUT/${TAG}_rerank.json" 2>&1 | tail -2 | tee -a "$OUT/$LOG"
 if [ -d "$NEWV" ] && [ "$(left)" -gt 200 ]; then
     evaluate "$NEWV" "Stages 1-2 $W, the train call's hard-negative V" "${TAG}_both" ${EVAL_ARGS:-}

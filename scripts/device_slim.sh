@@ -18,10 +18,13 @@ LIST=(
     results/paths_hybrid.pairs.jsonl results/train_where_session8 results/stage3_train_s8
     results/train_where_session9 results/stage3_train_s9 results/heldout_cpu_s9
     results/validation_where_s9/val_6d.pairs.jsonl.gz
+    # (kept in the tree: the records device_full.sh's eval and smooth calls read)
     results/hanging_success_stage3_s9.pairs.jsonl.gz results/hanging_success_stage2_clearance_s9_0.pairs.jsonl.gz
     results/hanging_success_stage2_clearance_s9_12mm.pairs.jsonl.gz results/hanging_success_stage2_clearance_s9_8mm.pairs.jsonl.gz
-    results/hanging_success_stage3_s10_answer.pairs.jsonl.gz results/validation_where_s10/val_6dlatest.pairs.jsonl.gz
-    results/train_where_session10 results/device
+    results/validation_where_s10/val_6dlatest.pairs.jsonl.gz results/validation_where_s11/val_s11_6d.pairs.jsonl.gz
+    results/hanging_success_stage3_s11_k10.pairs.jsonl.gz results/hanging_success_stage3_s11_6dft2.pairs.jsonl.gz
+    results/hanging_success_stage3_s11_views2.pairs.jsonl.gz results/validation_where_s11/val_v2.pairs.jsonl.gz
+    results/train_where_session10 results/train_where_session11 results/device
 )
 case ${1:-} in
 out)

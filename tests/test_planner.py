@@ -116,3 +116,27 @@ def test_estimator_checker_batches_agree_with_single_calls():
     single = np.array([checker(x[None])[0] for x in poses[:5]])
     np.testing.assert_array_equal(batched, single)
     np.testing.assert_array_equal(batched, p[:5] > thr)
+
+
+def test_eval_paths_summary_counts_and_dense_flags():
+    """precision / recall / F1 from the per-pair rows, and how many colliding paths the
+    estimator itself flags when the path is checked at the dense spacing."""
+    from experiments.eval_paths import summarise
+
+    def row(i, returned, free, flags=None):
+        r = dict(pair=f"p{i}", method="nce", object_category="mug" if i % 2 else "cap",
+                 returned=returned, collision_free=free, planning_s=1.0 + i,
+                 status="Exact solution" if returned else "Approximate solution",
+                 start_called_colliding=False, goal_called_colliding=False, states_checked=10)  # fmt: skip
+        if returned:
+            r |= dict(deepest_m=0.0 if free else 0.004, estimator_dense_flags=flags)
+        return r
+
+    rows = [row(0, True, True, 0), row(1, True, False, 3), row(2, True, False, 0),
+            row(3, False, False)]  # fmt: skip
+    s = summarise(rows, methods=("nce",))["nce"]
+    assert (s["returned"], s["collision_free"], s["pairs"]) == (3, 1, 4)
+    assert s["precision"] == round(100 / 3, 1) and s["recall"] == 25.0
+    assert s["f1"] == round(100 * 2 * (1 / 3) * 0.25 / (1 / 3 + 0.25), 1)
+    assert s["colliding_paths_flagged_when_dense"] == 1
+    assert s["timeouts"] == 1 and s["deepest_penetration_of_colliding_paths_m"] == [0.004, 0.004]

@@ -94,3 +94,29 @@ def test_evaluation_records_counts_and_applies_the_rule(monkeypatch):
         want = rc["poses_all"][3 * k + rc["best_all_stages_value"]]
         np.testing.assert_allclose(paper["pose"], want, atol=1e-6)
         assert len(paper["statuses"]) == k
+
+
+def test_smooth_stage3_rescored_records(monkeypatch, tmp_path):
+    """experiments.smooth_stage3 on an evaluation's records: V recomputed from the pair files
+    matches the recorded V of the pooled candidates, and at zero width the smoothed score
+    picks what the recorded V picks."""
+    import json
+
+    from experiments import smooth_stage3
+
+    records = _evaluate(monkeypatch, selection.CHOSEN, pool_starts=True)
+    runs = tmp_path / "run.pairs.jsonl"
+    runs.write_text("".join(json.dumps(r, default=float) + "\n" for r in records))
+    folder = tmp_path / "derived" / "test"
+    folder.mkdir(parents=True)
+    for r in records:
+        (folder / r["file"]).write_bytes(b"")  # _fake_pair reads the name only
+    out = smooth_stage3.main([
+        "--select-on", str(runs), "--select-split", "test", "--data", str(tmp_path),
+        "--proposals", "2", "--samples", "2", "--widths", "0:0,0.002:0.05", "--batch", "2",
+        "--out", str(tmp_path / "smooth.json"), "--no-progress",
+    ])  # fmt: skip
+    assert out["v_check_select_on"]["max_abs_diff"] < 1e-4
+    rows = {(r["score"], r.get("sigma_translation_m")): r for r in out["table"]}
+    assert rows[("mean V", 0.0)]["mean"] == rows[("recorded V", None)]["mean"]
+    assert len(out["table"]) == 1 + 2 * 2 and (tmp_path / "smooth.json").exists()

@@ -1,0 +1,210 @@
+"""The Stage-3 answer picked by a smoothed V, studied after an evaluation run.
+
+    python -m experiments.smooth_stage3 \\
+        --select-on results/validation_where_s11/val_committed.pairs.jsonl.gz --select-split train \\
+        --apply-to results/hanging_success_stage3_s10.pairs.jsonl.gz --apply-split test \\
+        --out results/smooth_stage3.json
+
+CEM maximises V, so a refined candidate may sit on a narrow peak of V. This scores every refined
+candidate of a run (the 2K of the answer pool, Stages 1+3 and all stages) by V averaged over
+``--samples`` poses around it (``stage3.make_smoothed_value``: Gaussian actions about the
+candidate's contact pivot, the same actions for every candidate of a pair), for a grid of
+(translation, rotation) widths and two averages (of P(hang), of log P(hang)), and replaces the
+final V in the chosen rule (``selection.CHOSEN``, pooled: the highest score among the candidates
+with no object point inside the observed support). As in ``experiments.rerank_stage3``, every
+candidate of an ``eval_stage3`` run was simulated (``stable_all``), so a rule is scored without a
+new simulation; the width is chosen on --select-on (pairs of validation OBJECTS) and applied
+once to --apply-to (held-out pairs). The clouds come from the pair files the records name
+(``DATA/derived/<split>/``); as a check, V of the unperturbed candidates is recomputed and
+compared with the recorded one (``v_check``). Mean over categories as everywhere.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from experiments import _cli
+from experiments.rerank_stage3 import any_refined, pool_indices, read_records, successes
+from omnihang_jax import dataset_bridge, refine, selection, stage3
+from omnihang_jax.stage3 import PairClouds
+
+POOL = "stage1_2"
+DEFAULT_WIDTHS = "0.001:0.02,0.001:0.05,0.002:0.02,0.002:0.05,0.002:0.1,0.004:0.05,0.004:0.1"
+
+
+def parse_widths(text: str) -> list[tuple[float, float]]:
+    out = []
+    for item in text.split(","):
+        t, _, r = item.partition(":")
+        if not r:
+            raise ValueError(f"--widths: {item!r} is not TRANSLATION:ROTATION (m:rad)")
+        out.append((float(t), float(r)))
+    return out
+
+
+def smoothed_scores(rows, data, split, value_dir, k, widths, samples, batch, seed, progress):
+    """Per width: ([N, P] mean P(hang), [N, P] mean log P(hang)) of the pool's candidates, and
+    [N, P] the recomputed plain V (the check against the records)."""
+    value_config, params = refine.load_value(value_dir)
+    idx = pool_indices(k, POOL)
+    fns = {
+        w: jax.jit(jax.vmap(
+            stage3.make_smoothed_value(value_config, samples, w[0], w[1]),
+            in_axes=(None, 0, 0, 0),
+        ))
+        for w in widths
+    }  # fmt: skip
+    value = stage3.make_value(value_config)
+    plain_fn = jax.jit(
+        jax.vmap(lambda p, c, poses: jnp.exp(value.score(p, c, poses)), in_axes=(None, 0, 0))
+    )
+    out = {w: ([], []) for w in widths}
+    plain = []
+    key = jax.random.key(seed)
+    folder = os.path.join(data, "derived", split)
+    for i in tqdm(range(0, len(rows), batch), desc=f"smoothed V ({split})", disable=not progress):
+        chunk = rows[i : i + batch]
+        m = len(chunk)
+        chunk = chunk + [chunk[0]] * (batch - m)  # pad: one compilation
+        clouds = []
+        for r in chunk:
+            path = os.path.join(folder, r["file"])
+            if not os.path.exists(path):
+                raise FileNotFoundError(
+                    f"{path}: the pair file of a record is missing; derive it "
+                    f"(experiments.derive_dataset --split {split} --pairs-from RECORDS)"
+                )
+            sample, _ = dataset_bridge.load_pair_file(path)
+            clouds.append(sample)
+        full = PairClouds(*(np.stack([np.asarray(getattr(s, f), np.float32) for s in clouds])
+                            for f in ("object_points", "object_normals", "support_points",
+                                      "support_normals")))  # fmt: skip
+        small = stage3.subsample_clouds(jax.tree.map(jnp.asarray, full), value_config)
+        poses = jnp.asarray(np.asarray([r["poses_all"] for r in chunk], np.float32)[:, idx])
+        # per pair a key of its own (folded with its pair index): reproducible, batch-free
+        keys = jax.vmap(lambda n: jax.random.fold_in(key, n))(
+            jnp.asarray([int(r["pair_index"]) for r in chunk])
+        )
+        plain.append(np.asarray(plain_fn(params, small, poses))[:m])
+        for w, fn in fns.items():
+            mean_v, mean_log = fn(params, keys, small, poses)
+            out[w][0].append(np.asarray(mean_v)[:m])
+            out[w][1].append(np.asarray(mean_log)[:m])
+    result = {w: (np.concatenate(a), np.concatenate(b)) for w, (a, b) in out.items()}
+    return result, np.concatenate(plain)
+
+
+def with_scores(rows, k, scores):
+    """The records with the pool candidates' ``v`` replaced by ``scores`` [N, P]."""
+    idx = pool_indices(k, POOL)
+    out = []
+    for r, s in zip(rows, scores, strict=True):
+        v = list(r["v"])
+        for j, c in enumerate(idx):
+            v[c] = float(s[j])
+        out.append({**r, "v": v})
+    return out
+
+
+def evaluate(rows, k, smoothed, plain):
+    """Success of the chosen rule with the recorded V and with each smoothed score."""
+    idx = pool_indices(k, POOL)
+    recorded = np.asarray([r["v"] for r in rows], np.float32)[:, idx]
+    table = [{"score": "recorded V", **successes(rows, k, POOL, selection.CHOSEN)}]
+    for (t, r), (mean_v, mean_log) in smoothed.items():
+        for name, s in (("mean V", mean_v), ("mean log V", mean_log)):
+            res = successes(with_scores(rows, k, s), k, POOL, selection.CHOSEN)
+            table.append({"score": name, "sigma_translation_m": t, "sigma_rotation_rad": r, **res})
+    check = {"max_abs_diff": float(np.max(np.abs(plain - recorded))),
+             "mean_abs_diff": float(np.mean(np.abs(plain - recorded)))}  # fmt: skip
+    return table, check
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--select-on", required=True, help="validation run's .pairs.jsonl[.gz]")
+    parser.add_argument("--select-split", default="train", help="derived split of its pairs")
+    parser.add_argument("--apply-to", default=None, help="held-out run's .pairs.jsonl[.gz]")
+    parser.add_argument("--apply-split", default="test")
+    parser.add_argument("--data", default="datasets/paper", help="dataset with derived/<split>")
+    parser.add_argument("--value", default="weights/value_small_paper", help="V of the runs")
+    parser.add_argument("--proposals", type=int, default=5, help="K of the runs")
+    parser.add_argument("--widths", default=DEFAULT_WIDTHS,
+                        help="comma-separated TRANSLATION:ROTATION sigmas (m:rad)")  # fmt: skip
+    parser.add_argument("--samples", type=int, default=16, help="poses per average")
+    parser.add_argument("--batch", type=int, default=16, help="pairs per call")
+    parser.add_argument("--limit", type=int, default=None, help="first N records of each run")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", required=True, help="JSON")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    if args.samples < 1 or args.batch < 1:
+        parser.error("--samples and --batch must be >= 1")
+    widths = parse_widths(args.widths)
+    k = args.proposals
+    common = dict(value_dir=args.value, k=k, widths=widths, samples=args.samples,
+                  batch=args.batch, seed=args.seed, progress=not args.no_progress)  # fmt: skip
+
+    val = read_records(args.select_on)[: args.limit]
+    smoothed, plain = smoothed_scores(val, args.data, args.select_split, **common)
+    table, check = evaluate(val, k, smoothed, plain)
+    best = max(table, key=lambda row: row["mean"])
+    result = {
+        "select_on": args.select_on,
+        "select_on_pairs": len(val),
+        "pool": POOL,
+        "rule": {"rule": selection.CHOSEN.rule, "depth_m": selection.CHOSEN.depth,
+                 "radius_m": selection.CHOSEN.radius, "max_points": selection.CHOSEN.max_points},
+        "samples": args.samples,
+        "seed": args.seed,
+        "v_check_select_on": check,
+        "any_refined_select_on": any_refined(val, k, POOL),
+        "chosen": {x: best[x] for x in best if x != "per_category"},
+        "table": [{x: row[x] for x in row if x != "per_category"} for row in table],
+        "device": str(jax.devices()[0]),
+    }  # fmt: skip
+    print(f"validation ({len(val)} pairs): recorded V {table[0]['mean']:.1f} %, best "
+          f"{best['mean']:.1f} % ({_label(best)}); V check {check}")  # fmt: skip
+    if args.apply_to:
+        held = read_records(args.apply_to)[: args.limit]
+        widths_held = [(best["sigma_translation_m"], best["sigma_rotation_rad"])] if (
+            "sigma_translation_m" in best) else widths[:1]  # fmt: skip
+        sm, pl = smoothed_scores(
+            held, args.data, args.apply_split, **{**common, "widths": widths_held}
+        )
+        htable, hcheck = evaluate(held, k, sm, pl)
+        pick = next((r for r in htable if r["score"] == best["score"]
+                     and r.get("sigma_translation_m") == best.get("sigma_translation_m")
+                     and r.get("sigma_rotation_rad") == best.get("sigma_rotation_rad")), htable[0])  # fmt: skip
+        result["apply_to"] = args.apply_to
+        result["held_out"] = {
+            "pairs": len(held),
+            "recorded_v": htable[0],
+            "chosen": pick,
+            "any_refined": any_refined(held, k, POOL),
+            "v_check": hcheck,
+            "table": [{x: row[x] for x in row if x != "per_category"} for row in htable],
+        }
+        print(f"held-out ({len(held)} pairs): recorded V {htable[0]['mean']:.1f} %, chosen "
+              f"{pick['mean']:.1f} % ({_label(pick)}); V check {hcheck}")  # fmt: skip
+    refine.write_json(Path(args.out), result)
+    return result
+
+
+def _label(row: dict) -> str:
+    if "sigma_translation_m" not in row:
+        return row["score"]
+    return f"{row['score']}, {1000 * row['sigma_translation_m']:g} mm / {row['sigma_rotation_rad']:g} rad"
+
+
+if __name__ == "__main__":
+    _cli.run(main)
