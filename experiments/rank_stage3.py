@@ -24,14 +24,13 @@ beside. The chosen model is refitted on all --fit-on records and applied once to
 from __future__ import annotations
 
 import argparse
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
 
 from experiments import _cli
-from experiments.rerank_stage3 import pool_indices, read_records, successes
+from experiments.rerank_stage3 import category_means, pool_indices, read_records, successes
 from omnihang_jax import refine, selection
 
 POOL = "stage1_2"  # the 2K candidates refined from Stages 1 and 2 (indices 2K..4K)
@@ -100,12 +99,7 @@ def scores(model, x: np.ndarray) -> np.ndarray:
 
 
 def success_of(rows: list[dict], picks: np.ndarray, y: np.ndarray) -> dict:
-    by_cat = defaultdict(list)
-    for r, p, yy in zip(rows, picks, y, strict=True):
-        by_cat[r["category"]].append(bool(yy[p]))
-    per_cat = {c: 100.0 * float(np.mean(v)) for c, v in sorted(by_cat.items())}
-    return {"mean": float(np.mean(list(per_cat.values()))), "per_category": per_cat,
-            "pairs": len(rows)}  # fmt: skip
+    return category_means(rows, [yy[p] for p, yy in zip(picks, y, strict=True)])
 
 
 def folds_by_object(rows: list[dict], n: int, seed: int = 0) -> np.ndarray:

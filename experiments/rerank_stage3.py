@@ -69,9 +69,15 @@ def successes(rows: list[dict], k: int, pool: str, config: selection.SelectConfi
     v = np.asarray([r["v"] for r in rows], np.float32)[:, idx]
     counts = np.asarray([r["inside_counts"][key] for r in rows], np.int32)[:, idx]
     picks = np.asarray(selection.select(v, counts, config))
+    return category_means(rows, [r["stable_all"][idx[p]] for r, p in zip(rows, picks, strict=True)])
+
+
+def category_means(rows: list[dict], outcomes) -> dict:
+    """Per pair a success (bool) -> the mean over object categories (the figure everywhere),
+    over pairs, and per category (percent)."""
     by_cat = defaultdict(list)
-    for r, pick in zip(rows, picks, strict=True):
-        by_cat[r["category"]].append(bool(r["stable_all"][idx[pick]]))
+    for r, ok in zip(rows, outcomes, strict=True):
+        by_cat[r["category"]].append(bool(ok))
     per_cat = {c: 100.0 * float(np.mean(x)) for c, x in sorted(by_cat.items())}
     return {
         "mean": float(np.mean(list(per_cat.values()))),

@@ -25,7 +25,6 @@ import argparse
 import gzip
 import json
 import os
-from collections import defaultdict
 from pathlib import Path
 
 import jax
@@ -34,7 +33,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from experiments import _cli
-from experiments.rerank_stage3 import pool_indices, read_records
+from experiments.rerank_stage3 import category_means, pool_indices, read_records
 from omnihang_jax import dataset_bridge, refine, selection
 
 POOL = "stage1_2"
@@ -83,12 +82,7 @@ def picks_of(rows, k, setting) -> np.ndarray:
 
 def success(rows, k, picks) -> dict:
     idx = pool_indices(k, POOL)
-    by_cat = defaultdict(list)
-    for r, p in zip(rows, picks, strict=True):
-        by_cat[r["category"]].append(bool(r["stable_all"][idx[p]]))
-    per_cat = {c: 100.0 * float(np.mean(x)) for c, x in sorted(by_cat.items())}
-    return {"mean": float(np.mean(list(per_cat.values()))), "per_category": per_cat,
-            "pairs": len(rows)}  # fmt: skip
+    return category_means(rows, [r["stable_all"][idx[p]] for r, p in zip(rows, picks, strict=True)])
 
 
 def choose(args) -> dict:
