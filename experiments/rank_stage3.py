@@ -30,7 +30,13 @@ import numpy as np
 from scipy.optimize import minimize
 
 from experiments import _cli
-from experiments.rerank_stage3 import category_means, pool_indices, read_records, successes
+from experiments.rerank_stage3 import (
+    category_means,
+    pool_indices,
+    proposals_of,
+    read_records,
+    successes,
+)
 from omnihang_jax import refine, selection
 
 POOL = "stage1_2"  # the 2K candidates refined from Stages 1 and 2 (indices 2K..4K)
@@ -115,14 +121,19 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--fit-on", required=True, help="comma-separated validation records")
     parser.add_argument("--apply-to", default=None, help="held-out records (.pairs.jsonl[.gz])")
-    parser.add_argument("--proposals", type=int, default=5, help="K of the runs")
+    parser.add_argument(
+        "--proposals",
+        type=int,
+        default=None,
+        help="K of the runs, checked against their records (default: read from them)",
+    )
     parser.add_argument("--folds", type=int, default=5, help="cross-validation folds (objects)")
     parser.add_argument("--l2", default="0.001,0.01,0.1,1,10", help="comma-separated")
     parser.add_argument("--losses", default="pointwise,listwise", help="comma-separated")
     parser.add_argument("--out", required=True, help="JSON")
     args = parser.parse_args(argv)
-    k = args.proposals
     val = [r for p in args.fit_on.split(",") for r in read_records(p)]
+    k = proposals_of(val, args.proposals)
     x, y = features(val, k)
     folds = folds_by_object(val, args.folds)
     rule = successes(val, k, POOL, selection.CHOSEN)["mean"]
@@ -152,12 +163,13 @@ def main(argv=None) -> dict:
     }
     if args.apply_to:
         held = read_records(args.apply_to)
-        xh, yh = features(held, k)
+        kh = proposals_of(held, args.proposals)
+        xh, yh = features(held, kh)
         picks = np.argmax(scores(model, xh), axis=1)
         result["apply_to"] = args.apply_to
         result["held_out"] = {
             "learned": success_of(held, picks, yh),
-            "rule": successes(held, k, POOL, selection.CHOSEN),
+            "rule": successes(held, kh, POOL, selection.CHOSEN),
             "any_refined": success_of(held, np.argmax(yh, axis=1), yh)["mean"],
         }
         h = result["held_out"]

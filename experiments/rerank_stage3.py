@@ -54,6 +54,19 @@ def read_records(path: str) -> list[dict]:
     return rows
 
 
+def proposals_of(rows: list[dict], given: int | None = None) -> int:
+    """K of an evaluation run, read from its records (each holds 4K + 1 candidates: Stage 1,
+    1+2, 1+3, all stages, separated). ``given`` (a --proposals flag) must agree: records of a
+    K = 10 run scored as K = 5 would silently pick from the wrong candidates."""
+    sizes = {len(r["v"]) for r in rows}
+    if len(sizes) != 1 or (next(iter(sizes)) - 1) % 4:
+        raise ValueError(f"records hold {sorted(sizes)} candidates each; expected one 4K + 1")
+    k = (sizes.pop() - 1) // 4
+    if given is not None and given != k:
+        raise ValueError(f"--proposals {given}, but the records are of a K = {k} run")
+    return k
+
+
 def pool_indices(k: int, pool: str) -> np.ndarray:
     """Candidate indices of a pool in a record's 4K+1 candidates (Stage 1, 1+2, 1+3, all
     stages, separated)."""
@@ -139,7 +152,12 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--select-on", required=True, help="validation run's .pairs.jsonl[.gz]")
     parser.add_argument("--apply-to", default=None, help="held-out run's .pairs.jsonl[.gz]")
-    parser.add_argument("--proposals", type=int, default=5, help="K of the runs")
+    parser.add_argument(
+        "--proposals",
+        type=int,
+        default=None,
+        help="K of the runs, checked against their records (default: read from them)",
+    )
     parser.add_argument("--max-points", default="0,2,5,10,20,50", help="comma-separated")
     parser.add_argument("--out", required=True, help="JSON")
     parser.add_argument(
@@ -151,8 +169,8 @@ def main(argv=None) -> dict:
         help="with --write-pairs: eval_stage3's summary of those records",
     )  # fmt: skip
     args = parser.parse_args(argv)
-    k = args.proposals
     val = read_records(args.select_on)
+    k = proposals_of(val, args.proposals)
     table = []
     for pool, config in settings(val, [int(x) for x in args.max_points.split(",")]):
         s = successes(val, k, pool, config)
@@ -172,23 +190,24 @@ def main(argv=None) -> dict:
           f"{best['mean']:.1f} % ({_label(best)}); any refined {result['any_refined']}")  # fmt: skip
     if args.apply_to:
         held = read_records(args.apply_to)
+        kh = proposals_of(held, args.proposals)  # the rule is K-free: runs may differ
         chosen = _config(best)
         result["apply_to"] = args.apply_to
         result["held_out"] = {
-            "paper_rule": successes(held, k, "stage2", selection.SelectConfig()),
-            "chosen": successes(held, k, best["pool"], chosen),
-            "any_refined": any_refined(held, k, best["pool"]),
+            "paper_rule": successes(held, kh, "stage2", selection.SelectConfig()),
+            "chosen": successes(held, kh, best["pool"], chosen),
+            "any_refined": any_refined(held, kh, best["pool"]),
         }
         h = result["held_out"]
         print(f"held-out ({len(held)} pairs): paper's rule {h['paper_rule']['mean']:.1f} %, "
               f"chosen {h['chosen']['mean']:.1f} %, any refined {h['any_refined']:.1f} %")  # fmt: skip
         if args.write_pairs:
-            rows = answer_records(held, k, best["pool"], chosen)
+            rows = answer_records(held, kh, best["pool"], chosen)
             opener = gzip.open if args.write_pairs.endswith(".gz") else open
             with opener(args.write_pairs, "wt") as f:
                 f.writelines(json.dumps(r) + "\n" for r in rows)
             if args.summary:
-                summary = eval_pipeline.summarize_pipeline(rows, k)
+                summary = eval_pipeline.summarize_pipeline(rows, kh)
                 summary.update(
                     select={**_describe(chosen), "pool": best["pool"]},
                     pool_starts=best["pool"] == "stage1_2",

@@ -31,9 +31,14 @@ import numpy as np
 from tqdm import tqdm
 
 from experiments import _cli
-from experiments.rerank_stage3 import any_refined, pool_indices, read_records, successes
+from experiments.rerank_stage3 import (
+    any_refined,
+    pool_indices,
+    proposals_of,
+    read_records,
+    successes,
+)
 from omnihang_jax import dataset_bridge, refine, selection, stage3
-from omnihang_jax.stage3 import PairClouds
 
 POOL = "stage1_2"
 DEFAULT_WIDTHS = "0.001:0.02,0.001:0.05,0.002:0.02,0.002:0.05,0.002:0.1,0.004:0.05,0.004:0.1"
@@ -83,9 +88,7 @@ def smoothed_scores(rows, data, split, value_dir, k, widths, samples, batch, see
                 )
             sample, _ = dataset_bridge.load_pair_file(path)
             clouds.append(sample)
-        full = PairClouds(*(np.stack([np.asarray(getattr(s, f), np.float32) for s in clouds])
-                            for f in ("object_points", "object_normals", "support_points",
-                                      "support_normals")))  # fmt: skip
+        full = stage3.stack_clouds(clouds)
         small = stage3.subsample_clouds(jax.tree.map(jnp.asarray, full), value_config)
         poses = jnp.asarray(np.asarray([r["poses_all"] for r in chunk], np.float32)[:, idx])
         # per pair a key of its own (folded with its pair index): reproducible, batch-free
@@ -137,7 +140,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--apply-split", default="test")
     parser.add_argument("--data", default="datasets/paper", help="dataset with derived/<split>")
     parser.add_argument("--value", default="weights/value_small_paper", help="V of the runs")
-    parser.add_argument("--proposals", type=int, default=5, help="K of the runs")
+    parser.add_argument(
+        "--proposals", type=int, default=None,
+        help="K of the runs, checked against their records (default: read from them)",
+    )  # fmt: skip
     parser.add_argument("--widths", default=DEFAULT_WIDTHS,
                         help="comma-separated TRANSLATION:ROTATION sigmas (m:rad)")  # fmt: skip
     parser.add_argument("--samples", type=int, default=16, help="poses per average")
@@ -150,12 +156,13 @@ def main(argv=None) -> dict:
     if args.samples < 1 or args.batch < 1:
         parser.error("--samples and --batch must be >= 1")
     widths = parse_widths(args.widths)
-    k = args.proposals
-    common = dict(value_dir=args.value, k=k, widths=widths, samples=args.samples,
-                  batch=args.batch, seed=args.seed, progress=not args.no_progress)  # fmt: skip
+    common = dict(value_dir=args.value, samples=args.samples, batch=args.batch, seed=args.seed,
+                  progress=not args.no_progress)  # fmt: skip
 
     val = read_records(args.select_on)[: args.limit]
-    smoothed, plain = smoothed_scores(val, args.data, args.select_split, **common)
+    k = proposals_of(val, args.proposals)
+    smoothed, plain = smoothed_scores(val, args.data, args.select_split, k=k, widths=widths,
+                                      **common)  # fmt: skip
     table, check = evaluate(val, k, smoothed, plain)
     best = max(table, key=lambda row: row["mean"])
     result = {
@@ -176,21 +183,19 @@ def main(argv=None) -> dict:
           f"{best['mean']:.1f} % ({_label(best)}); V check {check}")  # fmt: skip
     if args.apply_to:
         held = read_records(args.apply_to)[: args.limit]
-        widths_held = [(best["sigma_translation_m"], best["sigma_rotation_rad"])] if (
-            "sigma_translation_m" in best) else widths[:1]  # fmt: skip
-        sm, pl = smoothed_scores(
-            held, args.data, args.apply_split, **{**common, "widths": widths_held}
-        )
-        htable, hcheck = evaluate(held, k, sm, pl)
-        pick = next((r for r in htable if r["score"] == best["score"]
-                     and r.get("sigma_translation_m") == best.get("sigma_translation_m")
-                     and r.get("sigma_rotation_rad") == best.get("sigma_rotation_rad")), htable[0])  # fmt: skip
+        kh = proposals_of(held, args.proposals)
+        # only the chosen width (none when the recorded V won: V is still recomputed, the check)
+        chosen = [(best["sigma_translation_m"], best["sigma_rotation_rad"])] if (
+            "sigma_translation_m" in best) else []  # fmt: skip
+        sm, pl = smoothed_scores(held, args.data, args.apply_split, k=kh, widths=chosen, **common)
+        htable, hcheck = evaluate(held, kh, sm, pl)
+        pick = next(r for r in htable if _setting(r) == _setting(best))
         result["apply_to"] = args.apply_to
         result["held_out"] = {
             "pairs": len(held),
             "recorded_v": htable[0],
             "chosen": pick,
-            "any_refined": any_refined(held, k, POOL),
+            "any_refined": any_refined(held, kh, POOL),
             "v_check": hcheck,
             "table": [{x: row[x] for x in row if x != "per_category"} for row in htable],
         }
@@ -198,6 +203,10 @@ def main(argv=None) -> dict:
               f"{pick['mean']:.1f} % ({_label(pick)}); V check {hcheck}")  # fmt: skip
     refine.write_json(Path(args.out), result)
     return result
+
+
+def _setting(row: dict) -> tuple:
+    return row["score"], row.get("sigma_translation_m"), row.get("sigma_rotation_rad")
 
 
 def _label(row: dict) -> str:

@@ -33,7 +33,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from experiments import _cli
-from experiments.rerank_stage3 import category_means, pool_indices, read_records
+from experiments.rerank_stage3 import category_means, pool_indices, proposals_of, read_records
 from omnihang_jax import dataset_bridge, refine, selection
 
 POOL = "stage1_2"
@@ -44,7 +44,7 @@ MAX_POINTS = (0, 1, 2, 5, 10)
 def count(args) -> None:
     rows = read_records(args.records)
     _, derived = dataset_bridge.resolve_dataset_dir(args.data)
-    k = args.proposals
+    k = proposals_of(rows, args.proposals)
     idx = pool_indices(k, POOL)
     fn = jax.jit(lambda o, n, s, p: selection.support_inside_counts_grid(o, n, s, p, GRID))
     out = []
@@ -86,8 +86,8 @@ def success(rows, k, picks) -> dict:
 
 
 def choose(args) -> dict:
-    k = args.proposals
     val = read_records(args.select_on)
+    k = proposals_of(val, args.proposals)
     settings = [None] + [(d, r, m) for d, r in GRID for m in MAX_POINTS]
     table = [{"setting": s, "mean": success(val, k, picks_of(val, k, s))["mean"]} for s in settings]
     best = max(table, key=lambda row: row["mean"])
@@ -98,10 +98,11 @@ def choose(args) -> dict:
               "chosen": best, "table": sorted(table, key=lambda row: -row["mean"])}  # fmt: skip
     if args.apply_to:
         held = read_records(args.apply_to)
+        kh = proposals_of(held, args.proposals)
         result["apply_to"] = args.apply_to
         result["held_out"] = {
-            "chosen_alone": success(held, k, picks_of(held, k, None)),
-            "with_symmetric": success(held, k, picks_of(held, k, best["setting"])),
+            "chosen_alone": success(held, kh, picks_of(held, kh, None)),
+            "with_symmetric": success(held, kh, picks_of(held, kh, best["setting"])),
         }
         h = result["held_out"]
         print(f"held-out ({len(held)} pairs): CHOSEN alone {h['chosen_alone']['mean']:.1f} %, "
@@ -126,7 +127,10 @@ def main(argv=None):
     s.add_argument("--apply-to", default=None)
     s.add_argument("--out", required=True)
     for p in (c, s):
-        p.add_argument("--proposals", type=int, default=5)
+        p.add_argument(
+            "--proposals", type=int, default=None,
+            help="K of the run(s), checked against the records (default: read from them)",
+        )  # fmt: skip
     args = parser.parse_args(argv)
     return count(args) if args.what == "count" else choose(args)
 

@@ -30,7 +30,6 @@ from tqdm.auto import tqdm
 
 from omnihang_jax import dataset_bridge, refine, selection, stage3
 from omnihang_jax.evaluate import pose_errors, summarize_success
-from omnihang_jax.stage3 import PairClouds
 
 __all__ = ["STAGES", "evaluate_pipeline", "within_box", "summarize_pipeline"]
 
@@ -137,9 +136,7 @@ def evaluate_pipeline(
         loaded = [dataset_bridge.load_pair_file(f) for f in chunk]
         loaded += [loaded[0]] * (batch - m)  # pad: one compilation
         samples = [s for s, _ in loaded]
-        full = PairClouds(*(np.stack([np.asarray(getattr(s, f), np.float32) for s in samples])
-                            for f in ("object_points", "object_normals", "support_points",
-                                      "support_normals")))  # fmt: skip
+        full = stage3.stack_clouds(samples)
         tn = time.time()
         pred = predictor(full.object_points, full.support_points,
                          key=jax.random.fold_in(key, i), num_proposals=k,

@@ -38,6 +38,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 
 from omnihang_jax import pointnet2, selection
 from omnihang_jax.pointnet2 import PointNet2Config, PointNet2Encoder, squared_distance
@@ -48,6 +49,7 @@ __all__ = [
     "VALUE_TINY",
     "VALUE_PRESETS",
     "PairClouds",
+    "stack_clouds",
     "subsample_clouds",
     "posed_state",
     "ValueNet",
@@ -125,6 +127,13 @@ class PairClouds(NamedTuple):
     object_normals: Any
     support_points: Any
     support_normals: Any
+
+
+def stack_clouds(samples) -> PairClouds:
+    """The clouds of several pairs (anything with the PairClouds fields, e.g. ``HangSample``)
+    as one batched PairClouds of float32 numpy arrays [B, ...]."""
+    return PairClouds(*(np.stack([np.asarray(getattr(x, f), np.float32) for x in samples])
+                        for f in PairClouds._fields))  # fmt: skip
 
 
 def _subsample_index(n: int, k: int) -> jnp.ndarray:

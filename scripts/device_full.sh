@@ -231,7 +231,6 @@ evaluate weights/value_small_paper "${EVAL_LABEL:-Stages 1-2 $W, committed V} ${
 # the Stage-3 answer rule chosen on the validation objects, applied once to these records
 # (device_slim.sh keeps results/validation_where_s9/val_s9_counts.pairs.jsonl.gz in the tree)
 $PY -m experiments.rerank_stage3 --select-on results/validation_where_s9/val_s9_counts.pairs.jsonl.gz \
-    --proposals "$(echo "${EVAL_ARGS:-}" | grep -oE -- '--proposals [0-9]+' | grep -oE '[0-9]+' || echo 5)" \
     --apply-to "$OUT/${TAG}_where.pairs.jsonl" --out "$OUT/${TAG}_rerank.json" 2>&1 | tail -2 | tee -a "$OUT/$LOG"
 if [ -d "$NEWV" ] && [ "$(left)" -gt 200 ]; then
     evaluate "$NEWV" "Stages 1-2 $W, the train call's hard-negative V" "${TAG}_both" ${EVAL_ARGS:-}

@@ -195,3 +195,15 @@ def test_support_inside_counts_see_a_rod_through_the_object():
     assert counts.shape == (1, 1) and int(counts[0, 0]) == 4
     none = selection.support_inside_counts_grid(obj, nrm, sup_world, pose, ((0.006, 0.005),))
     assert int(none[0, 0]) == 0  # deeper than the points: nothing inside
+
+
+def test_proposals_are_read_from_the_records_and_a_wrong_k_is_refused():
+    """K comes from the records (4K + 1 candidates each); a --proposals that disagrees, or
+    records of mixed runs, raise instead of scoring the wrong candidates."""
+    rows = _records(k=10)
+    assert rerank_stage3.proposals_of(rows) == 10
+    assert rerank_stage3.proposals_of(rows, 10) == 10
+    with pytest.raises(ValueError, match="K = 10"):
+        rerank_stage3.proposals_of(rows, 5)
+    with pytest.raises(ValueError, match="candidates"):
+        rerank_stage3.proposals_of(rows + _records(k=5))
