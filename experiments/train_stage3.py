@@ -128,6 +128,10 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--seed-share", type=float, default=None, help="of the budget a run may spend seeding"
     )
+    parser.add_argument(
+        "--round-start", choices=("stage2", "stage1", "alternate"), default=None,
+        help="proposals CEM refines in the RL rounds (alternate: Stage 2 odd, Stage 1 even rounds)",
+    )  # fmt: skip
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     config = PRESETS[args.preset]
@@ -147,6 +151,7 @@ def main(argv=None) -> dict:
         "init_value": args.init_value,
         "min_pairs": args.min_pairs,
         "cem_batch": args.cem_batch,
+        "round_start": args.round_start,
     }
     config = dataclasses.replace(config, **{k: v for k, v in over.items() if v is not None})
     if args.batch:

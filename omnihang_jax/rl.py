@@ -82,6 +82,10 @@ class RLConfig:
     seed_share: float = 1.0  # of time_budget a run may spend seeding (the rest: rounds)
     bank_capacity: int = 0  # device bank padded to at least this many pairs (one shape)
     cem_batch: int = 32  # pairs per jitted CEM call (B x K x population states at once)
+    # the proposals CEM starts from in a round: "stage2" (the paper's), "stage1", or
+    # "alternate" (Stage 2 in odd rounds, Stage 1 in even ones: the answer pipeline refines
+    # both, stage3.ANSWER_PIPELINE, so V's hard cases should come from both)
+    round_start: str = "stage2"
 
 
 # A fixed subset of object names by a hash of the name: the same validation objects as the
@@ -454,7 +458,7 @@ def train_stage3(
             save(state)
             job.save_state()
 
-        def cem_round(slots, r: int, tag_key: int):
+        def cem_round(slots, r: int, tag_key: int, start: str | None = None):
             """CEM on the current V from the K Stage-2 proposals of ``slots``; labels the
             refined poses, the top ``keep_top`` members of each final population and one
             perturbed copy of each refined pose in one simulation call. Returns the
@@ -462,7 +466,8 @@ def train_stage3(
             k, mt = config.num_proposals, config.keep_top
             out = run_pipeline_on_pairs(predictor, refine_fn, state.params, pairs.bank, slots,
                                         jax.random.fold_in(key, tag_key), k,
-                                        batch=config.cem_batch)  # fmt: skip
+                                        batch=config.cem_batch,
+                                        start=start or round_start(config.round_start, r))  # fmt: skip
             n = len(slots)
             refined = out["refined"].reshape(-1, 7)
             parts = {"cem": (np.repeat(slots, k), refined)}
@@ -513,7 +518,8 @@ def train_stage3(
             out, labelled, figs = cem_round(slots, r, 7 * r)
             for name, (sl, po, rw) in labelled.items():
                 buffer.add(sl, po, rw, name, r)
-            row = {"round": r, "pairs": len(slots), **figs, "transitions": len(buffer),
+            row = {"round": r, "start": round_start(config.round_start, r), "pairs": len(slots),
+                   **figs, "transitions": len(buffer),
                    "bank_pairs": len(pairs), "seeded_pairs": job.state["seeded_pairs"]}  # fmt: skip
             state = train(state, config.round_steps, f"round {r}")
             if config.val_every and r % config.val_every == 0 and len(pairs.val_slots):
@@ -521,7 +527,7 @@ def train_stage3(
                     : config.val_pairs
                 ]
                 if len(vs):
-                    vo, vl, vf = cem_round(vs, r, 99)
+                    vo, vl, vf = cem_round(vs, r, 99, "stage2")  # one start: comparable
                     for name, (sl, po, rw) in vl.items():  # validation pairs: never trained on
                         buffer.add(sl, po, rw, name, r)
                     s2 = vo["stage2"][:, 0]
@@ -555,6 +561,15 @@ def train_stage3(
     refine.write_json(job.dir / "summary.json", summary)
     plot_curves(job.dir)
     return summary
+
+
+def round_start(rule: str, r: int) -> str:
+    """The proposals round ``r`` (1-based) refines: ``RLConfig.round_start``."""
+    if rule == "alternate":
+        return "stage2" if r % 2 else "stage1"
+    if rule not in ("stage1", "stage2"):
+        raise ValueError(f"round_start must be stage1, stage2 or alternate, not {rule!r}")
+    return rule
 
 
 def _label_chunked(labeller, bank, slots, poses, progress: bool, chunk: int = 20_000):

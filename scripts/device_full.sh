@@ -35,6 +35,12 @@
 #          SMOOTH_HELD, SMOOTH_ARGS); derives both pair sets if absent.
 #   bench  bench_stage3: Stages 1-3 latency at batch 1 / 16 / 256, the answer pipeline
 #          (stage3.ANSWER_PIPELINE) and the paper's side by side (~3 min with compilation).
+# S3_ONLY=1 (train): derive the clouds (skipped when there), no pack, no Stage 1: the Stage-3
+# part alone on S3_W (15) workers, every training pair (S3_PAIRS, 0 = all), V from INIT_VALUE
+# (weights/value_small_paper), S3_PRETRAIN (2000) steps, S3_EXTRA more train_stage3 flags (e.g.
+# "--round-start alternate"); a warm next S3_ONLY call resumes the job (/tmp/full/stage3/run).
+# eval: VALUE (the V of the first evaluation; default the committed one), NO_NEWV=1 skips the
+# second evaluation with the train call's V.
 # INIT1=none trains Stage 1 from scratch; S1_ARGS adds train_where flags, e.g. S1_ARGS="--stage1
 # rotation=6d --stage1 set_loss_mean=true" (a changed head needs INIT1=none).
 # VIEWS=2: also derive every pair's next candidate view (`--view 1`, ~100 s more) and train on
@@ -109,15 +115,33 @@ if [ "$CALL" = train ]; then
         log "derived $(ls "$C/ds/derived/$CLOUDS$sfx" | wc -l) training pairs ($CLOUDS$sfx)"
         SPLITS=$SPLITS${SPLITS:+,}$CLOUDS$sfx
     done
+    if [ -z "${S3_ONLY:-}" ]; then
     $PY -m experiments.pack_dataset --data "$C/ds" --split "$SPLITS" --out "$C/pack_new" \
         --threads 16 --no-progress >"$C/logs/pack.log" 2>&1 && rm -rf "$C/pack" && mv "$C/pack_new" "$C/pack"
     log "packed: $(tr -d '\n ' <"$C/logs/pack.log" | cut -c1-200)"
+    fi
     fi
     # PACK_ONLY=1: derive and pack, then stop (two views take most of a call)
     [ -n "${PACK_ONLY:-}" ] && { log "done (pack only)"; exit 0; }
     # the Stage-3 part reads DS/derived/train: a dataset folder whose train is the clouds
     mkdir -p "$C/ds3/derived" && ln -sfn "$C/ds/recipe.json" "$C/ds3/recipe.json" &&
         ln -sfn "$C/ds/shards" "$C/ds3/shards" && ln -sfn "$C/ds/derived/$CLOUDS" "$C/ds3/derived/train"
+    if [ -n "${S3_ONLY:-}" ]; then
+        # S3_ONLY=1: the Stage-3 part alone, on all cores, on every derived training pair (a
+        # warm next call with S3_ONLY=1 resumes the same job: more seeding, more rounds);
+        # the held-out / validation pairs are derived only with TEST_W > 0
+        [ "${TEST_W:-0}" -gt 0 ] && { (derive_test "$TEST_W"; derive_val "$TEST_W") & TEST_PID=$!; }
+        CHAIN_DS=$C/ds3 STAGE3_STATE=$C/stage3 CHAIN_WORKERS=${S3_W:-15} \
+            INIT_VALUE=${INIT_VALUE:-weights/value_small_paper} XLA_PYTHON_CLIENT_MEM_FRACTION=0.6 \
+            EXTRA="--pretrain-steps ${S3_PRETRAIN:-2000} --round-pairs 512 --max-pairs ${S3_PAIRS:-0} ${S3_EXTRA:-}" \
+            bash scripts/chain/stage3.sh $(($(left) - 10)) "$OUT/stage3.tgz" \
+            >>"$C/logs/stage3_part.log" 2>&1
+        log "Stage-3 part: exit $? ($(tail -c 600 "$C/stage3/logs/call_$(ls "$C/stage3/logs" | grep -c '^call_').log" | tr '\n' ' '))"
+        [ -n "${TEST_PID:-}" ] && wait "$TEST_PID"
+        ls -la "$OUT" | tee -a "$OUT/$LOG"
+        log "done"
+        exit 0
+    fi
     if [ -z "${NO_S3:-}" ]; then
         CHAIN_DS=$C/ds3 STAGE3_STATE=$C/stage3 CHAIN_WORKERS=${S3_W:-11} \
             INIT_VALUE=weights/value_small_paper \
@@ -226,13 +250,13 @@ evaluate() {  # value label out [eval_stage3 flags]
 }
 log "eval: Stages 1-2 $W"
 TAG=${EVAL_TAG:-heldout}
-evaluate weights/value_small_paper "${EVAL_LABEL:-Stages 1-2 $W, committed V} ${EVAL_ARGS:-}" \
+evaluate "${VALUE:-weights/value_small_paper}" "${EVAL_LABEL:-Stages 1-2 $W, V ${VALUE:-committed}} ${EVAL_ARGS:-}" \
     "${TAG}_where" ${EVAL_ARGS:-}
 # the Stage-3 answer rule chosen on the validation objects, applied once to these records
 # (device_slim.sh keeps results/validation_where_s9/val_s9_counts.pairs.jsonl.gz in the tree)
 $PY -m experiments.rerank_stage3 --select-on results/validation_where_s9/val_s9_counts.pairs.jsonl.gz \
     --apply-to "$OUT/${TAG}_where.pairs.jsonl" --out "$OUT/${TAG}_rerank.json" 2>&1 | tail -2 | tee -a "$OUT/$LOG"
-if [ -d "$NEWV" ] && [ "$(left)" -gt 200 ]; then
+if [ -z "${NO_NEWV:-}" ] && [ -d "$NEWV" ] && [ "$(left)" -gt 200 ]; then
     evaluate "$NEWV" "Stages 1-2 $W, the train call's hard-negative V" "${TAG}_both" ${EVAL_ARGS:-}
 fi
 gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null

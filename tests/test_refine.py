@@ -136,7 +136,7 @@ def test_train_stage3_tiny_runs_and_resumes(tmp_path):
     from omnihang_jax import dataset_bridge, rl
 
     dataset_bridge.derive_dataset(DATA, splits=("train",), limit=12, progress=False)
-    cfg = dataclasses.replace(PRESETS["tiny"], rounds=1)
+    cfg = dataclasses.replace(PRESETS["tiny"], rounds=1, round_start="alternate")
     out = tmp_path / "job"
     first = rl.train_stage3(cfg, out, DATA, "weights/where_small_paper", progress=False)
     n1 = first["buffer"]["transitions"]
@@ -150,6 +150,18 @@ def test_train_stage3_tiny_runs_and_resumes(tmp_path):
     assert second["buffer"]["transitions"] > n1
     rounds = [json.loads(x) for x in (out / "rounds.jsonl").read_text().splitlines()]
     assert [r.get("round") for r in rounds if "round" in r] == [1, 2]
+    # round_start="alternate": Stage 2's proposals in odd rounds, Stage 1's in even ones
+    assert [r["start"] for r in rounds if "round" in r] == ["stage2", "stage1"]
+
+
+def test_round_start_rule():
+    from omnihang_jax.rl import round_start
+
+    assert [round_start("alternate", r) for r in (1, 2, 3, 4)] == ["stage2", "stage1"] * 2
+    assert round_start("stage1", 1) == round_start("stage1", 2) == "stage1"
+    assert round_start("stage2", 2) == "stage2"
+    with pytest.raises(ValueError, match="round_start"):
+        round_start("uniform", 1)
 
 
 def test_buffer_hard_stream_is_balanced_and_weighted():
