@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 
 from experiments import _cli
-from omnihang_jax import dataset_bridge, eval_pipeline, evaluate, refine, selection
+from omnihang_jax import dataset_bridge, eval_pipeline, evaluate, refine, selection, stage3
 from omnihang_jax.stage3 import CEMConfig
 
 
@@ -61,6 +61,12 @@ def main(argv=None) -> dict:
         "stage3.ANSWER_PIPELINE); --no-pool-starts --select value: the paper's answer (it is "
         "also reported as all_stages_paper either way)",
     )  # fmt: skip
+    parser.add_argument(
+        "--rank-value", action="append", default=None, metavar="DIR",
+        help="a value folder that ranks CEM's refined candidates beside --value (mean log V "
+        "over them; repeat for more; default stage3.RANK_VALUES); --rank-value none: the "
+        "CEM's V alone",
+    )  # fmt: skip
     parser.add_argument("--label", default="")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -85,18 +91,23 @@ def main(argv=None) -> dict:
     select = selection.SelectConfig(
         args.select, args.select_depth, args.select_radius, args.select_max_points
     )
+    rank_values = list(stage3.RANK_VALUES) if args.rank_value is None else [
+        v for v in args.rank_value if v.lower() != "none"]  # fmt: skip
+    for v in rank_values:
+        if not (Path(v) / "params.msgpack").exists():
+            parser.error(f"--rank-value {v}: not a value folder (config.json + params.msgpack)")
     records, timings = eval_pipeline.evaluate_pipeline(
         files, args.weights, args.value, dataset_dir, num_proposals=args.proposals,
         cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
         progress=not args.no_progress, stage2_clearance=args.stage2_clearance, select=select,
-        pool_starts=args.pool_starts,
+        pool_starts=args.pool_starts, rank_value_dirs=rank_values,
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
                    cem_rounds=args.rounds, num_proposals=args.proposals,
                    stage2_clearance_m=args.stage2_clearance,
                    select=dataclasses.asdict(select),
-                   pool_starts=args.pool_starts)  # fmt: skip
+                   pool_starts=args.pool_starts, rank_values=rank_values)  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     refine.write_json(out, summary)

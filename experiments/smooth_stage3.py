@@ -54,6 +54,29 @@ def parse_widths(text: str) -> list[tuple[float, float]]:
     return out
 
 
+def record_batches(rows, data, split, batch, desc, progress):
+    """The records in batches of ``batch`` (the last padded with its first record: one
+    compilation) -> (m real records, the padded records, their full clouds as one batched
+    PairClouds of device arrays), from the pair files the records name
+    (``DATA/derived/<split>/``)."""
+    folder = os.path.join(data, "derived", split)
+    for i in tqdm(range(0, len(rows), batch), desc=f"{desc} ({split})", disable=not progress):
+        chunk = rows[i : i + batch]
+        m = len(chunk)
+        chunk = chunk + [chunk[0]] * (batch - m)
+        clouds = []
+        for r in chunk:
+            path = os.path.join(folder, r["file"])
+            if not os.path.exists(path):
+                raise FileNotFoundError(
+                    f"{path}: the pair file of a record is missing; derive it "
+                    f"(experiments.derive_dataset --split {split} --pairs-from RECORDS)"
+                )
+            sample, _ = dataset_bridge.load_pair_file(path)
+            clouds.append(sample)
+        yield m, chunk, jax.tree.map(jnp.asarray, stage3.stack_clouds(clouds))
+
+
 def smoothed_scores(rows, data, split, value_dir, k, widths, samples, batch, seed, progress):
     """Per width: ([N, P] mean P(hang), [N, P] mean log P(hang)) of the pool's candidates, and
     [N, P] the recomputed plain V (the check against the records)."""
@@ -73,23 +96,8 @@ def smoothed_scores(rows, data, split, value_dir, k, widths, samples, batch, see
     out = {w: ([], []) for w in widths}
     plain = []
     key = jax.random.key(seed)
-    folder = os.path.join(data, "derived", split)
-    for i in tqdm(range(0, len(rows), batch), desc=f"smoothed V ({split})", disable=not progress):
-        chunk = rows[i : i + batch]
-        m = len(chunk)
-        chunk = chunk + [chunk[0]] * (batch - m)  # pad: one compilation
-        clouds = []
-        for r in chunk:
-            path = os.path.join(folder, r["file"])
-            if not os.path.exists(path):
-                raise FileNotFoundError(
-                    f"{path}: the pair file of a record is missing; derive it "
-                    f"(experiments.derive_dataset --split {split} --pairs-from RECORDS)"
-                )
-            sample, _ = dataset_bridge.load_pair_file(path)
-            clouds.append(sample)
-        full = stage3.stack_clouds(clouds)
-        small = stage3.subsample_clouds(jax.tree.map(jnp.asarray, full), value_config)
+    for m, chunk, full in record_batches(rows, data, split, batch, "smoothed V", progress):
+        small = stage3.subsample_clouds(full, value_config)
         poses = jnp.asarray(np.asarray([r["poses_all"] for r in chunk], np.float32)[:, idx])
         # per pair a key of its own (folded with its pair index): reproducible, batch-free
         keys = jax.vmap(lambda n: jax.random.fold_in(key, n))(
@@ -114,6 +122,13 @@ def with_scores(rows, k, scores):
             v[c] = float(s[j])
         out.append({**r, "v": v})
     return out
+
+
+def evaluate_scores(rows, k, scores: dict) -> list[dict]:
+    """The chosen rule's success with each named score [N, P] of the pool's candidates in
+    place of the recorded V, one table row each (``score``: the name)."""
+    return [{"score": name, **successes(with_scores(rows, k, s), k, POOL, selection.CHOSEN)}
+            for name, s in scores.items()]  # fmt: skip
 
 
 def evaluate(rows, k, smoothed, plain):

@@ -78,6 +78,7 @@ def evaluate_pipeline(
     stage2_clearance: float | None = None,
     select: selection.SelectConfig = selection.SelectConfig(),
     pool_starts: bool = False,
+    rank_value_dirs: Sequence[str | os.PathLike] = (),
 ) -> tuple[list[dict], dict]:
     """Run Stages 1-3 on every pair file and simulate every candidate. Returns (records,
     timings). ``stage2_clearance`` (m): replaces the model's ``Stage2Config.clearance`` (None:
@@ -89,7 +90,11 @@ def evaluate_pipeline(
     beside it either way (``all_stages_paper``). Every record also holds
     every candidate's V (``v``) and observed-cloud inside counts (``inside_counts``, for each
     (depth, radius) of ``selection.INSIDE_GRID``): rules can be studied after the run
-    (``experiments.rerank_stage3``)."""
+    (``experiments.rerank_stage3``). ``rank_value_dirs``: more value folders; the refined
+    candidates are then ranked by the mean log V over the CEM's V and these
+    (``stage3.make_ensemble_score``, as ``PipelineConfig.rank_values``), and each record also
+    holds every candidate's V under each of them (``v_rank``); ``v`` stays the CEM's V and
+    ``all_stages_paper`` its highest V."""
     from omnihang_jax.predict import load_predictor
     from sim import kernels
 
@@ -99,6 +104,10 @@ def evaluate_pipeline(
     value_config, value_params = refine.load_value(value_dir)
     refine_fn = jax.jit(stage3.make_refiner(value_config, cem))
     value_fn = jax.jit(stage3.make_value(value_config).value)
+    from omnihang_jax.predict import load_rank_values
+
+    rank_params = load_rank_values(rank_value_dirs, value_config)
+    ensemble_fn = jax.jit(stage3.make_ensemble_score(value_config))
 
     @jax.jit
     def separate_fn(full, poses):  # [B, ...] clouds, [B, 7] -> [B, 7], one pair at a time
@@ -151,12 +160,16 @@ def evaluate_pipeline(
         cand = jnp.concatenate([jnp.asarray(pred.stage1_poses), jnp.asarray(pred.stage2_poses),
                                 r1.poses, r2.poses], axis=1)  # [B, 4K, 7]  # fmt: skip
         counts = counts_fn(fullj, cand)  # [B, G, 4K]
-        best1 = selection.select(r1.scores, counts[:, g_select, 2 * k : 3 * k], select)
-        best2 = selection.select(r2.scores, counts[:, g_select, 3 * k :], select)
+        f1, f2 = r1.scores, r2.scores  # the final scores that rank: the CEM's V or the ensemble
+        if rank_params:
+            f1 = ensemble_fn(r1.scores, rank_params, small, r1.poses)
+            f2 = ensemble_fn(r2.scores, rank_params, small, r2.poses)
+        best1 = selection.select(f1, counts[:, g_select, 2 * k : 3 * k], select)
+        best2 = selection.select(f2, counts[:, g_select, 3 * k :], select)
         if pool_starts:  # the answer among all 2K refined candidates (stage3.ANSWER_PIPELINE)
             keys = jnp.concatenate(
-                [selection.select_key(r1.scores, counts[:, g_select, 2 * k : 3 * k], select),
-                 selection.select_key(r2.scores, counts[:, g_select, 3 * k :], select)], axis=1,
+                [selection.select_key(f1, counts[:, g_select, 2 * k : 3 * k], select),
+                 selection.select_key(f2, counts[:, g_select, 3 * k :], select)], axis=1,
             )  # fmt: skip
             answer = 2 * k + jnp.argmax(keys, axis=1)  # index into the 4K candidates
         else:
@@ -167,6 +180,8 @@ def evaluate_pipeline(
         allp = jnp.concatenate([cand, separated[:, None]], axis=1)  # [B, 4K+1, 7]
         tiled = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0), small)
         v_all = value_fn(value_params, tiled, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1)
+        v_rank = [np.asarray(value_fn(p, tiled, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1))
+                  for p in rank_params]  # fmt: skip
         jax.block_until_ready(v_all)
         t_net += time.time() - tn
         allp, v_all, counts = np.asarray(allp), np.asarray(v_all), np.asarray(counts)
@@ -187,6 +202,7 @@ def evaluate_pipeline(
                 "answer_index": int(answer[j]),  # the all-stages answer in the 4K+1 candidates
                 "best_initial_v": int(np.argmax(np.asarray(r2.initial_scores[j]))),
                 "v": v_all[j].tolist(),
+                **({"v_rank": [v[j].tolist() for v in v_rank]} if rank_params else {}),
                 # every candidate [4K+1, 7] (Stage 1, 1+2, 1+3, all stages, separated): for
                 # selection rules studied after the run (experiments.rerank_stage3)
                 "poses_all": np.round(allp[j], 6).tolist(),

@@ -173,23 +173,49 @@ def load_predictor(
 
 
 def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.PathLike,
-                       config=None, stage2_overrides: dict | None = None):  # fmt: skip
+                       config=None, stage2_overrides: dict | None = None,
+                       rank_value_folders=None):  # fmt: skip
     """(hang, params): the jitted Stages 1-3 pipeline (``stage3.make_hang_pipeline``) and its
     parameters, from the Stage 1/2 weights and a value folder (``refine.save_value``).
     ``stage2_overrides``: as in :func:`load_predictor`, e.g. ``{"clearance": 0.008}`` (the
     pipeline takes the support normals from its clouds). ``config``: a
     ``stage3.PipelineConfig``, default ``stage3.ANSWER_PIPELINE`` (both starts refined, the
     answer by the observed-cloud rule chosen on validation objects; ``PipelineConfig()`` is
-    the paper's).
+    the paper's). ``rank_value_folders``: more value folders whose mean log V with the first
+    ranks CEM's candidates (``PipelineConfig.rank_values``; None: ``stage3.RANK_VALUES``
+    when ``config`` is the default, else none).
 
     ``hang(params, key, clouds: stage3.PairClouds [B, ...]) -> stage3.HangOutput``."""
     from omnihang_jax import refine, stage3
 
     where = load_predictor(where_folder, stage2_overrides=stage2_overrides)
     value_config, value_params = refine.load_value(value_folder)
+    if rank_value_folders is None:
+        rank_value_folders = stage3.RANK_VALUES if config is None else ()
     config = config or stage3.ANSWER_PIPELINE
+    extra = load_rank_values(rank_value_folders, value_config)
+    config = dataclasses.replace(config, rank_values=len(extra))
     hang = jax.jit(
         stage3.make_hang_pipeline(where.stage1_config, where.stage2_config, value_config, config)
     )
     params = {"stage1": where.stage1_params, "stage2": where.stage2_params, "value": value_params}
+    if extra:
+        params["rank_values"] = extra
     return hang, params
+
+
+def load_rank_values(folders, value_config) -> list:
+    """The params of value folders that rank beside the CEM's V; each must have its config
+    (the ensemble evaluates them on the same subsampled clouds)."""
+    from omnihang_jax import refine
+
+    out = []
+    for folder in folders or ():
+        config, params = refine.load_value(folder)
+        if config != value_config:
+            raise ValueError(
+                f"{folder}: its value network's config differs from the CEM's V; an ensemble "
+                "member must share it (same subsampled clouds and encoder)"
+            )
+        out.append(params)
+    return out

@@ -64,8 +64,10 @@ __all__ = [
     "make_cem",
     "PipelineConfig",
     "ANSWER_PIPELINE",
+    "RANK_VALUES",
     "HangOutput",
     "make_hang_pipeline",
+    "make_ensemble_score",
     "Refined",
     "make_refiner",
     "make_smoothed_value",
@@ -426,6 +428,11 @@ class PipelineConfig:
     # True: the answer is picked among the refined candidates of ALL starts (with starts
     # ("stage2", "stage1"): 2K candidates), not only the first start's
     pool_starts: bool = False
+    # ours (twelfth session): R more value networks (params["rank_values"], a list of R
+    # value params of the same ValueConfig) rank the refined candidates: their final score is
+    # the mean of log V over the CEM's V and these (a geometric-mean ensemble); CEM itself
+    # searches on params["value"] alone. 0: the CEM's V ranks (the paper's)
+    rank_values: int = 0
 
 
 # The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
@@ -434,6 +441,9 @@ class PipelineConfig:
 ANSWER_PIPELINE = PipelineConfig(
     starts=("stage2", "stage1"), select=selection.CHOSEN, pool_starts=True
 )
+# The value folders that rank CEM's candidates beside the CEM's V in the default pipeline
+# (PipelineConfig.rank_values; predict.load_hang_pipeline, eval_stage3 --rank-value)
+RANK_VALUES: tuple[str, ...] = ()
 
 
 class HangOutput(NamedTuple):
@@ -524,6 +534,22 @@ def make_smoothed_value(
     return smoothed
 
 
+def make_ensemble_score(value_config: ValueConfig) -> Callable:
+    """``ensemble(scores [B, P], extra_params [R value params], clouds [B, ...] subsampled,
+    poses [B, P, 7]) -> [B, P]``: the mean of log V over the first V (its final scores, as
+    CEM returns them) and the R other value networks of the same config, on the same poses:
+    a geometric-mean ensemble that ranks CEM's candidates (``PipelineConfig.rank_values``,
+    ``eval_pipeline.evaluate_pipeline(rank_value_dirs=)``). Pure, un-jitted."""
+    value = make_value(value_config)
+    per_pair = jax.vmap(lambda p, c, poses: value.score(p, c, poses), in_axes=(None, 0, 0))
+
+    def ensemble(scores, extra_params, clouds: PairClouds, poses):
+        logs = [scores] + [per_pair(p, clouds, poses) for p in extra_params]
+        return sum(logs) / len(logs)
+
+    return ensemble
+
+
 def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
                        config: PipelineConfig = PipelineConfig()) -> Callable:  # fmt: skip
     """``hang(params, key, clouds: PairClouds [B, ...]) -> HangOutput``; params =
@@ -535,6 +561,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
 
     predict = make_predict(stage1_config, stage2_config)
     refine = make_refiner(value_config, config.cem)
+    rank = make_ensemble_score(value_config)
     rule = config.select
 
     def hang(params, key, clouds: PairClouds) -> HangOutput:
@@ -548,15 +575,22 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
         refined, scores, initial, best, keys_of = {}, {}, {}, {}, {}
         for i, name in enumerate(config.starts):
             res = refine(params["value"], jax.random.fold_in(k3, i), small, starts[name])
-            refined[name], scores[name] = res.poses, res.scores
-            initial[name], best[name] = res.initial_scores, res.best
-            keys_of[name] = res.scores
+            final = res.scores
+            if config.rank_values:  # static: the ensemble's mean log V ranks the candidates
+                extra = params["rank_values"]
+                if len(extra) != config.rank_values:
+                    raise ValueError(f"params['rank_values'] holds {len(extra)} value "
+                                     f"networks, PipelineConfig.rank_values {config.rank_values}")  # fmt: skip
+                final = rank(res.scores, extra, small, res.poses)
+            refined[name], scores[name] = res.poses, final
+            initial[name], best[name] = res.initial_scores, jnp.argmax(final, axis=1)
+            keys_of[name] = final
             if rule.rule != "value":  # static: the paper's rule traces today's function
                 counts = jax.vmap(selection.inside_counts, in_axes=(0, 0, 0, 0, None, None))(
                     clouds.object_points, clouds.support_points, clouds.support_normals,
                     res.poses, rule.depth, rule.radius,
                 )  # fmt: skip
-                keys_of[name] = selection.select_key(res.scores, counts, rule)
+                keys_of[name] = selection.select_key(final, counts, rule)
                 best[name] = jnp.argmax(keys_of[name], axis=1)
         first = config.starts[0]
         pose = jnp.take_along_axis(refined[first], best[first][:, None, None], axis=1)[:, 0]

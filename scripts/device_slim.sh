@@ -25,6 +25,10 @@ LIST=(
     results/hanging_success_stage3_s11_k10.pairs.jsonl.gz results/hanging_success_stage3_s11_6dft2.pairs.jsonl.gz
     results/hanging_success_stage3_s11_views2.pairs.jsonl.gz results/validation_where_s11/val_v2.pairs.jsonl.gz
     results/train_where_session10 results/train_where_session11 results/device
+    # (twelfth session: the wheels are 12.3 MiB; the collision weights, K=10 records and figures
+    # are read by no device_full.sh call)
+    weights/collision_fast_gpu weights/collision_fast_gpu_near weights/collision_fast_gpu_near_crop
+    results/validation_where_s11/val_k10.pairs.jsonl.gz docs/img
 )
 case ${1:-} in
 out)

@@ -1,0 +1,121 @@
+"""More value networks ranking CEM's candidates (``PipelineConfig.rank_values``, the
+twelfth session's ensemble): in the pipeline, in the evaluation's records and in
+experiments.ensemble_stage3 on such records."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from omnihang_jax import dataset_bridge, eval_pipeline, predict, refine, selection, stage3
+from omnihang_jax.stage1 import STAGE1_TINY
+from omnihang_jax.stage2 import STAGE2_TINY
+from tests.test_stage2_clearance_pipeline import (
+    PIPE,
+    _fake_load_predictor,
+    _fake_pair,
+    _FakeLabeller,
+    _plane_pairs,
+    params,  # noqa: F401  (module fixture)
+)
+
+CLEAR = selection.SelectConfig("value_clear", depth=0.001, radius=0.003, max_points=0)
+V2 = stage3.make_value(stage3.VALUE_TINY).init(jax.random.key(7))  # a second, different V
+
+
+def test_pipeline_ranks_by_the_mean_log_v(params):  # noqa: F811
+    """Same key: CEM is unchanged by a ranking V; the final scores are the mean of the CEM's
+    log V and the second V's on the refined poses; the picks follow the rule on them; a copy of
+    the CEM's own V as the second member changes nothing."""
+    clouds = _plane_pairs()
+    base = dataclasses.replace(PIPE, select=CLEAR, pool_starts=True)
+    one = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, base))
+    ens_cfg = dataclasses.replace(base, rank_values=1)
+    ens = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, ens_cfg))
+    key = jax.random.key(3)
+    out1 = one(params, key, clouds)
+    out2 = ens({**params, "rank_values": [V2]}, key, clouds)
+    small = stage3.subsample_clouds(jax.tree.map(np.asarray, clouds), stage3.VALUE_TINY)
+    value = stage3.make_value(stage3.VALUE_TINY)
+    for name in base.starts:
+        np.testing.assert_array_equal(np.asarray(out1.refined[name]), np.asarray(out2.refined[name]))
+        poses = np.asarray(out2.refined[name])
+        v2 = np.stack([
+            np.asarray(value.score(V2, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
+            for i in range(len(poses))
+        ])  # fmt: skip
+        want = (np.asarray(out1.scores[name]) + v2) / 2
+        np.testing.assert_allclose(np.asarray(out2.scores[name]), want, rtol=1e-5, atol=1e-5)
+    same = ens({**params, "rank_values": [params["value"]]}, key, clouds)
+    np.testing.assert_array_equal(np.asarray(same.pose), np.asarray(out1.pose))
+    with pytest.raises(ValueError, match="rank_values"):
+        ens({**params, "rank_values": []}, key, clouds)
+
+
+def _fake_values(folder):
+    """V1 for the run's folder, V2 for any other: two different networks of one config."""
+    p = stage3.make_value(stage3.VALUE_TINY).init(jax.random.key(2)) if folder == "V" else V2
+    return stage3.VALUE_TINY, p
+
+
+def test_evaluation_ranks_by_the_ensemble_and_records_each_v(monkeypatch, tmp_path):
+    """evaluate_pipeline(rank_value_dirs=): each record holds the second V of every
+    candidate (v_rank); the answers are the rule over the mean log V; the paper's answer
+    stays the CEM's highest V. experiments.ensemble_stage3 on the records recomputes both Vs
+    and scores the recorded answer as its "mean log V" row."""
+    monkeypatch.setattr(predict, "load_predictor", _fake_load_predictor([]))
+    monkeypatch.setattr(refine, "load_value", _fake_values)
+    monkeypatch.setattr(refine, "Labeller", _FakeLabeller)
+    monkeypatch.setattr(dataset_bridge, "load_pair_file", _fake_pair)
+    k, files = 2, ["00003_x.npz", "00004_x.npz"]
+    records, _ = eval_pipeline.evaluate_pipeline(
+        files, "W", "V", "D", num_proposals=k, batch=2, progress=False, select=CLEAR,
+        cem=stage3.CEMConfig(population=8, iterations=2, elites=3), pool_starts=True,
+        rank_value_dirs=["V2"],
+    )  # fmt: skip
+    for rc in records:
+        v = np.log(np.asarray(rc["v"], np.float64))
+        (v2,) = np.log(np.asarray(rc["v_rank"], np.float64))
+        assert len(v2) == 4 * k + 1 and not np.allclose(v, v2)
+        ens = (v + v2) / 2
+        counts = np.asarray(rc["inside_counts"][selection.grid_key(CLEAR.depth, CLEAR.radius)])
+        key = np.asarray(selection.select_key(ens[2 * k : 4 * k], counts[2 * k : 4 * k], CLEAR))
+        assert rc["answer_index"] == 2 * k + int(np.argmax(key))
+        assert rc["best_all_stages_value"] == int(np.argmax(v[3 * k : 4 * k]))
+
+    from experiments import ensemble_stage3
+
+    monkeypatch.setattr(ensemble_stage3.refine, "load_value", _fake_values)
+    runs = tmp_path / "run.pairs.jsonl"
+    runs.write_text("".join(json.dumps(r, default=float) + "\n" for r in records))
+    folder = tmp_path / "derived" / "test"
+    folder.mkdir(parents=True)
+    for r in records:
+        (folder / r["file"]).write_bytes(b"")  # _fake_pair reads the name only
+    for d in ("V", "V2"):
+        (tmp_path / d).mkdir()
+        (tmp_path / d / "params.msgpack").write_bytes(b"")
+    monkeypatch.chdir(tmp_path)
+    out = ensemble_stage3.main([
+        "--select-on", str(runs), "--select-split", "test", "--data", str(tmp_path),
+        "--value", "V", "--extra-value", "V2", "--batch", "2", "--out", "ens.json",
+        "--no-progress",
+    ])  # fmt: skip
+    assert out["v_check_select_on"]["max_abs_diff"] < 1e-4
+    rows = {r["score"]: r for r in out["table"]}
+    assert set(rows) == {"V", "V2", "mean V", "mean log V"}
+    recorded = np.mean([rc["all_stages"]["success"] for rc in records]) * 100
+    assert rows["mean log V"]["pair_mean"] == pytest.approx(recorded)
+
+
+def test_load_rank_values_refuses_another_config(monkeypatch):
+    monkeypatch.setattr(
+        refine, "load_value", lambda f: (dataclasses.replace(stage3.VALUE_TINY, batch_size=3), V2)
+    )
+    with pytest.raises(ValueError, match="config differs"):
+        predict.load_rank_values(["X"], stage3.VALUE_TINY)
+    assert predict.load_rank_values([], stage3.VALUE_TINY) == []
