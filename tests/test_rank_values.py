@@ -42,7 +42,9 @@ def test_pipeline_ranks_by_the_mean_log_v(params):  # noqa: F811
     small = stage3.subsample_clouds(jax.tree.map(np.asarray, clouds), stage3.VALUE_TINY)
     value = stage3.make_value(stage3.VALUE_TINY)
     for name in base.starts:
-        np.testing.assert_array_equal(np.asarray(out1.refined[name]), np.asarray(out2.refined[name]))
+        np.testing.assert_array_equal(
+            np.asarray(out1.refined[name]), np.asarray(out2.refined[name])
+        )
         poses = np.asarray(out2.refined[name])
         v2 = np.stack([
             np.asarray(value.score(V2, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
