@@ -708,27 +708,40 @@ def find_value_weights(model: str | os.PathLike = DEFAULT_MODEL) -> Path | None:
 
 
 class Stage3(NamedTuple):
-    """A loaded value network: ``score(clouds, poses [P, 7]) -> [P]`` log P(hang) and
-    ``refine(clouds, starts [K, 7], seed) -> (poses [K, 7], scores [K])`` (CEM on V)."""
+    """A loaded value network: ``score(clouds, poses [P, 7]) -> [P]`` log P(hang),
+    ``refine(clouds, starts [K, 7], seed) -> (poses [K, 7], scores [K])`` (CEM on V) and
+    ``rank(clouds, poses [P, 7]) -> [P]``: the mean log V over V and the ranking networks
+    (``stage3.RANK_VALUES``, as the pipeline's ``PipelineConfig.rank_values``; V alone when
+    there are none)."""
 
     folder: str
     score: Callable
     refine: Callable
+    rank: Callable = None
+    rank_folders: tuple = ()
 
 
-def load_stage3(folder: str | os.PathLike) -> Stage3:
+def load_stage3(folder: str | os.PathLike, rank_folders=None) -> Stage3:
     """Stage 3 from a value-weights folder (``omnihang_jax.refine.load_value``), jitted;
-    one per folder and process (so many pairs compile the networks once)."""
-    return _load_stage3(os.path.abspath(folder))
+    one per folder and process (so many pairs compile the networks once). ``rank_folders``:
+    the value folders that rank beside it (None: those of ``stage3.RANK_VALUES`` that exist,
+    when ``folder`` is the committed V they were chosen with)."""
+    from omnihang_jax import stage3
+
+    if rank_folders is None:
+        committed = os.path.abspath(folder) == os.path.abspath(VALUE_WEIGHTS[0])
+        rank_folders = [f for f in stage3.RANK_VALUES if committed and Path(f).exists()]
+    return _load_stage3(os.path.abspath(folder), tuple(os.path.abspath(f) for f in rank_folders))
 
 
 @functools.lru_cache(maxsize=4)
-def _load_stage3(folder: str) -> Stage3:
+def _load_stage3(folder: str, rank_folders: tuple = ()) -> Stage3:
     import jax
 
-    from omnihang_jax import refine, stage3
+    from omnihang_jax import predict, refine, stage3
 
     config, params = refine.load_value(folder)
+    extra = predict.load_rank_values(rank_folders, config)
     value = stage3.make_value(config)
     score_jit = jax.jit(value.score)
     refine_jit = jax.jit(stage3.make_refiner(config, stage3.CEMConfig()))
@@ -740,12 +753,17 @@ def _load_stage3(folder: str) -> Stage3:
     def score(obj: Body, sup: Body, poses):
         return np.asarray(score_jit(params, clouds_of(obj, sup), np.asarray(poses, np.float32)))
 
+    def rank(obj: Body, sup: Body, poses):
+        clouds, poses = clouds_of(obj, sup), np.asarray(poses, np.float32)
+        logs = [np.asarray(score_jit(p, clouds, poses)) for p in [params, *extra]]
+        return np.mean(logs, axis=0)
+
     def refine_fn(obj: Body, sup: Body, starts, seed: int):
         small = jax.tree.map(lambda x: x[None], clouds_of(obj, sup))
         out = refine_jit(params, jax.random.key(seed), small, np.asarray(starts, np.float32)[None])
         return np.asarray(out.poses[0], np.float64), np.asarray(out.scores[0], np.float64)
 
-    return Stage3(os.fspath(folder), score, refine_fn)
+    return Stage3(os.fspath(folder), score, refine_fn, rank, rank_folders)
 
 
 def stage3_scorer(config: HangConfig | None = None):
@@ -762,10 +780,17 @@ def stage3_scorer(config: HangConfig | None = None):
             + ")"
         )
     try:
-        return load_stage3(folder), (
+        s3 = load_stage3(folder)
+        return s3, (
             f"Stage-3 value network {folder} (CEM from the best {CEM_STARTS} Stage-1 and "
             f"{CEM_STARTS} Stage-2 proposals, the answer by the observed-cloud rule "
-            "selection.CHOSEN)"
+            "selection.CHOSEN"
+            + (
+                f", ranked by the mean log V with {', '.join(map(os.path.relpath, s3.rank_folders))}"
+                if s3.rank_folders
+                else ""
+            )
+            + ")"
         )
     except Exception as exc:  # present but unusable weights: say so, rank without them
         return None, f"Stage-3 weights {folder} not loadable ({type(exc).__name__}: {exc})"
@@ -808,7 +833,9 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
             inside = selection.inside_counts(
                 obj.points, sup.points, sup.normals, poses, rule.depth, rule.radius
             )
-            log_v = np.concatenate([log_v, refined_v])
+            # the final ranking: V's mean log with the ranking networks (V alone without)
+            log_v = stage3.rank(obj, sup, poses) if stage3.rank_folders else np.concatenate(
+                [log_v, refined_v])  # fmt: skip
             key = selection.select_key(log_v.astype(np.float32), inside, rule)
             score = np.asarray(key, np.float64)
             name = "stage3_value_clear"

@@ -183,16 +183,19 @@ def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.P
     answer by the observed-cloud rule chosen on validation objects; ``PipelineConfig()`` is
     the paper's). ``rank_value_folders``: more value folders whose mean log V with the first
     ranks CEM's candidates (``PipelineConfig.rank_values``; None: ``stage3.RANK_VALUES``
-    when ``config`` is the default, else none).
+    when the config picks by the chosen rule ``selection.CHOSEN`` as the default does, none
+    for the paper's highest V; () for none).
 
     ``hang(params, key, clouds: stage3.PairClouds [B, ...]) -> stage3.HangOutput``."""
     from omnihang_jax import refine, stage3
 
     where = load_predictor(where_folder, stage2_overrides=stage2_overrides)
     value_config, value_params = refine.load_value(value_folder)
-    if rank_value_folders is None:
-        rank_value_folders = stage3.RANK_VALUES if config is None else ()
+    from omnihang_jax import selection
+
     config = config or stage3.ANSWER_PIPELINE
+    if rank_value_folders is None:
+        rank_value_folders = stage3.RANK_VALUES if config.select == selection.CHOSEN else ()
     extra = load_rank_values(rank_value_folders, value_config)
     config = dataclasses.replace(config, rank_values=len(extra))
     hang = jax.jit(

@@ -442,8 +442,11 @@ ANSWER_PIPELINE = PipelineConfig(
     starts=("stage2", "stage1"), select=selection.CHOSEN, pool_starts=True
 )
 # The value folders that rank CEM's candidates beside the CEM's V in the default pipeline
-# (PipelineConfig.rank_values; predict.load_hang_pipeline, eval_stage3 --rank-value)
-RANK_VALUES: tuple[str, ...] = ()
+# (twelfth session: the mean log V of weights/value_small_paper and this V, trained with
+# hard-negative rounds on all training pairs, chosen on validation objects, 66.5 -> 68.2 %;
+# held-out 66.9 -> 68.0 %: docs/stage3.md). PipelineConfig.rank_values; used by
+# predict.load_hang_pipeline, eval_stage3 --rank-value and the hang command.
+RANK_VALUES: tuple[str, ...] = ("weights/value_s12_hardneg",)
 
 
 class HangOutput(NamedTuple):

@@ -121,3 +121,31 @@ def test_load_rank_values_refuses_another_config(monkeypatch):
     with pytest.raises(ValueError, match="config differs"):
         predict.load_rank_values(["X"], stage3.VALUE_TINY)
     assert predict.load_rank_values([], stage3.VALUE_TINY) == []
+
+
+def test_hang_command_ranks_by_the_mean_log_v(tmp_path):
+    """The hang command's Stage 3 (omnihang_jax.hang.load_stage3) with a ranking network:
+    rank = the mean of the two networks' log V; without one, rank = V's own score; the
+    default finds stage3.RANK_VALUES only beside the committed V they were chosen with."""
+    from omnihang_jax import hang as H
+
+    for name, key in (("v1", 2), ("v2", 7)):
+        net = stage3.make_value(stage3.VALUE_TINY)
+        refine.save_value(tmp_path / name, stage3.VALUE_TINY, net.init(jax.random.key(key)))
+    rng = np.random.default_rng(0)
+
+    def body(kind):
+        pts = rng.normal(size=(256, 3)).astype(np.float32) * 0.03
+        nrm = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+        return H.Body(kind, kind, "cloud", None, pts, nrm, None, None, {})
+
+    obj, sup = body("object"), body("support")
+    poses = np.tile(np.asarray([[0, 0, 0.05, 1, 0, 0, 0]], np.float32), (3, 1))
+    poses[:, 0] = [0.0, 0.01, 0.02]
+    one = H.load_stage3(tmp_path / "v1")
+    assert one.rank_folders == ()  # not the committed V: no ranking networks by default
+    np.testing.assert_allclose(one.rank(obj, sup, poses), one.score(obj, sup, poses), rtol=1e-6)
+    two = H.load_stage3(tmp_path / "v1", [tmp_path / "v2"])
+    other = H.load_stage3(tmp_path / "v2", [])
+    want = (one.score(obj, sup, poses) + other.score(obj, sup, poses)) / 2
+    np.testing.assert_allclose(two.rank(obj, sup, poses), want, rtol=1e-5, atol=1e-6)
