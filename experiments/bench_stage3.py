@@ -23,7 +23,7 @@ import numpy as np
 
 from experiments import _cli
 from omnihang_jax import refine, stage3
-from omnihang_jax.predict import load_predictor
+from omnihang_jax.predict import load_predictor, load_rank_values
 
 
 def main(argv=None) -> dict:
@@ -41,21 +41,30 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--answers", default="chosen,paper",
         help="comma-separated pipelines timed side by side (interleaved, same clouds): chosen "
-        "= stage3.ANSWER_PIPELINE (both starts refined, the observed-cloud rule), paper = "
-        "Stage-2 starts, highest V; the first is the reference of the ratios",
+        "= stage3.ANSWER_PIPELINE (both starts refined, the observed-cloud rule) ranked with "
+        "the networks of --rank-value (the default pipeline), single = the same ranked by "
+        "CEM's V alone, paper = Stage-2 starts, highest V; the first is the reference of the "
+        "ratios",
+    )  # fmt: skip
+    parser.add_argument(
+        "--rank-value", action="append", default=None, metavar="DIR",
+        help="value folders ranking beside --value in 'chosen' (default stage3.RANK_VALUES)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     answers = args.answers.split(",")
-    bad = [a for a in answers if a not in ("chosen", "paper")]
+    bad = [a for a in answers if a not in ("chosen", "single", "paper")]
     if bad:
-        parser.error(f"unknown --answers {bad}; known: chosen, paper")
+        parser.error(f"unknown --answers {bad}; known: chosen, single, paper")
     pred = load_predictor(args.weights)
     vcfg, vparams = refine.load_value(args.value)
-    params = {"stage1": pred.stage1_params, "stage2": pred.stage2_params, "value": vparams}
+    rank_dirs = list(stage3.RANK_VALUES if args.rank_value is None else args.rank_value)
+    params = {"stage1": pred.stage1_params, "stage2": pred.stage2_params, "value": vparams,
+              "rank_values": load_rank_values(rank_dirs, vcfg)}  # fmt: skip
     configs, hangs = {}, {}
     for a in answers:
-        base = stage3.ANSWER_PIPELINE if a == "chosen" else stage3.PipelineConfig()
-        configs[a] = dataclasses.replace(base, num_proposals=args.proposals)
+        base = stage3.PipelineConfig() if a == "paper" else stage3.ANSWER_PIPELINE
+        ranks = len(rank_dirs) if a == "chosen" else 0
+        configs[a] = dataclasses.replace(base, num_proposals=args.proposals, rank_values=ranks)
         hangs[a] = jax.jit(
             stage3.make_hang_pipeline(pred.stage1_config, pred.stage2_config, vcfg, configs[a])
         )
@@ -96,13 +105,15 @@ def main(argv=None) -> dict:
             print(json.dumps(rows[-1]))
     result = {
         "what": "Stages 1-3 in one jitted call; chosen: CEM from every Stage-1 and Stage-2 "
-        "proposal, the answer by selection.CHOSEN (stage3.ANSWER_PIPELINE); paper: CEM from "
-        "every Stage-2 proposal, the highest V",
+        "proposal, the answer by selection.CHOSEN (stage3.ANSWER_PIPELINE) on the mean log V "
+        "of CEM's V and the ranking networks (stage3.RANK_VALUES); single: the same on CEM's "
+        "V alone; paper: CEM from every Stage-2 proposal, the highest V",
         "answers": {
             a: {
                 "starts": list(configs[a].starts),
                 "select": dataclasses.asdict(configs[a].select),
                 "pool_starts": configs[a].pool_starts,
+                "rank_values": rank_dirs if configs[a].rank_values else [],
             }
             for a in answers
         },  # fmt: skip

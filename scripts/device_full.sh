@@ -186,8 +186,9 @@ fi
 
 if [ "$CALL" = bench ]; then
     # issue 12's latency: the answer pipeline and the paper's, side by side (bench_stage3)
+    # BENCH_ARGS: more bench_stage3 flags, e.g. "--batches 1,256 --answers chosen,single"
     timeout $(($(left) - 5)) $PY -m experiments.bench_stage3 --batches 1,16,256 \
-        --out "$OUT/bench_stage3.json" 2>&1 | tail -8 | tee -a "$OUT/$LOG"
+        --out "$OUT/bench_stage3.json" ${BENCH_ARGS:-} 2>&1 | tail -8 | tee -a "$OUT/$LOG"
     log "done"
     exit 0
 fi
