@@ -141,7 +141,7 @@ def _fake_load_value(folder):
 def test_load_hang_pipeline_takes_stage2_overrides(monkeypatch):
     """The overrides reach load_predictor and the pipeline is built on its Stage-2 config
     (that config's clearance moves Stage 2: test_pipeline_clearance_c_moves_stage2_exactly);
-    the default pipeline is the answer pipeline."""
+    the default pipeline is the answer pipeline, ranked by CEM's V and stage3.RANK_VALUES."""
     calls, built = [], []
     monkeypatch.setattr(predict, "load_predictor", _fake_load_predictor(calls))
     monkeypatch.setattr(refine, "load_value", _fake_load_value)
@@ -156,9 +156,11 @@ def test_load_hang_pipeline_takes_stage2_overrides(monkeypatch):
         overrides = None if clearance is None else {"clearance": clearance}
         hang, params = predict.load_hang_pipeline("W", "V", PIPE, stage2_overrides=overrides)
         assert callable(hang) and set(params) == {"stage1", "stage2", "value"}
-    predict.load_hang_pipeline("W", "V")
+    hang, params = predict.load_hang_pipeline("W", "V")
     assert calls == [None, {"clearance": C}, None]
-    assert built == [(0.0, PIPE), (C, PIPE), (0.0, stage3.ANSWER_PIPELINE)]
+    ranked = dataclasses.replace(stage3.ANSWER_PIPELINE, rank_values=len(stage3.RANK_VALUES))
+    assert built == [(0.0, PIPE), (C, PIPE), (0.0, ranked)]
+    assert len(params.get("rank_values", [])) == len(stage3.RANK_VALUES)
 
 
 class _FakeLabeller:
