@@ -21,7 +21,6 @@ once to --apply-to (held-out pairs). Mean over categories as everywhere.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import jax
@@ -29,15 +28,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments import _cli
-from experiments.rerank_stage3 import any_refined, proposals_of, read_records
-from experiments.smooth_stage3 import POOL, evaluate_scores, record_batches
+from experiments.rerank_stage3 import any_refined, pool_indices, proposals_of, read_records
+from experiments.smooth_stage3 import POOL, evaluate_scores, record_batches, record_study_parser
 from omnihang_jax import refine, selection, stage3
 
 
 def pool_values(rows, data, split, value_dirs, k, batch, progress) -> np.ndarray:
     """[V, N, P] P(hang) of the pool's candidates under each value function."""
-    from experiments.rerank_stage3 import pool_indices
-
     idx = pool_indices(k, POOL)
     nets = []
     for d in value_dirs:
@@ -68,8 +65,6 @@ def combinations(values: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
 
 def study(rows, k, values, names, recorded_name):
     """Table of the chosen rule's success per combination, and the recorded-V check."""
-    from experiments.rerank_stage3 import pool_indices
-
     idx = pool_indices(k, POOL)
     recorded = np.asarray([r["v"] for r in rows], np.float32)[:, idx]
     table = evaluate_scores(rows, k, combinations(values, names))
@@ -82,19 +77,9 @@ def study(rows, k, values, names, recorded_name):
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--select-on", required=True, help="validation run's .pairs.jsonl[.gz]")
-    parser.add_argument("--select-split", default="train", help="derived split of its pairs")
-    parser.add_argument("--apply-to", default=None, help="held-out run's .pairs.jsonl[.gz]")
-    parser.add_argument("--apply-split", default="test")
-    parser.add_argument("--data", default="datasets/paper", help="dataset with derived/<split>")
-    parser.add_argument("--value", default="weights/value_small_paper", help="V of the runs")
+    parser = record_study_parser(__doc__)
     parser.add_argument("--extra-value", action="append", required=True,
                         help="another V folder (repeat for more)")  # fmt: skip
-    parser.add_argument("--proposals", type=int, default=None,
-                        help="K of the runs, checked against their records")  # fmt: skip
     parser.add_argument("--batch", type=int, default=16, help="pairs per call")
     parser.add_argument("--limit", type=int, default=None, help="first N records of each run")
     parser.add_argument("--out", required=True, help="JSON")

@@ -145,9 +145,11 @@ def evaluate(rows, k, smoothed, plain):
     return table, check
 
 
-def main(argv=None) -> dict:
+def record_study_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments every study that recomputes V on an evaluation's records shares
+    (this module, ``experiments.ensemble_stage3``): the runs, their pair files, their V, K."""
     parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--select-on", required=True, help="validation run's .pairs.jsonl[.gz]")
     parser.add_argument("--select-split", default="train", help="derived split of its pairs")
@@ -159,6 +161,11 @@ def main(argv=None) -> dict:
         "--proposals", type=int, default=None,
         help="K of the runs, checked against their records (default: read from them)",
     )  # fmt: skip
+    return parser
+
+
+def main(argv=None) -> dict:
+    parser = record_study_parser(__doc__)
     parser.add_argument("--widths", default=DEFAULT_WIDTHS,
                         help="comma-separated TRANSLATION:ROTATION sigmas (m:rad)")  # fmt: skip
     parser.add_argument("--samples", type=int, default=16, help="poses per average")
