@@ -9,6 +9,13 @@ hanging pose with four collision checkers, and check every returned path with th
     python -m experiments.eval_paths --weights weights/collision_fast_gpu_near --pairs 40 \\
         --methods nce_geometric --geometric out/paths_hybrid/selection.json --time-limit 15 \\
         --out out/paths_hybrid --results results/paths_hybrid.json
+    # the symmetric test (support points behind the observed object surface too): its
+    # settings with the one-sided ones fixed, then planning with both
+    python -m experiments.eval_paths --weights weights/collision_fast_gpu_near_crop \\
+        --select-geometric out/paths_hybrid_sym/selection.json --symmetric
+    python -m experiments.eval_paths --weights weights/collision_fast_gpu_near_crop --pairs 40 \\
+        --methods nce_geometric --symmetric --geometric out/paths_hybrid_sym/selection.json \\
+        --time-limit 30 --out out/paths_hybrid_sym --results results/paths_hybrid_sym_crop_t30.json
 
 Per held-out pair (``DATA/derived/collision/test``, derived on demand: a seeded random sample,
 round robin over the object categories) and its first stable pose (the paper's protocol: the dataset's stable
@@ -21,7 +28,10 @@ poses as goals), OMPL's RRT-Connect plans with (``omnihang_jax.planner``):
 - ``nce_geometric`` (not in the default run; ``--methods nce_geometric``): the NCE OR an
   observed-cloud penetration test (``collision.nce_geometric_collides``: enough object points
   behind the observed support surface), its depth / radius / min points chosen on training
-  validation pairs by ``--select-geometric`` (read back with ``--geometric``);
+  validation pairs by ``--select-geometric`` (read back with ``--geometric``); with
+  ``--symmetric`` the test also counts support points behind the observed object surface
+  (``collision.GeometricConfig.symmetric``; ``--select-geometric --symmetric`` chooses that
+  side's settings with the one-sided ones fixed);
 - ``geometric`` (ablation, not in the default run): that penetration test alone.
 
 Every returned path is interpolated every 2 mm (weighted SE(3) metric) and checked with the
@@ -67,6 +77,7 @@ class PairCase(NamedTuple):
     meta: dict
     scene: object  # sim.scene.Scene
     object_points: np.ndarray  # [N, 3] object frame (full partial cloud)
+    object_normals: np.ndarray  # [N, 3] its ray-cast outward normals
     support_points: np.ndarray  # [M, 3]
     support_normals: np.ndarray  # [M, 3]
     goal: np.ndarray  # [7]
@@ -97,6 +108,7 @@ def load_pairs(data: str, n: int, workers: int = 1, progress: bool = False) -> l
                     meta=meta,
                     scene=build_scene(obj, sup),
                     object_points=f["object_points"],
+                    object_normals=f["object_normals"],
                     support_points=f["support_points"],
                     support_normals=f["support_normals"],
                     goal=f["stable_poses"][0].astype(float),
@@ -190,14 +202,21 @@ SELECT_RADII = (0.002, 0.003, 0.004, 0.006, 0.01)  # m
 SELECT_MIN_POINTS = (0, 1, 2, 3, 5, 8, 12)
 
 
-def _geometric_grid(data, pair_rows, poses, geo: collision.GeometricConfig, depths, radii):
+def _geometric_grid(
+    data, pair_rows, poses, geo: collision.GeometricConfig, depths, radii, symmetric=False
+):
     """Inside counts [L, D, R] of ``poses`` [L, 7] of pairs ``pair_rows`` [L] for every
-    (depth, radius), one support lookup table per pair."""
+    (depth, radius), one support lookup table per pair: object points inside the observed
+    support, or with ``symmetric`` support points (all of them) inside the observed object
+    (one lookup table over the object cloud per pair, object frame)."""
     import jax.numpy as jnp
 
-    def counts(grid, object_cloud, poses):
-        posed = collision.transform_points(poses, object_cloud)
-        along, length, ok = collision.grid_offsets(grid, posed)
+    def counts(grid, cloud, poses):
+        if symmetric:  # support points into the object frame
+            moved = collision.inverse_transform_points(poses, cloud)
+        else:
+            moved = collision.transform_points(poses, cloud)
+        along, length, ok = collision.grid_offsets(grid, moved)
         along = jnp.where(ok, along, 0.0)
         return jnp.stack(
             [
@@ -211,14 +230,26 @@ def _geometric_grid(data, pair_rows, poses, geo: collision.GeometricConfig, dept
     out = np.zeros((len(pair_rows), len(depths), len(radii)), np.int32)
     for p in np.unique(pair_rows):
         rows = np.flatnonzero(pair_rows == p)
-        grid = collision.support_grid(
-            data.support_points[p], data.support_normals[p], geo.voxel, geo.max_voxels, geo.margin
-        )
-        oc = collision.subsample_cloud(data.object_points[p], geo.object_points, SUBSET_SEED_OBJECT)
+        if symmetric:
+            grid = collision.support_grid(
+                data.object_points[p], data.object_normals[p], geo.voxel, geo.max_voxels, geo.margin
+            )
+            cloud = data.support_points[p]  # the planner's: the support table's points
+        else:
+            grid = collision.support_grid(
+                data.support_points[p],
+                data.support_normals[p],
+                geo.voxel,
+                geo.max_voxels,
+                geo.margin,
+            )
+            cloud = collision.subsample_cloud(
+                data.object_points[p], geo.object_points, SUBSET_SEED_OBJECT
+            )
         for a in range(0, len(rows), 256):
             r = rows[a : a + 256]
             padded = np.concatenate([poses[r], np.repeat(poses[r[:1]], 256 - len(r), 0)])
-            out[r] = np.asarray(counts(grid, oc, padded))[: len(r)]
+            out[r] = np.asarray(counts(grid, cloud, padded))[: len(r)]
     return out
 
 
@@ -231,13 +262,19 @@ def select_geometric(
     depths=SELECT_DEPTHS,
     radii=SELECT_RADII,
     min_points=SELECT_MIN_POINTS,
+    symmetric: bool = False,
 ) -> dict:
     """The penetration test's (depth, radius, min_points) for ``nce_geometric``, on TRAINING
     validation pairs (``pair_index % 20 == 0``, never trained on; ``train_collision
     --val-every 20``), with their near-contact poses and mesh labels (colliding: deeper than
     1 mm on the full meshes): among the settings at which the hybrid (NCE OR test) still
     calls at least ``goal_pass`` of the stable poses free, the one with the highest
-    precision of "free" on the moved near-contact poses (ties: higher specificity)."""
+    precision of "free" on the moved near-contact poses (ties: higher specificity).
+
+    ``symmetric``: the one-sided test fixed at ``geo``'s depth / radius / min points, the
+    same grid and rule choose the symmetric side's ``sym_depth`` / ``sym_radius`` /
+    ``sym_min_points`` (the hybrid: NCE OR one-sided OR symmetric); ``chosen`` is None when
+    no setting keeps the goal pass (then the symmetric side stays off)."""
     from experiments.train_collision import (
         NEAR_APPROACH,
         NEAR_JITTER,
@@ -262,7 +299,10 @@ def select_geometric(
     )
     by_nce = prob > cfg.threshold
     nce_s = time.time() - t0
-    counts = _geometric_grid(val, val.near_pair, val.near_poses, geo, depths, radii)
+    if symmetric:
+        one = _geometric_grid(val, val.near_pair, val.near_poses, geo, [geo.depth], [geo.radius])
+        by_nce = by_nce | (one[:, 0, 0] > geo.min_points)  # the one-sided hybrid, fixed
+    counts = _geometric_grid(val, val.near_pair, val.near_poses, geo, depths, radii, symmetric)
     stable = val.near_kind == NEAR_STABLE
     moved = ~stable
     label = val.near_labels
@@ -286,14 +326,20 @@ def select_geometric(
         for j, r in enumerate(radii):
             for m in min_points:
                 by_test = counts[:, i, j] > m
-                row = dict(depth=d, radius=r, min_points=m, **metrics(by_nce | by_test))
+                setting = dict(depth=d, radius=r, min_points=m)
+                if symmetric:
+                    setting = dict(
+                        depth=geo.depth, radius=geo.radius, min_points=geo.min_points,
+                        sym_depth=d, sym_radius=r, sym_min_points=m,
+                    )  # fmt: skip
+                row = dict(**setting, **metrics(by_nce | by_test))
                 row["test_alone"] = metrics(by_test)
                 table.append(row)
                 ok = row["goal_pass"] >= goal_pass
                 key = (row["free_precision"], row["specificity"])
                 if ok and (best is None or key > (best["free_precision"], best["specificity"])):
                     best = row
-    return dict(
+    out = dict(
         validation_pairs=len(val.meta),
         near_poses=int(moved.sum()),
         stable_poses=int(stable.sum()),
@@ -307,6 +353,11 @@ def select_geometric(
         nce_s=round(nce_s, 1),
         wall_s=round(time.time() - t0, 1),
     )
+    if symmetric:  # the "nce" row is then the one-sided hybrid (NCE OR the fixed test)
+        out["symmetric"] = True
+        out["nce"] |= dict(depth=geo.depth, radius=geo.radius, min_points=geo.min_points)
+        out["rule"] += " (symmetric side; one-sided test fixed)"
+    return out
 
 
 def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METHODS) -> dict:
@@ -350,13 +401,21 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
             case.support_points, case.support_normals, geo.voxel, geo.max_voxels, geo.margin
         )
         geo_object = sub(case.object_points, geo.object_points, SUBSET_SEED_OBJECT)
-        params = collision.NCEGeometricParams(est.nce_params, jax.numpy.asarray(geo_object), grid)
+        object_grid, alone = None, grid
+        if geo.symmetric:  # the object cloud's table too (object frame), also outside the clock
+            object_grid = collision.support_grid(
+                case.object_points, case.object_normals, geo.voxel, geo.max_voxels, geo.margin
+            )
+            alone = collision.GeometricGrids(grid, object_grid)
+        params = collision.NCEGeometricParams(
+            est.nce_params, jax.numpy.asarray(geo_object), grid, object_grid
+        )
         checkers["nce_geometric"] = planner.EstimatorChecker(
             est.nce_geometric, params, nce.object_cloud, nce.support_cloud
         )
         # the penetration test alone (ablation): no NCE, ~30x cheaper a check
         checkers["geometric"] = planner.EstimatorChecker(
-            est.geometric_alone, grid, geo_object, grid.points
+            est.geometric_alone, alone, geo_object, grid.points
         )
     for name in set(methods) - {"mesh"}:  # compiled outside the planning clock
         checkers[name].warm_up()
@@ -569,6 +628,13 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--val-pairs", type=int, default=60, help="for --select-geometric")
     parser.add_argument(
+        "--symmetric",
+        action="store_true",
+        help="the penetration test also counts support points behind the observed object "
+        "surface (collision.GeometricConfig.symmetric); with --select-geometric: choose that "
+        "side's settings, the one-sided ones fixed (those of --geometric, else the defaults)",
+    )
+    parser.add_argument(
         "--geometric",
         default=None,
         metavar="JSON",
@@ -582,8 +648,19 @@ def main(argv=None) -> dict:
     parser.add_argument("--workers", type=int, default=1, help="derive processes")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    geo = collision.GeometricConfig()
+    if args.geometric:
+        chosen = json.loads(Path(args.geometric).read_text())["chosen"]
+        if chosen is None:
+            raise SystemExit(f"{args.geometric}: no setting was chosen (none kept the goal pass)")
+        keys = ("depth", "radius", "min_points")
+        if args.symmetric and not args.select_geometric:
+            keys += tuple(k for k in ("sym_depth", "sym_radius", "sym_min_points") if k in chosen)
+        geo = dataclasses.replace(geo, **{k: chosen[k] for k in keys})
     if args.select_geometric:
-        sel = select_geometric(args.data, args.weights, args.val_pairs)
+        sel = select_geometric(
+            args.data, args.weights, args.val_pairs, geo=geo, symmetric=args.symmetric
+        )
         Path(args.select_geometric).parent.mkdir(parents=True, exist_ok=True)
         Path(args.select_geometric).write_text(json.dumps(sel, indent=1))
         print(json.dumps({"nce": sel["nce"], "chosen": sel["chosen"]}, indent=1))
@@ -599,10 +676,8 @@ def main(argv=None) -> dict:
     )
     out = Path(args.out)
     (out / "scenes").mkdir(parents=True, exist_ok=True)
-    geo = collision.GeometricConfig()
-    if args.geometric:
-        chosen = json.loads(Path(args.geometric).read_text())["chosen"]
-        geo = dataclasses.replace(geo, **{k: chosen[k] for k in ("depth", "radius", "min_points")})
+    if args.symmetric:
+        geo = dataclasses.replace(geo, symmetric=True)
     est = load_estimators(
         args.weights, args.nce_threshold, args.nce_far_threshold, args.nce_goal_ball, geo
     )
