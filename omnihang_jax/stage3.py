@@ -453,7 +453,8 @@ class HangOutput(NamedTuple):
     """B pairs, K proposals. Poses [B, K, 7] (xyz + wxyz, object in support frame).
 
     stage1_poses, stage2_poses: Stages 1 and 2. refined: {start: [B, K, 7]} CEM results from
-    each start; scores: {start: [B, K]} final log V; initial_scores: {start: [B, K]} log V of
+    each start; scores: {start: [B, K]} final log V (with ``PipelineConfig.rank_values``: the
+    mean log V of CEM's V and the ranking networks); initial_scores: {start: [B, K]} log V of
     the unrefined proposal. best: {start: [B]} index of the best final V (the pipeline's
     answer, facts: "the candidate with the best final Stage-3 score"); pose: [B, 7] the answer
     of the first start.
