@@ -230,10 +230,8 @@ def _geometric_grid(
     out = np.zeros((len(pair_rows), len(depths), len(radii)), np.int32)
     for p in np.unique(pair_rows):
         rows = np.flatnonzero(pair_rows == p)
-        if symmetric:
-            grid = collision.support_grid(
-                data.object_points[p], data.object_normals[p], geo.voxel, geo.max_voxels, geo.margin
-            )
+        if symmetric:  # (with geo.sym_solid_only: solid-backed object points only)
+            grid = collision.object_grid(data.object_points[p], data.object_normals[p], geo)
             cloud = data.support_points[p]  # the planner's: the support table's points
         else:
             grid = collision.support_grid(
@@ -355,6 +353,8 @@ def select_geometric(
     )
     if symmetric:  # the "nce" row is then the one-sided hybrid (NCE OR the fixed test)
         out["symmetric"] = True
+        if geo.sym_solid_only:
+            out["rule"] += " (solid-backed object points only)"
         out["nce"] |= dict(depth=geo.depth, radius=geo.radius, min_points=geo.min_points)
         out["rule"] += " (symmetric side; one-sided test fixed)"
     return out
@@ -403,9 +403,7 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
         geo_object = sub(case.object_points, geo.object_points, SUBSET_SEED_OBJECT)
         object_grid, alone = None, grid
         if geo.symmetric:  # the object cloud's table too (object frame), also outside the clock
-            object_grid = collision.support_grid(
-                case.object_points, case.object_normals, geo.voxel, geo.max_voxels, geo.margin
-            )
+            object_grid = collision.object_grid(case.object_points, case.object_normals, geo)
             alone = collision.GeometricGrids(grid, object_grid)
         params = collision.NCEGeometricParams(
             est.nce_params, jax.numpy.asarray(geo_object), grid, object_grid
@@ -635,6 +633,12 @@ def main(argv=None) -> dict:
         "side's settings, the one-sided ones fixed (those of --geometric, else the defaults)",
     )
     parser.add_argument(
+        "--sym-solid",
+        action="store_true",
+        help="with --symmetric: only behind solid-backed object points (both faces observed; "
+        "collision.GeometricConfig.sym_solid_only)",
+    )
+    parser.add_argument(
         "--geometric",
         default=None,
         metavar="JSON",
@@ -657,6 +661,10 @@ def main(argv=None) -> dict:
         if args.symmetric and not args.select_geometric:
             keys += tuple(k for k in ("sym_depth", "sym_radius", "sym_min_points") if k in chosen)
         geo = dataclasses.replace(geo, **{k: chosen[k] for k in keys})
+    if args.sym_solid:
+        if not args.symmetric:
+            parser.error("--sym-solid needs --symmetric")
+        geo = dataclasses.replace(geo, sym_solid_only=True)
     if args.select_geometric:
         sel = select_geometric(
             args.data, args.weights, args.val_pairs, geo=geo, symmetric=args.symmetric

@@ -435,6 +435,16 @@ class GeometricConfig:
     sym_depth: float = 0.001
     sym_radius: float = 0.003
     sym_min_points: int = 0
+    # the symmetric side only behind SOLID-BACKED object points (off by default): a support
+    # point counts only when its nearest observed object point has its back face observed too
+    # (:func:`solid_backed`: another object point at most ``sym_solid_thickness`` behind it
+    # along its inward normal, within ``sym_solid_radius`` sideways, its normal facing the
+    # other way, cosine < ``sym_solid_cos``); elsewhere the object table answers -1 (never
+    # inside): behind a thin part seen from one side the test cannot tell solid from empty
+    sym_solid_only: bool = False
+    sym_solid_thickness: float = 0.03
+    sym_solid_radius: float = 0.004
+    sym_solid_cos: float = -0.5
 
 
 class SupportGrid(NamedTuple):
@@ -460,11 +470,13 @@ def support_grid(
     max_voxels: int = 2_000_000,
     margin: float = 0.01,
     reach: float = 0.015,
+    keep: np.ndarray | None = None,
 ) -> SupportGrid:
     """Host: the :class:`SupportGrid` of a support cloud [M, 3] with outward normals; cells of
     ``voxel`` m (coarsened until the grid has at most ``max_voxels`` cells) over the cloud's
     box grown by ``margin``. A point's nearest support point is that of its cell's centre:
-    within half a cell diagonal of the true nearest distance."""
+    within half a cell diagonal of the true nearest distance. ``keep`` [M] bool (optional):
+    cells whose nearest point is not kept answer -1 (never inside), as beyond ``reach``."""
     from scipy.spatial import cKDTree
 
     points = np.asarray(support_cloud, np.float32)
@@ -478,7 +490,11 @@ def support_grid(
     # cells farther than ``reach`` from every support point: -1, never inside
     _, idx = cKDTree(points).query(centres, distance_upper_bound=reach)
     flat = np.full(max_voxels, -1, np.int32)
-    flat[: len(idx)] = np.where(idx < len(points), idx, -1)
+    valid = idx < len(points)
+    if keep is not None:
+        keep = np.asarray(keep, bool)
+        valid &= keep[np.minimum(idx, len(points) - 1)]
+    flat[: len(idx)] = np.where(valid, idx, -1)
     return SupportGrid(
         jnp.asarray(lo, jnp.float32),
         jnp.asarray(voxel, jnp.float32),
@@ -486,6 +502,60 @@ def support_grid(
         jnp.asarray(flat),
         jnp.asarray(points),
         jnp.asarray(support_normals, jnp.float32),
+    )
+
+
+def solid_backed(
+    points: np.ndarray,
+    normals: np.ndarray,
+    thickness: float = 0.03,
+    radius: float = 0.004,
+    cos: float = -0.5,
+) -> np.ndarray:
+    """Host: [N] bool, object point i's back face is observed too: some other point j lies
+    behind it along its inward normal (0 < (p_i - p_j) . n_i <= ``thickness``), within
+    ``radius`` of that line sideways, with its normal facing the other way (n_i . n_j <
+    ``cos``). A thin part seen from one side only is not solid-backed."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, np.float64)
+    normals = np.asarray(normals, np.float64)
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    tree = cKDTree(points)
+    out = np.zeros(len(points), bool)
+    reach = float(np.hypot(thickness, radius))
+    for a in range(0, len(points), 512):
+        b = min(a + 512, len(points))
+        lists = tree.query_ball_point(points[a:b], reach)
+        sizes = np.fromiter((len(x) for x in lists), int, b - a)
+        i = np.repeat(np.arange(a, b), sizes)
+        j = np.fromiter((k for x in lists for k in x), int, int(sizes.sum()))
+        d = points[i] - points[j]
+        depth = np.sum(d * normals[i], 1)
+        lateral2 = np.sum(d * d, 1) - depth**2
+        ok = (depth > 0) & (depth <= thickness) & (lateral2 < radius**2)
+        ok &= np.sum(normals[i] * normals[j], 1) < cos
+        out[np.unique(i[ok])] = True
+    return out
+
+
+def object_grid(
+    object_cloud: np.ndarray, object_normals: np.ndarray, config: GeometricConfig
+) -> SupportGrid:
+    """Host: the symmetric side's lookup table over the object cloud (object frame); with
+    ``config.sym_solid_only`` the cells whose nearest object point is not
+    :func:`solid_backed` answer -1."""
+    keep = None
+    if config.sym_solid_only:
+        keep = solid_backed(
+            object_cloud,
+            object_normals,
+            config.sym_solid_thickness,
+            config.sym_solid_radius,
+            config.sym_solid_cos,
+        )
+    return support_grid(
+        object_cloud, object_normals, config.voxel, config.max_voxels, config.margin, keep=keep
     )
 
 

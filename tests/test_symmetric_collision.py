@@ -154,3 +154,43 @@ def test_symmetric_false_is_bit_identical_to_the_one_sided_test():
     # and switching the symmetric side on can only add colliding calls
     on = jax.jit(collision.geometric_collides(replace(geo, symmetric=True)))
     assert np.all(np.asarray(on(grids, obj, None, poses)) >= want)
+
+
+def _open_cap(rng, n=2000, radius=SPHERE_RADIUS):
+    """The sphere's top cap only (z > 0.6 r, normals within 53 degrees of +z), outward
+    normals: a one-sided (open) surface, as a thin part seen from one side; no two of its
+    normals face each other, nothing observed behind it."""
+    pts, normals = _sphere(rng, 5 * n, radius)
+    up = pts[:, 2] > 0.6 * radius
+    return pts[up], normals[up]
+
+
+def test_solid_only_ignores_support_behind_a_one_sided_surface():
+    rng = np.random.default_rng(4)
+    closed, closed_normals = _sphere(rng)
+    cap, cap_normals = _open_cap(rng)
+    # a closed sphere: (nearly) every point has its back face observed; an open cap: none
+    assert collision.solid_backed(closed, closed_normals, 0.03, 0.004).mean() > 0.95
+    assert not collision.solid_backed(cap, cap_normals, 0.03, 0.004).any()
+    geo = replace(GEO, sym_solid_only=True)
+    # support points 3 mm under the cap's top (inside the sphere, behind the cap's surface)
+    support = rng.uniform(-0.002, 0.002, (200, 3)).astype(np.float32)
+    support[:, 2] += 0.007
+    poses = np.stack([_pose((0, 0, 0)), _pose((0.0005, 0, 0), (0, 0, 1), 0.3)])
+
+    def count(obj, normals, config):
+        grid = collision.object_grid(obj, normals, config)
+        return np.asarray(
+            collision.support_penetration_count(
+                grid, support, poses, config.sym_depth, config.sym_radius
+            )
+        )
+
+    assert np.all(count(cap, cap_normals, GEO) > 100)  # counted by the plain symmetric side
+    assert np.all(count(cap, cap_normals, geo) == 0)  # not behind a one-sided surface
+    assert np.all(count(closed, closed_normals, geo) > 100)  # still inside the closed object
+    # off by default: the object table is the plain support_grid's, bit for bit
+    plain = collision.support_grid(closed, closed_normals, max_voxels=200_000)
+    same = collision.object_grid(closed, closed_normals, replace(GEO, max_voxels=200_000))
+    for a, b in zip(plain, same):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
