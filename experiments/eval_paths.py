@@ -656,7 +656,9 @@ def main(argv=None) -> dict:
     if args.geometric:
         chosen = json.loads(Path(args.geometric).read_text())["chosen"]
         if chosen is None:
-            raise SystemExit(f"{args.geometric}: no setting was chosen (none kept the goal pass)")
+            parser.error(
+                f"--geometric {args.geometric}: no setting was chosen (none kept the goal pass)"
+            )
         keys = ("depth", "radius", "min_points")
         if args.symmetric and not args.select_geometric:
             keys += tuple(k for k in ("sym_depth", "sym_radius", "sym_min_points") if k in chosen)

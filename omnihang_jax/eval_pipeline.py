@@ -95,7 +95,7 @@ def evaluate_pipeline(
     (``stage3.make_ensemble_score``, as ``PipelineConfig.rank_values``), and each record also
     holds every candidate's V under each of them (``v_rank``); ``v`` stays the CEM's V and
     ``all_stages_paper`` its highest V."""
-    from omnihang_jax.predict import load_predictor
+    from omnihang_jax.predict import load_predictor, load_rank_values
     from sim import kernels
 
     t0 = time.time()
@@ -104,8 +104,6 @@ def evaluate_pipeline(
     value_config, value_params = refine.load_value(value_dir)
     refine_fn = jax.jit(stage3.make_refiner(value_config, cem))
     value_fn = jax.jit(stage3.make_value(value_config).value)
-    from omnihang_jax.predict import load_rank_values
-
     rank_params = load_rank_values(rank_value_dirs, value_config)
     ensemble_fn = jax.jit(stage3.make_ensemble_score(value_config))
 

@@ -187,12 +187,10 @@ def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.P
     for the paper's highest V; () for none).
 
     ``hang(params, key, clouds: stage3.PairClouds [B, ...]) -> stage3.HangOutput``."""
-    from omnihang_jax import refine, stage3
+    from omnihang_jax import refine, selection, stage3
 
     where = load_predictor(where_folder, stage2_overrides=stage2_overrides)
     value_config, value_params = refine.load_value(value_folder)
-    from omnihang_jax import selection
-
     config = config or stage3.ANSWER_PIPELINE
     if rank_value_folders is None:
         rank_value_folders = stage3.RANK_VALUES if config.select == selection.CHOSEN else ()
