@@ -21,6 +21,7 @@ once to --apply-to (held-out pairs). Mean over categories as everywhere.
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import jax
@@ -54,6 +55,40 @@ def pool_values(rows, data, split, value_dirs, k, batch, progress) -> np.ndarray
     return np.stack([np.concatenate(o) for o in out])
 
 
+def recorded_values(rows, k, extra: int) -> np.ndarray:
+    """[1 + extra, N, P] P(hang) of the pool's candidates as the run recorded them: ``v``
+    (its CEM's V) and each of its ``v_rank`` networks."""
+    missing = [i for i, r in enumerate(rows) if len(r.get("v_rank", [])) != extra]
+    if missing:
+        raise ValueError(
+            f"--from-records: {len(missing)} records hold not {extra} ranking networks' V "
+            f"(v_rank; e.g. record {missing[0]}): run eval_stage3 with one --rank-value per "
+            "--extra-value, in the same order"
+        )
+    idx = pool_indices(k, POOL)
+    vals = [[r["v"] for r in rows]] + [[r["v_rank"][j] for r in rows] for j in range(extra)]
+    return np.asarray(vals, np.float64)[:, :, idx]
+
+
+def pipeline_sets(n_extra: int) -> list[tuple[int, ...]]:
+    """Every set of the other networks the pipeline may rank with, smallest first."""
+    return [s for size in range(n_extra + 1)
+            for s in itertools.combinations(range(1, n_extra + 1), size)]  # fmt: skip
+
+
+def pipeline_table(rows, k, values, names) -> list[dict]:
+    """The rule's success when the pipeline ranks by the mean log V of the run's V (values[0])
+    and each set of the others; ``rank_values`` names the set (``eval_stage3 --rank-value``)."""
+    logs = np.log(np.clip(values, 1e-12, 1.0))
+    out = []
+    for s in pipeline_sets(len(values) - 1):
+        score = np.exp(logs[[0, *s]].mean(0))
+        label = "rank: " + (" + ".join(names[i] for i in s) if s else "none (the run's V)")
+        (row,) = evaluate_scores(rows, k, {label: score})
+        out.append({**row, "rank_values": [names[i] for i in s]})
+    return out
+
+
 def combinations(values: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
     """Each V alone, and the mean of P and of log P over all of them ([N, P] each)."""
     combos = {name: v for name, v in zip(names, values, strict=True)}
@@ -81,6 +116,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--extra-value", action="append", required=True,
                         help="another V folder (repeat for more)")  # fmt: skip
     parser.add_argument("--batch", type=int, default=16, help="pairs per call")
+    parser.add_argument("--from-records", action="store_true",
+                        help="each V as the runs recorded it (v, v_rank) instead of recomputed")
     parser.add_argument("--limit", type=int, default=None, help="first N records of each run")
     parser.add_argument("--out", required=True, help="JSON")
     parser.add_argument("--no-progress", action="store_true")
@@ -89,16 +126,19 @@ def main(argv=None) -> dict:
         parser.error("--batch must be >= 1")
     dirs = [args.value, *args.extra_value]
     for d in dirs:
-        if not (Path(d) / "params.msgpack").exists():
+        if not args.from_records and not (Path(d) / "params.msgpack").exists():
             parser.error(f"{d}: not a value folder (config.json + params.msgpack)")
     names = [str(d) for d in dirs]
     common = dict(value_dirs=dirs, batch=args.batch, progress=not args.no_progress)
 
     val = read_records(args.select_on)[: args.limit]
     k = proposals_of(val, args.proposals)
-    values = pool_values(val, args.data, args.select_split, k=k, **common)
+    values = (recorded_values(val, k, len(args.extra_value)) if args.from_records
+              else pool_values(val, args.data, args.select_split, k=k, **common))  # fmt: skip
     table, check = study(val, k, values, names, args.value)
     best = max(table, key=lambda row: row["mean"])
+    ptable = pipeline_table(val, k, values, names)
+    pbest = max(ptable, key=lambda row: row["mean"])  # first of the ties: the smaller set
     strip = lambda row: {x: row[x] for x in row if x != "per_category"}  # noqa: E731
     result = {
         "select_on": args.select_on,
@@ -111,16 +151,22 @@ def main(argv=None) -> dict:
         "any_refined_select_on": any_refined(val, k, POOL),
         "chosen": strip(best),
         "table": [strip(row) for row in table],
+        "v_source": "records" if args.from_records else "recomputed",
+        "pipeline_table": [strip(row) for row in ptable],
+        "chosen_rank_values": pbest["rank_values"],
         "device": str(jax.devices()[0]),
     }  # fmt: skip
     print(f"validation ({len(val)} pairs): run's V {table[0]['mean']:.1f} %, best "
-          f"{best['mean']:.1f} % ({best['score']}); V check {check}")  # fmt: skip
+          f"{best['mean']:.1f} % ({best['score']}); the pipeline's ranking: {pbest['score']} "
+          f"{pbest['mean']:.1f} %; V check {check}")  # fmt: skip
     if args.apply_to:
         held = read_records(args.apply_to)[: args.limit]
         kh = proposals_of(held, args.proposals)
-        hvalues = pool_values(held, args.data, args.apply_split, k=kh, **common)
+        hvalues = (recorded_values(held, kh, len(args.extra_value)) if args.from_records
+                   else pool_values(held, args.data, args.apply_split, k=kh, **common))  # fmt: skip
         htable, hcheck = study(held, kh, hvalues, names, args.value)
         pick = next(r for r in htable if r["score"] == best["score"])
+        hptable = pipeline_table(held, kh, hvalues, names)
         result["apply_to"] = args.apply_to
         result["held_out"] = {
             "pairs": len(held),
@@ -129,6 +175,8 @@ def main(argv=None) -> dict:
             "any_refined": any_refined(held, kh, POOL),
             "v_check": hcheck,
             "table": [strip(row) for row in htable],
+            "pipeline_table": [strip(row) for row in hptable],
+            "pipeline_chosen": next(r for r in hptable if r["score"] == pbest["score"]),
         }
         print(f"held-out ({len(held)} pairs): run's V {htable[0]['mean']:.1f} %, chosen "
               f"{pick['mean']:.1f} % ({pick['score']}); V check {hcheck}")  # fmt: skip

@@ -33,6 +33,9 @@
 #   smooth experiments.smooth_stage3: the answer by V averaged around each refined candidate,
 #          its width chosen on validation-object records, applied to held-out records (SMOOTH_VAL,
 #          SMOOTH_HELD, SMOOTH_ARGS); derives both pair sets if absent.
+#   valeval (issue 12) the validation objects with every candidate ranking network recorded
+#          (RANK_CANDIDATES), the set chosen there (ensemble_stage3 --from-records), then the
+#          held-out eval with it; VAL_ARGS / EVAL_ARGS as for val / eval (e.g. --proposals 10).
 #   bench  bench_stage3: Stages 1-3 latency at batch 1 / 16 / 256, the answer pipeline
 #          (stage3.ANSWER_PIPELINE) and the paper's side by side (~3 min with compilation).
 # S3_ONLY=1 (train): derive the clouds (skipped when there), no pack, no Stage 1: the Stage-3
@@ -49,7 +52,7 @@
 # Back in $OUT: full.log, where.tgz (stage-1 best + latest exports, the resumable checkpoint,
 # metrics, validation curve, logs), stage3.tgz, eval JSONs (+ pairs .jsonl.gz).
 set -uo pipefail
-CALL=${1:?usage: device_full.sh train|eval|val|bench|smooth}
+CALL=${1:?usage: device_full.sh train|eval|val|valeval|bench|smooth}
 C=/tmp/full
 END_S=${END_S:-570}
 LOG=full.log
@@ -57,7 +60,7 @@ LOG=full.log
 SCALE=${CAMERA_SCALE:-0.5}
 CLOUDS=train_clouds_r$($PY -c "print(round($SCALE * 100))")
 INIT1=${INIT1:-weights/where_small_paper}
-HELDOUT=results/hanging_success.pairs.jsonl
+HELDOUT=${HELDOUT_PAIRS:-results/hanging_success.pairs.jsonl}
 
 derive_test() {  # workers
     timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split test \
@@ -93,7 +96,7 @@ for line in open(sys.argv[1]):
         print(line, end="")
 EOF
 }
-VALPAIRS=results/validation_pairs.jsonl
+VALPAIRS=${VAL_PAIRS:-results/validation_pairs.jsonl}
 derive_val() {  # WORKERS: the 396 pairs of validation OBJECTS (36 a category), full recipe
     timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split train \
         --workers "${1:-2}" --pairs-from "$VALPAIRS" --no-progress >>"$C/logs/derive_val.log" 2>&1
@@ -230,6 +233,39 @@ if [ "$CALL" = val ]; then
     gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
     log "done"
     exit 0
+fi
+
+if [ "$CALL" = valeval ]; then
+    # issue 12: the ranking networks chosen on the validation objects, then the held-out run
+    # with them, in one call (the rule fixed before looking): the 396 validation-object pairs
+    # through eval_stage3 (VAL_ARGS, e.g. "--proposals 10") with every candidate network of
+    # RANK_CANDIDATES (default stage3.RANK_VALUES + a warm train call's V copied to
+    # weights/value_s13_hardneg) recorded; experiments.ensemble_stage3 --from-records picks the
+    # set (none, or any subset; ties: the smaller) with the best validation mean; then the
+    # eval below with that set (EVAL_ARGS gets its --rank-value flags).
+    [ "$(ls "$C/ds/derived/train" 2>/dev/null | wc -l)" -ge 300 ] || derive_val 4 &
+    [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1794 ] || derive_test 12 &
+    wait
+    if [ -d "$C/stage3/run/value" ] && [ ! -d weights/value_s13_hardneg ]; then
+        cp -r "$C/stage3/run/value" weights/value_s13_hardneg
+    fi
+    RANKS=${RANK_CANDIDATES:-weights/value_s12_hardneg $([ -d weights/value_s13_hardneg ] && echo weights/value_s13_hardneg)}
+    derived_only "$VALPAIRS" "$C/ds/derived/train" >"$C/val.jsonl"
+    log "validation pairs: $(wc -l <"$C/val.jsonl"); ranking candidates: $RANKS"
+    timeout $(($(left) - 240)) $PY -m experiments.eval_stage3 --data "$C/ds" --split train \
+        --weights "${WHERE_W:-weights/where_small_paper}" --value "${VALUE:-weights/value_small_paper}" \
+        --pairs-from "$C/val.jsonl" --workers 15 --batch 16 --out "$OUT/val_choose.json" \
+        --label "validation objects, ranking candidates $RANKS ${VAL_ARGS:-}" \
+        $(for r in $RANKS; do echo --rank-value "$r"; done) ${VAL_ARGS:-} --no-progress 2>&1 |
+        tail -6 | tee -a "$OUT/$LOG"
+    $PY -m experiments.ensemble_stage3 --from-records --select-on "$OUT/val_choose.pairs.jsonl" \
+        --value "${VALUE:-weights/value_small_paper}" $(for r in $RANKS; do echo --extra-value "$r"; done) \
+        --out "$OUT/ensemble_choice.json" --no-progress 2>&1 | tail -2 | tee -a "$OUT/$LOG"
+    CHOSEN=$($PY -c "import json; print(' '.join(json.load(open('$OUT/ensemble_choice.json'))['chosen_rank_values']) or 'none')") ||
+        { log "error: no ranking chosen (see above)"; exit 3; }
+    log "chosen ranking networks: $CHOSEN"
+    EVAL_ARGS="${EVAL_ARGS:-} $(for r in $CHOSEN; do echo --rank-value "$r"; done)"
+    NO_NEWV=1
 fi
 
 # ---- eval

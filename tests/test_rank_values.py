@@ -112,6 +112,22 @@ def test_evaluation_ranks_by_the_ensemble_and_records_each_v(monkeypatch, tmp_pa
     assert set(rows) == {"V", "V2", "mean V", "mean log V"}
     recorded = np.mean([rc["all_stages"]["success"] for rc in records]) * 100
     assert rows["mean log V"]["pair_mean"] == pytest.approx(recorded)
+    # the pipeline's choices, from the recorded v / v_rank (no pair file read): the set {V2}
+    # reproduces the recorded answer; the choice is one of the sets the pipeline can rank with
+    monkeypatch.setattr(ensemble_stage3, "pool_values", None)  # must not be called
+    rec = ensemble_stage3.main([
+        "--select-on", str(runs), "--value", "V", "--extra-value", "V2", "--from-records",
+        "--out", "rec.json", "--no-progress",
+    ])  # fmt: skip
+    prow = {tuple(r["rank_values"]): r for r in rec["pipeline_table"]}
+    assert set(prow) == {(), ("V2",)} and rec["v_source"] == "records"
+    assert prow[("V2",)]["pair_mean"] == pytest.approx(recorded)
+    assert rec["chosen_rank_values"] == list(max(
+        rec["pipeline_table"], key=lambda r: r["mean"])["rank_values"])  # fmt: skip
+    with pytest.raises(ValueError, match="ranking networks"):
+        ensemble_stage3.main(["--select-on", str(runs), "--extra-value", "V2", "--extra-value",
+                              "V3", "--from-records", "--out", "x.json", "--no-progress"])
+    assert ensemble_stage3.pipeline_sets(2) == [(), (1,), (2,), (1, 2)]
 
 
 def test_load_rank_values_refuses_another_config(monkeypatch):
