@@ -36,7 +36,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--batches", default="1,16,256")
     parser.add_argument("--chunk", type=int, default=16)
     parser.add_argument("--repeat", type=int, default=10)
-    parser.add_argument("--proposals", type=int, default=5)
+    parser.add_argument(
+        "--proposals", type=int, default=None,
+        help="K of every timed pipeline (default: each its own, the answer pipeline's "
+        f"{stage3.ANSWER_PIPELINE.num_proposals} and the paper's 5)",
+    )  # fmt: skip
     parser.add_argument("--points", type=int, default=4096)
     parser.add_argument(
         "--answers", default="chosen,paper",
@@ -64,7 +68,8 @@ def main(argv=None) -> dict:
     for a in answers:
         base = stage3.PipelineConfig() if a == "paper" else stage3.ANSWER_PIPELINE
         ranks = len(rank_dirs) if a == "chosen" else 0
-        configs[a] = dataclasses.replace(base, num_proposals=args.proposals, rank_values=ranks)
+        k = args.proposals or base.num_proposals
+        configs[a] = dataclasses.replace(base, num_proposals=k, rank_values=ranks)
         hangs[a] = jax.jit(
             stage3.make_hang_pipeline(pred.stage1_config, pred.stage2_config, vcfg, configs[a])
         )
@@ -114,11 +119,12 @@ def main(argv=None) -> dict:
                 "select": dataclasses.asdict(configs[a].select),
                 "pool_starts": configs[a].pool_starts,
                 "rank_values": rank_dirs if configs[a].rank_values else [],
+                "proposals": configs[a].num_proposals,
             }
             for a in answers
         },  # fmt: skip
         "cem": dataclasses.asdict(configs[answers[0]].cem),
-        "proposals": args.proposals,
+        "proposals": args.proposals,  # None: each pipeline its own (answers[..]["proposals"])
         "points": args.points,
         "device": str(jax.devices()[0]),
         "device_kind": jax.devices()[0].device_kind,

@@ -34,7 +34,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--pairs-from", default=None, help="evaluate the pairs of this JSONL")
     parser.add_argument("--limit", type=int, default=None, help="first N pairs")
     parser.add_argument("--per-category", type=int, default=None, help="N pairs per category")
-    parser.add_argument("--proposals", type=int, default=5, help="K (default 5, facts)")
+    parser.add_argument(
+        "--proposals", type=int, default=stage3.ANSWER_PIPELINE.num_proposals,
+        help=f"K (default {stage3.ANSWER_PIPELINE.num_proposals}: the answer pipeline's; "
+        "the facts' 5 with --proposals 5)",
+    )  # fmt: skip
     parser.add_argument("--rounds", type=int, default=1, help="CEM rounds (1 = facts)")
     parser.add_argument("--batch", type=int, default=16, help="pairs per network call")
     parser.add_argument("--workers", type=int, default=0, help="simulation processes")

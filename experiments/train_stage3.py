@@ -152,6 +152,7 @@ def main(argv=None) -> dict:
         "min_pairs": args.min_pairs,
         "cem_batch": args.cem_batch,
         "round_start": args.round_start,
+        "seed_share": args.seed_share,
     }
     config = dataclasses.replace(config, **{k: v for k, v in over.items() if v is not None})
     if args.batch:

@@ -437,16 +437,22 @@ class PipelineConfig:
 
 # The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
 # answer picked among all of them by the observed-cloud rule chosen on validation objects
-# (selection.CHOSEN). PipelineConfig() keeps the paper's: Stage-2 starts, highest V.
+# (selection.CHOSEN); since the thirteenth session K = 10 proposals (20 refined candidates),
+# what the validation objects chose (eleventh session 66.9 -> 71.4 %; with the ranking networks
+# below 73.3 %) at 76.8 ms per pair at batch 1 on one H100 (K = 5: 65.5 ms) and half the
+# pairs/s at batch 256. PipelineConfig() keeps the paper's: K = 5, Stage-2 starts, highest V.
 ANSWER_PIPELINE = PipelineConfig(
-    starts=("stage2", "stage1"), select=selection.CHOSEN, pool_starts=True
+    num_proposals=10, starts=("stage2", "stage1"), select=selection.CHOSEN, pool_starts=True
 )
 # The value folders that rank CEM's candidates beside the CEM's V in the default pipeline
-# (twelfth session: the mean log V of weights/value_small_paper and this V, trained with
-# hard-negative rounds on all training pairs, chosen on validation objects, 66.5 -> 68.2 %;
-# held-out 66.9 -> 68.0 %: docs/stage3.md). PipelineConfig.rank_values; used by
-# predict.load_hang_pipeline, eval_stage3 --rank-value and the hang command.
-RANK_VALUES: tuple[str, ...] = ("weights/value_s12_hardneg",)
+# (the mean log V of weights/value_small_paper and these, PipelineConfig.rank_values): the
+# twelfth session's second V (hard-negative rounds on all training pairs; K = 5 held-out 66.9 ->
+# 68.0 %) and the thirteenth session's (the same continued: 6 more hard-negative rounds from
+# both starts). The set was chosen on validation objects among all subsets at K = 10
+# (experiments.ensemble_stage3 --from-records: none 71.2, both 73.3 %); held-out 70.5 %
+# (docs/stage3.md). Used by predict.load_hang_pipeline, eval_stage3 --rank-value and the hang
+# command.
+RANK_VALUES: tuple[str, ...] = ("weights/value_s12_hardneg", "weights/value_s13_hardneg")
 
 
 class HangOutput(NamedTuple):

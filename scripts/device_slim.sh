@@ -29,6 +29,10 @@ LIST=(
     # are read by no device_full.sh call)
     weights/collision_fast_gpu weights/collision_fast_gpu_near weights/collision_fast_gpu_near_crop
     results/validation_where_s11/val_k10.pairs.jsonl.gz docs/img
+    # (thirteenth session: the answer records of the tenth and twelfth sessions' runs, read by none)
+    results/hanging_success_stage3_s10_answer.pairs.jsonl.gz results/hanging_success_stage3_s12_ens.pairs.jsonl.gz
+    results/validation_where_s12 results/stage3_train_s12
+    results/hanging_success_stage3_s13_k10ens.pairs.jsonl.gz results/validation_where_s13 results/stage3_train_s13
 )
 case ${1:-} in
 out)
