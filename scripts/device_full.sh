@@ -35,7 +35,8 @@
 #          SMOOTH_HELD, SMOOTH_ARGS); derives both pair sets if absent.
 #   valeval (issue 12) the validation objects with every candidate ranking network recorded
 #          (RANK_CANDIDATES), the set chosen there (ensemble_stage3 --from-records), then the
-#          held-out eval with it; VAL_ARGS / EVAL_ARGS as for val / eval (e.g. --proposals 10).
+#          held-out eval with it; VAL_ARGS / EVAL_ARGS as for val / eval (e.g. --proposals 10);
+#          HELD_IF_ABOVE=X runs the held-out part only when the validation figure beats X.
 #   bench  bench_stage3: Stages 1-3 latency at batch 1 / 16 / 256, the answer pipeline
 #          (stage3.ANSWER_PIPELINE) and the paper's side by side (~3 min with compilation).
 # S3_ONLY=1 (train): derive the clouds (skipped when there), no pack, no Stage 1: the Stage-3
@@ -264,6 +265,17 @@ if [ "$CALL" = valeval ]; then
     CHOSEN=$($PY -c "import json; print(' '.join(json.load(open('$OUT/ensemble_choice.json'))['chosen_rank_values']) or 'none')") ||
         { log "error: no ranking chosen (see above)"; exit 3; }
     log "chosen ranking networks: $CHOSEN"
+    # HELD_IF_ABOVE=X: a variant's held-out run only when its validation figure (the chosen
+    # ranking's mean) beats X, the current pipeline's on the same pairs
+    if [ -n "${HELD_IF_ABOVE:-}" ]; then
+        BEST=$($PY -c "import json; print(max(r['mean'] for r in json.load(open('$OUT/ensemble_choice.json'))['pipeline_table']))")
+        if ! $PY -c "import sys; sys.exit(0 if $BEST > $HELD_IF_ABOVE else 1)"; then
+            log "validation $BEST <= $HELD_IF_ABOVE: not better, no held-out run"
+            gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
+            exit 0
+        fi
+        log "validation $BEST > $HELD_IF_ABOVE: the held-out run"
+    fi
     EVAL_ARGS="${EVAL_ARGS:-} $(for r in $CHOSEN; do echo --rank-value "$r"; done)"
     NO_NEWV=1
 fi
