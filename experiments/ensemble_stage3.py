@@ -116,8 +116,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--extra-value", action="append", required=True,
                         help="another V folder (repeat for more)")  # fmt: skip
     parser.add_argument("--batch", type=int, default=16, help="pairs per call")
-    parser.add_argument("--from-records", action="store_true",
-                        help="each V as the runs recorded it (v, v_rank) instead of recomputed")
+    parser.add_argument(
+        "--from-records",
+        action="store_true",
+        help="each V as the runs recorded it (v, v_rank) instead of recomputed",
+    )
     parser.add_argument("--limit", type=int, default=None, help="first N records of each run")
     parser.add_argument("--out", required=True, help="JSON")
     parser.add_argument("--no-progress", action="store_true")

@@ -125,8 +125,20 @@ def test_evaluation_ranks_by_the_ensemble_and_records_each_v(monkeypatch, tmp_pa
     assert rec["chosen_rank_values"] == list(max(
         rec["pipeline_table"], key=lambda r: r["mean"])["rank_values"])  # fmt: skip
     with pytest.raises(ValueError, match="ranking networks"):
-        ensemble_stage3.main(["--select-on", str(runs), "--extra-value", "V2", "--extra-value",
-                              "V3", "--from-records", "--out", "x.json", "--no-progress"])
+        ensemble_stage3.main(
+            [
+                "--select-on",
+                str(runs),
+                "--extra-value",
+                "V2",
+                "--extra-value",
+                "V3",
+                "--from-records",
+                "--out",
+                "x.json",
+                "--no-progress",
+            ]
+        )
     assert ensemble_stage3.pipeline_sets(2) == [(), (1,), (2,), (1, 2)]
 
 

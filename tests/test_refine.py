@@ -333,8 +333,30 @@ def test_train_stage3_cli_applies_every_flag(monkeypatch):
     from experiments import train_stage3 as T
 
     seen = {}
-    monkeypatch.setattr(T, "train_stage3", lambda config, *a, **k: seen.setdefault("c", config) and {})
-    T.main(["--preset", "hardneg", "--out", "x", "--seed-share", "0.25", "--round-start",
-            "alternate", "--round-steps", "77", "--batch", "32", "--no-progress"])
+    monkeypatch.setattr(
+        T, "train_stage3", lambda config, *a, **k: seen.setdefault("c", config) and {}
+    )
+    T.main(
+        [
+            "--preset",
+            "hardneg",
+            "--out",
+            "x",
+            "--seed-share",
+            "0.25",
+            "--round-start",
+            "alternate",
+            "--round-steps",
+            "77",
+            "--batch",
+            "32",
+            "--no-progress",
+        ]
+    )
     c = seen["c"]
-    assert (c.seed_share, c.round_start, c.round_steps, c.value.batch_size) == (0.25, "alternate", 77, 32)
+    assert (c.seed_share, c.round_start, c.round_steps, c.value.batch_size) == (
+        0.25,
+        "alternate",
+        77,
+        32,
+    )
