@@ -300,6 +300,38 @@ def summarize_pipeline(records: Sequence[dict], k: int) -> dict:
         "stage1": cat_mean(lambda r: r["ceiling_stage1"]),
         "stage2": cat_mean(lambda r: r["ceiling_stage2"]),
     }
+    if records and "inside_counts" in records[0]:
+        out["answer_failures"] = answer_failures(records, k)
     out["pairs"] = len(records)
     out["paper"] = PAPER
+    return out
+
+
+def answer_failures(records: Sequence[dict], k: int,
+                    rule: selection.SelectConfig = selection.CHOSEN) -> dict:  # fmt: skip
+    """Why the all-stages answers that fail do (pairs): among the 2K refined candidates
+    (indices 2K..4K of ``stable_all``), "clear" = at most ``rule.max_points`` observed object
+    points more than ``rule.depth`` inside the observed support (``inside_counts``):
+    ``ranking`` (another clear candidate hangs: the score picked wrong), ``no_hanging``
+    (no refined candidate hangs: proposals and CEM), ``only_inside_hang`` (only candidates the
+    rule sets back hang), ``no_clear`` (no clear candidate at all)."""
+    key = selection.grid_key(rule.depth, rule.radius)
+    out = {"failed": 0, "ranking": 0, "no_hanging": 0, "only_inside_hang": 0, "no_clear": 0}
+    for r in records:
+        if r["all_stages"]["success"]:
+            continue
+        out["failed"] += 1
+        ok = np.asarray(r["stable_all"][2 * k : 4 * k], bool)
+        clear = np.asarray(r["inside_counts"][key][2 * k : 4 * k]) <= rule.max_points
+        if not clear.any():
+            out["no_clear"] += 1
+        elif not ok.any():
+            out["no_hanging"] += 1
+        elif (ok & clear).any():
+            out["ranking"] += 1
+        else:
+            out["only_inside_hang"] += 1
+    out["note"] = (f"failed all-stages answers by cause; clear = at most {rule.max_points} "
+                   f"observed object points > {rule.depth * 1e3:g} mm inside the observed "
+                   f"support within {rule.radius * 1e3:g} mm (the answer rule's test)")  # fmt: skip
     return out

@@ -177,3 +177,26 @@ def test_hang_command_ranks_by_the_mean_log_v(tmp_path):
     other = H.load_stage3(tmp_path / "v2", [])
     want = (one.score(obj, sup, poses) + other.score(obj, sup, poses)) / 2
     np.testing.assert_allclose(two.rank(obj, sup, poses), want, rtol=1e-5, atol=1e-6)
+
+
+def test_answer_failures_sorts_each_failed_answer_by_cause():
+    """eval_pipeline.answer_failures: the 2K refined candidates (K = 1: indices 2, 3) of each
+    failed answer: another clear one hangs (ranking), none hangs, only an inside one hangs,
+    none clear; successes are not counted."""
+    key = selection.grid_key(selection.CHOSEN.depth, selection.CHOSEN.radius)
+
+    def rec(success, ok, counts):
+        return {"all_stages": {"success": success}, "stable_all": [False, False, *ok, False],
+                "inside_counts": {key: [0, 0, *counts]}}  # fmt: skip
+
+    rows = [
+        rec(True, [True, False], [0, 0]),  # a success
+        rec(False, [False, True], [0, 0]),  # ranking: the other clear one hangs
+        rec(False, [False, False], [0, 3]),  # no refined candidate hangs
+        rec(False, [False, True], [0, 4]),  # only the inside one hangs
+        rec(False, [True, False], [2, 5]),  # no clear candidate
+    ]
+    out = eval_pipeline.answer_failures(rows, 1)
+    assert {k: out[k] for k in ("failed", "ranking", "no_hanging", "only_inside_hang",
+                                "no_clear")} == {"failed": 4, "ranking": 1, "no_hanging": 1,
+                                                 "only_inside_hang": 1, "no_clear": 1}  # fmt: skip
