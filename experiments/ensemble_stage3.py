@@ -134,10 +134,14 @@ def main(argv=None) -> dict:
     names = [str(d) for d in dirs]
     common = dict(value_dirs=dirs, batch=args.batch, progress=not args.no_progress)
 
+    def values_of(rows, split, k):  # [V, N, P]: as the run recorded them, or recomputed
+        if args.from_records:
+            return recorded_values(rows, k, len(args.extra_value))
+        return pool_values(rows, args.data, split, k=k, **common)
+
     val = read_records(args.select_on)[: args.limit]
     k = proposals_of(val, args.proposals)
-    values = (recorded_values(val, k, len(args.extra_value)) if args.from_records
-              else pool_values(val, args.data, args.select_split, k=k, **common))  # fmt: skip
+    values = values_of(val, args.select_split, k)
     table, check = study(val, k, values, names, args.value)
     best = max(table, key=lambda row: row["mean"])
     ptable = pipeline_table(val, k, values, names)
@@ -165,8 +169,7 @@ def main(argv=None) -> dict:
     if args.apply_to:
         held = read_records(args.apply_to)[: args.limit]
         kh = proposals_of(held, args.proposals)
-        hvalues = (recorded_values(held, kh, len(args.extra_value)) if args.from_records
-                   else pool_values(held, args.data, args.apply_split, k=kh, **common))  # fmt: skip
+        hvalues = values_of(held, args.apply_split, kh)
         htable, hcheck = study(held, kh, hvalues, names, args.value)
         pick = next(r for r in htable if r["score"] == best["score"])
         hptable = pipeline_table(held, kh, hvalues, names)

@@ -16,6 +16,7 @@ from omnihang_jax.stage1 import STAGE1_TINY
 from omnihang_jax.stage2 import STAGE2_TINY
 from tests.test_stage2_clearance_pipeline import (
     PIPE,
+    _cloud_bodies,
     _fake_load_predictor,
     _fake_pair,
     _FakeLabeller,
@@ -160,14 +161,10 @@ def test_hang_command_ranks_by_the_mean_log_v(tmp_path):
     for name, key in (("v1", 2), ("v2", 7)):
         net = stage3.make_value(stage3.VALUE_TINY)
         refine.save_value(tmp_path / name, stage3.VALUE_TINY, net.init(jax.random.key(key)))
-    rng = np.random.default_rng(0)
-
-    def body(kind):
-        pts = rng.normal(size=(256, 3)).astype(np.float32) * 0.03
-        nrm = pts / np.linalg.norm(pts, axis=1, keepdims=True)
-        return H.Body(kind, kind, "cloud", None, pts, nrm, None, None, {})
-
-    obj, sup = body("object"), body("support")
+    obj, sup = _cloud_bodies(256, 0.03)
+    # the command refines as many proposals of each stage as the evaluated pipeline (a constant
+    # there: omnihang_jax.hang imports no jax at module level)
+    assert stage3.ANSWER_PIPELINE.num_proposals == H.CEM_STARTS
     poses = np.tile(np.asarray([[0, 0, 0.05, 1, 0, 0, 0]], np.float32), (3, 1))
     poses[:, 0] = [0.0, 0.01, 0.02]
     one = H.load_stage3(tmp_path / "v1")

@@ -240,6 +240,21 @@ def test_evaluate_pipeline_clearance_none_keeps_the_model_stage2(monkeypatch):
     assert calls == [{"clearance": 0.0}] and len(records) == 1
 
 
+def _cloud_bodies(n: int, scale: float):
+    """An object and a support for the hang command's where step: N random points of std
+    SCALE each, normals pointing out from the origin, no meshes (seed 0)."""
+    from omnihang_jax import hang as H
+
+    rng = np.random.default_rng(0)
+
+    def body(kind):
+        pts = rng.normal(size=(n, 3)).astype(np.float32) * scale
+        nrm = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+        return H.Body(kind, kind, "cloud", None, pts, nrm, None, None, {})
+
+    return body("object"), body("support")
+
+
 def test_hang_stage2_clearance_option(monkeypatch):
     from experiments import hang as hang_cli
     from omnihang_jax import hang as H
@@ -270,14 +285,7 @@ def test_hang_stage2_clearance_option(monkeypatch):
         pose = np.tile(np.float32([0, 0, 0.05, 1, 0, 0, 0]), (1, k, 1))
         return predict.Prediction(pose, pose, None, None, None, None)
 
-    rng = np.random.default_rng(0)
-
-    def body(kind):
-        pts = rng.normal(size=(64, 3)).astype(np.float32) * 0.02
-        nrm = pts / np.linalg.norm(pts, axis=1, keepdims=True)
-        return H.Body(kind, kind, "cloud", None, pts, nrm, None, None, {})
-
-    obj, sup = body("object"), body("support")
+    obj, sup = _cloud_bodies(64, 0.02)
     cands = H.stages_where(predictor, 2, None)(obj, sup, 0)
     assert len(cands.poses) == 4
     np.testing.assert_array_equal(got["normals"], sup.normals[None])
