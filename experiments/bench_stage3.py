@@ -1,6 +1,6 @@
 """Latency of the whole where-to-hang pipeline (Stages 1-3 incl. CEM) in one jitted call.
 
-    python -m experiments.bench_stage3 --value weights/value_small_paper --out results/bench_stage3.json
+    python -m experiments.bench_stage3 --value weights/value_s14_hardneg --out results/bench_stage3.json
 
 Times ``jax.jit(make_hang_pipeline(...))`` on random clouds (the cost does not depend on the
 values) at batch 1 and at larger batches after one warm-up call (compilation, timed apart):
@@ -31,7 +31,9 @@ def main(argv=None) -> dict:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--weights", default="weights/where_small_paper")
-    parser.add_argument("--value", default="weights/value_small_paper")
+    parser.add_argument(
+        "--value", default=stage3.CEM_VALUE, help="CEM's V (default stage3.CEM_VALUE)"
+    )
     parser.add_argument("--out", required=True)
     parser.add_argument("--batches", default="1,16,256")
     parser.add_argument("--chunk", type=int, default=16)

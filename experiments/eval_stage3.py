@@ -3,7 +3,7 @@
 Example (after deriving held-out pairs and training V):
 
     python -m experiments.derive_dataset --data datasets/paper --split test --limit 16
-    python -m experiments.eval_stage3 --value weights/value_small_paper --limit 16 \\
+    python -m experiments.eval_stage3 --value weights/value_s14_hardneg --limit 16 \\
         --out out/hanging_success_stage3.json
 
 ``--pairs-from results/hanging_success.pairs.jsonl`` evaluates exactly the pairs of an earlier
@@ -28,7 +28,11 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--data", default="datasets/paper", help="dataset with derived/test")
     parser.add_argument("--weights", default="weights/where_small_paper", help="Stages 1-2")
-    parser.add_argument("--value", default="weights/value_small_paper", help="V (Stage 3)")
+    parser.add_argument(
+        "--value",
+        default=stage3.CEM_VALUE,
+        help="V that CEM searches on (Stage 3; default stage3.CEM_VALUE)",
+    )
     parser.add_argument("--out", required=True, help="summary JSON (pairs go to .pairs.jsonl)")
     parser.add_argument("--split", default="test")
     parser.add_argument("--pairs-from", default=None, help="evaluate the pairs of this JSONL")

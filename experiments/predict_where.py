@@ -47,7 +47,7 @@ def main(argv=None) -> dict:
         "--value",
         default=None,
         metavar="DIR",
-        help="also run Stage 3 (CEM on this value function, e.g. weights/value_small_paper): "
+        help="also run Stage 3 (CEM on this value function, e.g. weights/value_s14_hardneg): "
         "the whole pipeline as one jitted call; adds stage3_poses, stage3_scores, answer",
     )
     parser.add_argument(

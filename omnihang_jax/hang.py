@@ -684,9 +684,15 @@ def _clearance_scores(obj: Body, sup: Body, poses: np.ndarray) -> np.ndarray:
     return 1.0 - np.asarray(pen, np.float64)
 
 
-# where Stage-3 value weights are looked for (scripts/device_stage3.sh writes the first);
-# then any weights/value_* folder
-VALUE_WEIGHTS = ("weights/value_small_paper", "weights/value_paper", "weights/stage3_paper")
+# where Stage-3 value weights are looked for: the first is the pipeline's CEM V
+# (stage3.CEM_VALUE, chosen on validation objects), then the paper-recipe V and the folders
+# scripts/device_stage3.sh writes; then any weights/value_* folder
+VALUE_WEIGHTS = (
+    "weights/value_s14_hardneg",
+    "weights/value_small_paper",
+    "weights/value_paper",
+    "weights/stage3_paper",
+)
 # CEM refines the CEM_STARTS best-V Stage-1 proposals and as many Stage-2 proposals (as many
 # as stage3.ANSWER_PIPELINE refines of each: K = 10 since the thirteenth session; population x
 # iterations = 320 value-network states each), and the refined candidates are ranked by the

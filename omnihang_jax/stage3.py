@@ -444,13 +444,20 @@ class PipelineConfig:
 ANSWER_PIPELINE = PipelineConfig(
     num_proposals=10, starts=("stage2", "stage1"), select=selection.CHOSEN, pool_starts=True
 )
+# The V that CEM searches on in the default pipeline (fourteenth session): the thirteenth
+# session's third V continued for 18 more hard-negative RL rounds (each round's CEM searching on
+# the V being trained) on all training pairs (results/stage3_train_s14/). Chosen on the 345
+# validation-object pairs over the paper-recipe V (weights/value_small_paper, CEM's V until the
+# thirteenth session): all stages 73.3 -> 78.6 % with the ranking below; held-out 70.7 -> 74.5 %
+# (docs/stage3.md, "Fourteenth session").
+CEM_VALUE = "weights/value_s14_hardneg"
 # The value folders that rank CEM's candidates beside the CEM's V in the default pipeline
-# (the mean log V of weights/value_small_paper and these, PipelineConfig.rank_values): the
+# (the mean log V of CEM_VALUE and these, PipelineConfig.rank_values): the
 # twelfth session's second V (hard-negative rounds on all training pairs; K = 5 held-out 66.9 ->
 # 68.0 %) and the thirteenth session's (the same continued: 6 more hard-negative rounds from
 # both starts). The set was chosen on validation objects among all subsets at K = 10
 # (experiments.ensemble_stage3 --from-records: none 71.2, both 73.3 %); held-out 70.5 %
-# (docs/stage3.md). Used by predict.load_hang_pipeline, eval_stage3 --rank-value and the hang
+# (docs/stage3.md); chosen again with CEM on CEM_VALUE (fourteenth session). Used by predict.load_hang_pipeline, eval_stage3 --rank-value and the hang
 # command.
 RANK_VALUES: tuple[str, ...] = ("weights/value_s12_hardneg", "weights/value_s13_hardneg")
 

@@ -41,7 +41,7 @@
 #          (stage3.ANSWER_PIPELINE) and the paper's side by side (~3 min with compilation).
 # S3_ONLY=1 (train): derive the clouds (skipped when there), no pack, no Stage 1: the Stage-3
 # part alone on S3_W (15) workers, every training pair (S3_PAIRS, 0 = all), V from INIT_VALUE
-# (weights/value_small_paper), S3_PRETRAIN (2000) steps, S3_EXTRA more train_stage3 flags (e.g.
+# (weights/value_s14_hardneg = stage3.CEM_VALUE), S3_PRETRAIN (2000) steps, S3_EXTRA more train_stage3 flags (e.g.
 # "--round-start alternate"); a warm next S3_ONLY call resumes the job (/tmp/full/stage3/run).
 # eval: VALUE (the V of the first evaluation; default the committed one), NO_NEWV=1 skips the
 # second evaluation with the train call's V.
@@ -61,7 +61,11 @@ LOG=full.log
 SCALE=${CAMERA_SCALE:-0.5}
 CLOUDS=train_clouds_r$($PY -c "print(round($SCALE * 100))")
 INIT1=${INIT1:-weights/where_small_paper}
-HELDOUT=${HELDOUT_PAIRS:-results/hanging_success.pairs.jsonl}
+# the held-out pairs (results/heldout_pairs.jsonl: the 1,814 of results/hanging_success.pairs.jsonl,
+# five fields each, so that the tree stays under the device's 64 MiB)
+HELDOUT=${HELDOUT_PAIRS:-results/heldout_pairs.jsonl}
+# the V CEM searches on (VALUE; default stage3.CEM_VALUE, since the fourteenth session)
+V_CEM=${VALUE:-weights/value_s14_hardneg}
 
 derive_test() {  # workers
     timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split test \
@@ -136,7 +140,7 @@ if [ "$CALL" = train ]; then
         # the held-out / validation pairs are derived only with TEST_W > 0
         [ "${TEST_W:-0}" -gt 0 ] && { (derive_test "$TEST_W"; derive_val "$TEST_W") & TEST_PID=$!; }
         CHAIN_DS=$C/ds3 STAGE3_STATE=$C/stage3 CHAIN_WORKERS=${S3_W:-15} \
-            INIT_VALUE=${INIT_VALUE:-weights/value_small_paper} XLA_PYTHON_CLIENT_MEM_FRACTION=0.6 \
+            INIT_VALUE=${INIT_VALUE:-$V_CEM} XLA_PYTHON_CLIENT_MEM_FRACTION=0.6 \
             EXTRA="--pretrain-steps ${S3_PRETRAIN:-2000} --round-pairs 512 --max-pairs ${S3_PAIRS:-0} ${S3_EXTRA:-}" \
             bash scripts/chain/stage3.sh $(($(left) - 10)) "$OUT/stage3.tgz" \
             >>"$C/logs/stage3_part.log" 2>&1
@@ -226,7 +230,7 @@ if [ "$CALL" = val ]; then
         [ "$(left)" -gt 60 ] || { log "no time left for $name"; break; }
         log "validation objects: $name ($w)"
         timeout $(($(left) - 5)) $PY -m experiments.eval_stage3 --data "$C/ds" --split train \
-            --weights "$w" --value "${VALUE:-weights/value_small_paper}" \
+            --weights "$w" --value "$V_CEM" \
             --pairs-from "$C/val.jsonl" --workers 15 --batch 16 --out "$OUT/val_$name.json" \
             --label "validation objects, $name ($w)" ${VAL_ARGS:-} --no-progress 2>&1 |
             tail -12 | tee -a "$OUT/$LOG"
@@ -240,27 +244,24 @@ if [ "$CALL" = valeval ]; then
     # issue 12: the ranking networks chosen on the validation objects, then the held-out run
     # with them, in one call (the rule fixed before looking): the 396 validation-object pairs
     # through eval_stage3 (VAL_ARGS, e.g. "--proposals 10") with every candidate network of
-    # RANK_CANDIDATES (default stage3.RANK_VALUES + a warm train call's V copied to
-    # weights/value_s13_hardneg) recorded; experiments.ensemble_stage3 --from-records picks the
+    # RANK_CANDIDATES (default stage3.RANK_VALUES + a warm train call's V,
+    # /tmp/full/stage3/run/value) recorded; CEM searches on VALUE (default stage3.CEM_VALUE); experiments.ensemble_stage3 --from-records picks the
     # set (none, or any subset; ties: the smaller) with the best validation mean; then the
     # eval below with that set (EVAL_ARGS gets its --rank-value flags).
     [ "$(ls "$C/ds/derived/train" 2>/dev/null | wc -l)" -ge 300 ] || derive_val 4 &
     [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1794 ] || derive_test 12 &
     wait
-    if [ -d "$C/stage3/run/value" ] && [ ! -d weights/value_s13_hardneg ]; then
-        cp -r "$C/stage3/run/value" weights/value_s13_hardneg
-    fi
-    RANKS=${RANK_CANDIDATES:-weights/value_s12_hardneg $([ -d weights/value_s13_hardneg ] && echo weights/value_s13_hardneg)}
+    RANKS=${RANK_CANDIDATES:-weights/value_s12_hardneg weights/value_s13_hardneg $([ -d "$C/stage3/run/value" ] && echo "$C/stage3/run/value")}
     derived_only "$VALPAIRS" "$C/ds/derived/train" >"$C/val.jsonl"
     log "validation pairs: $(wc -l <"$C/val.jsonl"); ranking candidates: $RANKS"
     timeout $(($(left) - 240)) $PY -m experiments.eval_stage3 --data "$C/ds" --split train \
-        --weights "${WHERE_W:-weights/where_small_paper}" --value "${VALUE:-weights/value_small_paper}" \
+        --weights "${WHERE_W:-weights/where_small_paper}" --value "$V_CEM" \
         --pairs-from "$C/val.jsonl" --workers 15 --batch 16 --out "$OUT/val_choose.json" \
         --label "validation objects, ranking candidates $RANKS ${VAL_ARGS:-}" \
         $(for r in $RANKS; do echo --rank-value "$r"; done) ${VAL_ARGS:-} --no-progress 2>&1 |
         tail -6 | tee -a "$OUT/$LOG"
     $PY -m experiments.ensemble_stage3 --from-records --select-on "$OUT/val_choose.pairs.jsonl" \
-        --value "${VALUE:-weights/value_small_paper}" $(for r in $RANKS; do echo --extra-value "$r"; done) \
+        --value "$V_CEM" $(for r in $RANKS; do echo --extra-value "$r"; done) \
         --out "$OUT/ensemble_choice.json" --no-progress 2>&1 | tail -2 | tee -a "$OUT/$LOG"
     CHOSEN=$($PY -c "import json; print(' '.join(json.load(open('$OUT/ensemble_choice.json'))['chosen_rank_values']) or 'none')") ||
         { log "error: no ranking chosen (see above)"; exit 3; }
@@ -299,7 +300,7 @@ evaluate() {  # value label out [eval_stage3 flags]
 }
 log "eval: Stages 1-2 $W"
 TAG=${EVAL_TAG:-heldout}
-evaluate "${VALUE:-weights/value_small_paper}" "${EVAL_LABEL:-Stages 1-2 $W, V ${VALUE:-committed}} ${EVAL_ARGS:-}" \
+evaluate "$V_CEM" "${EVAL_LABEL:-Stages 1-2 $W, V ${VALUE:-committed}} ${EVAL_ARGS:-}" \
     "${TAG}_where" ${EVAL_ARGS:-}
 # the Stage-3 answer rule chosen on the validation objects, applied once to these records
 # (device_slim.sh keeps results/validation_where_s9/val_s9_counts.pairs.jsonl.gz in the tree)

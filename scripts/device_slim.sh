@@ -33,6 +33,9 @@ LIST=(
     results/hanging_success_stage3_s10_answer.pairs.jsonl.gz results/hanging_success_stage3_s12_ens.pairs.jsonl.gz
     results/validation_where_s12 results/stage3_train_s12
     results/hanging_success_stage3_s13_k10ens.pairs.jsonl.gz results/validation_where_s13 results/stage3_train_s13
+    # (fourteenth session: device_full.sh reads the held-out pairs from results/heldout_pairs.jsonl)
+    results/hanging_success.pairs.jsonl results/hanging_success_stage3_s14_cemv.pairs.jsonl.gz
+    results/validation_where_s14 results/stage3_train_s14 results/stage3_train_s15
 )
 case ${1:-} in
 out)

@@ -165,6 +165,8 @@ def test_hang_command_ranks_by_the_mean_log_v(tmp_path):
     # the command refines as many proposals of each stage as the evaluated pipeline (a constant
     # there: omnihang_jax.hang imports no jax at module level)
     assert stage3.ANSWER_PIPELINE.num_proposals == H.CEM_STARTS
+    # and searches on the pipeline's CEM V first (the one the ranking networks were chosen with)
+    assert H.VALUE_WEIGHTS[0] == stage3.CEM_VALUE
     poses = np.tile(np.asarray([[0, 0, 0.05, 1, 0, 0, 0]], np.float32), (3, 1))
     poses[:, 0] = [0.0, 0.01, 0.02]
     one = H.load_stage3(tmp_path / "v1")
@@ -197,3 +199,12 @@ def test_answer_failures_sorts_each_failed_answer_by_cause():
     assert {k: out[k] for k in ("failed", "ranking", "no_hanging", "only_inside_hang",
                                 "no_clear")} == {"failed": 4, "ranking": 1, "no_hanging": 1,
                                                  "only_inside_hang": 1, "no_clear": 1}  # fmt: skip
+
+
+def test_committed_cem_value_loads_beside_the_ranking_networks():
+    """stage3.CEM_VALUE and every stage3.RANK_VALUES folder are committed, load, and share one
+    ValueConfig (the pipeline stacks the ranking networks' params beside CEM's V)."""
+    config, _ = refine.load_value(stage3.CEM_VALUE)
+    for folder in stage3.RANK_VALUES:
+        assert refine.load_value(folder)[0] == config, folder
+    assert stage3.CEM_VALUE not in stage3.RANK_VALUES
