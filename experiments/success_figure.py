@@ -102,7 +102,9 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--results", default="results/hanging_success.json")
     parser.add_argument("--out", default="docs/img/success_categories.png", help="PNG")
-    parser.add_argument("--json", default=None, help="the table as JSON (default: OUT .json)")
+    parser.add_argument(
+        "--json", default="results/success_categories.json", help="the table as JSON"
+    )
     args = parser.parse_args(argv)
     path = Path(args.results)
     if not path.exists():
@@ -113,7 +115,7 @@ def main(argv=None) -> dict:
     draw(rows, Path(args.out), f"held-out hanging success per category ({path.name}"
          + (f", {n} pairs)" if n else ")"))  # fmt: skip
     record = {"results": str(path), "figure": args.out, "stages": rows}
-    jpath = Path(args.json) if args.json else Path(args.out).with_suffix(".json")
+    jpath = Path(args.json)
     jpath.write_text(json.dumps(record, indent=1) + "\n")
     print(f"wrote {args.out} and {jpath}: "
           + ", ".join(f"{TITLES[s]} {r['ours']['mean']:.1f} (paper {r['paper']['mean']:.1f})"
