@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gzip
 import json
 import os
 import time
@@ -83,14 +84,58 @@ class PairCase(NamedTuple):
     goal: np.ndarray  # [7]
 
 
-def load_pairs(data: str, n: int, workers: int = 1, progress: bool = False) -> list[PairCase]:
-    """``n`` held-out pairs (derived on demand) with their scenes."""
+def read_goals(path: str | os.PathLike) -> dict[int, tuple[np.ndarray, str]]:
+    """The where-to-hang pipeline's answers as goals: ``pair_index -> (pose [7], status)`` from
+    an ``eval_stage3`` run's per-pair records (``.pairs.jsonl[.gz]``): the all-stages answer
+    (``poses_all[answer_index]``) and its simulated status (stable / fallen / penetrating)."""
+    opener = gzip.open if str(path).endswith(".gz") else open
+    goals = {}
+    with opener(path, "rt") as f:
+        for line in f:
+            if not line.strip():
+                continue
+            rec = json.loads(line)
+            missing = [
+                k for k in ("pair_index", "poses_all", "answer_index", "all_stages") if k not in rec
+            ]
+            if missing:
+                raise ValueError(
+                    f"{path}: a record without {missing} (not an eval_stage3 pairs file)"
+                )
+            pose = np.asarray(rec["poses_all"][rec["answer_index"]], float)
+            if pose.shape != (7,) or not np.all(np.isfinite(pose)):
+                raise ValueError(
+                    f"{path}: pair {rec['pair_index']}: answer pose {pose.tolist()} is not 7 finite numbers"
+                )
+            goals[int(rec["pair_index"])] = (pose, str(rec["all_stages"]["status"]))
+    if not goals:
+        raise ValueError(f"{path}: no records")
+    return goals
+
+
+def load_pairs(
+    data: str,
+    n: int,
+    workers: int = 1,
+    progress: bool = False,
+    records: dict | None = None,
+    answer_goals: bool = False,
+) -> list[PairCase]:
+    """``n`` held-out pairs (derived on demand) with their scenes, drawn among the pairs of
+    ``records`` (:func:`read_goals`) when given; goal = the pair's first stable pose, or with
+    ``answer_goals`` the pipeline's answer in ``records`` (``meta["goal_status"]``: its
+    simulated status)."""
+    if answer_goals and records is None:
+        raise ValueError("answer goals need the pipeline's records")
     from omnihang_jax import dataset_bridge
     from sim.library import build_library
     from sim.scene import build_scene
 
     # a seeded random sample of the held-out pairs, round robin over object categories
-    files = derive_collision_pairs(data, {"test": n}, workers, progress, shuffle_seed=0)["test"]
+    only = None if records is None else records.__contains__
+    files = derive_collision_pairs(data, {"test": n}, workers, progress, shuffle_seed=0, only=only)[
+        "test"
+    ]
     config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(data))
     library = build_library(config.library, progress=False)
     cases = []
@@ -102,6 +147,9 @@ def load_pairs(data: str, n: int, workers: int = 1, progress: bool = False) -> l
                 raise RuntimeError(f"{path} is not a held-out pair")
             obj = library.objects[meta["object_name"]]
             sup = library.supports[meta["support_name"]]
+            goal = f["stable_poses"][0].astype(float)
+            if answer_goals:
+                goal, meta["goal_status"] = records[int(meta["pair_index"])]
             cases.append(
                 PairCase(
                     name=path.stem,
@@ -111,7 +159,7 @@ def load_pairs(data: str, n: int, workers: int = 1, progress: bool = False) -> l
                     object_normals=f["object_normals"],
                     support_points=f["support_points"],
                     support_normals=f["support_normals"],
-                    goal=f["stable_poses"][0].astype(float),
+                    goal=goal,
                 )
             )
     return cases
@@ -526,6 +574,24 @@ def summarise(rows: list[dict], methods=METHODS) -> dict:
             )
         out[m] = entry
     out["pairs"] = len(pairs)
+    if rows and all("goal_status" in r for r in rows):
+        # goals from the pipeline: the figures again over the pairs whose answer hangs (a path
+        # to a penetrating answer cannot be collision-free), and the answers' statuses
+        stable = [r for r in rows if r["goal_status"] == "stable"]
+        status = {r["pair"]: r["goal_status"] for r in rows}
+        out["goal_statuses"] = {
+            s: list(status.values()).count(s) for s in sorted(set(status.values()))
+        }
+        if stable and len(stable) < len(rows):
+            out["stable_goals"] = {
+                m: {
+                    k: v
+                    for k, v in e.items()
+                    if k in ("pairs", "returned", "collision_free", "precision", "recall", "f1")
+                }
+                for m, e in summarise(stable, methods).items()
+                if isinstance(e, dict)
+            }
     return out
 
 
@@ -595,6 +661,18 @@ def main(argv=None) -> dict:
     parser.add_argument("--pairs", type=int, default=20, help="held-out pairs")
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--time-limit", type=float, default=20.0, help="s per plan")
+    parser.add_argument(
+        "--pairs-from",
+        default=None,
+        metavar="PAIRS_JSONL",
+        help="draw the pairs among those of an eval_stage3 run's per-pair records (e.g. "
+        "results/hanging_success_stage3_s14_cemv.pairs.jsonl.gz); default: all held-out pairs",
+    )
+    parser.add_argument(
+        "--goal", choices=["stable", "answer"], default="stable",
+        help="stable: each pair's first stable pose (the paper's protocol); answer: the "
+        "where-to-hang pipeline's all-stages answer from --pairs-from (Stages 1-3 then plan)",
+    )  # fmt: skip
     parser.add_argument(
         "--resolution", type=float, default=planner.PlannerConfig.resolution,
         help="m: spacing of the states the estimator checks along an edge",
@@ -679,6 +757,8 @@ def main(argv=None) -> dict:
     bad = [m for m in methods if m not in ALL_METHODS]
     if bad:
         raise SystemExit(f"unknown methods {bad}; choose from {ALL_METHODS}")
+    if args.goal == "answer" and not args.pairs_from:
+        parser.error("--goal answer needs --pairs-from (an eval_stage3 run's per-pair records)")
     if not args.resolution > 0:
         parser.error("--resolution must be > 0")
     config = planner.PlannerConfig(
@@ -691,7 +771,10 @@ def main(argv=None) -> dict:
     est = load_estimators(
         args.weights, args.nce_threshold, args.nce_far_threshold, args.nce_goal_ball, geo
     )
-    cases = load_pairs(args.data, args.pairs, args.workers, not args.no_progress)
+    records = read_goals(args.pairs_from) if args.pairs_from else None
+    cases = load_pairs(
+        args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer"
+    )
     jsonl = out / "pairs.jsonl"
     rows = [json.loads(x) for x in jsonl.read_text().splitlines()] if jsonl.exists() else []
     done = {(r["pair"], r["method"]) for r in rows}
@@ -728,7 +811,10 @@ def main(argv=None) -> dict:
         geometric_settings_from=args.geometric,
         nce_far_threshold=est.nce_far_threshold,
         nce_goal_ball_m=est.nce_goal_ball,
-        goal="first stable pose of each held-out pair",
+        goal="first stable pose of each held-out pair"
+        if args.goal == "stable"
+        else f"the where-to-hang pipeline's all-stages answer ({args.pairs_from})",
+        pairs_from=args.pairs_from,
         device=str(jax.devices()[0]),
         host_cores=os.cpu_count(),
         wall_s_this_run=round(time.time() - t0, 1),

@@ -140,3 +140,50 @@ def test_eval_paths_summary_counts_and_dense_flags():
     assert s["f1"] == round(100 * 2 * (1 / 3) * 0.25 / (1 / 3 + 0.25), 1)
     assert s["colliding_paths_flagged_when_dense"] == 1
     assert s["timeouts"] == 1 and s["deepest_penetration_of_colliding_paths_m"] == [0.004, 0.004]
+
+
+def test_eval_paths_answer_goals_from_pipeline_records(tmp_path):
+    """--pairs-from RECORDS --goal answer: the all-stages answer of each eval_stage3 record
+    becomes the pair's goal (with its simulated status), broken records are refused with the
+    reason, and the summary adds the figures over the pairs whose answer hangs."""
+    import gzip
+    import json
+
+    import pytest
+
+    from experiments.eval_paths import read_goals, summarise
+
+    poses = [[0.0, 0.0, 0.1 * i, 1.0, 0.0, 0.0, 0.0] for i in range(4)]
+    recs = [
+        {"pair_index": 7, "poses_all": poses, "answer_index": 2, "all_stages": {"status": "stable"}},
+        {"pair_index": 9, "poses_all": poses, "answer_index": 3,
+         "all_stages": {"status": "penetrating"}},
+    ]  # fmt: skip
+    path = tmp_path / "run.pairs.jsonl.gz"
+    with gzip.open(path, "wt") as f:
+        f.write("".join(json.dumps(r) + "\n" for r in recs))
+    goals = read_goals(path)
+    assert sorted(goals) == [7, 9]
+    np.testing.assert_allclose(goals[7][0], poses[2])
+    assert goals[7][1] == "stable"
+    assert goals[9][1] == "penetrating" and goals[9][0][2] == pytest.approx(0.3)
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text(json.dumps({"pair_index": 1, "poses_all": [[np.nan] * 7], "answer_index": 0,
+                               "all_stages": {"status": "stable"}}) + "\n")  # fmt: skip
+    with pytest.raises(ValueError, match="finite"):
+        read_goals(bad)
+    bad.write_text(json.dumps({"pair_index": 1}) + "\n")
+    with pytest.raises(ValueError, match="not an eval_stage3 pairs file"):
+        read_goals(bad)
+
+    def row(i, status, free):
+        return dict(pair=f"p{i}", method="nce", object_category="mug", returned=True,
+                    collision_free=free, planning_s=1.0, status="Exact solution",
+                    start_called_colliding=False, goal_called_colliding=False, states_checked=10,
+                    deepest_m=0.0 if free else 0.004, goal_status=status)  # fmt: skip
+
+    s = summarise([row(0, "stable", True), row(1, "penetrating", False), row(2, "stable", False)],
+                  methods=("nce",))  # fmt: skip
+    assert s["goal_statuses"] == {"penetrating": 1, "stable": 2}
+    assert s["nce"]["recall"] == round(100 / 3, 1)
+    assert s["stable_goals"]["nce"]["pairs"] == 2 and s["stable_goals"]["nce"]["recall"] == 50.0
