@@ -6,7 +6,8 @@
 Loads MODEL/stage1 and MODEL/stage2b (config.json + latest checkpoint), predicts
 --proposals poses per pair, and writes OUT (default out/predict_where/predictions.json;
 never into the model folder unless asked): per pair the
-Stage-1 and Stage-2 poses (xyz metres + quaternion wxyz, object frame in support frame), the
+Stage-1 and Stage-2 poses (xyz metres + quaternion wxyz, object frame in support frame; Stage 2
+with the answer's clearance, ``--stage2-clearance``), the
 chosen contact correspondences and, where ground truth is known, the distance from each
 predicted position to the nearest stable pose.
 """
@@ -22,7 +23,7 @@ import jax
 import numpy as np
 
 from experiments import _cli
-from omnihang_jax import data, predict, train
+from omnihang_jax import data, predict, stage2, train
 
 
 def position_errors(poses7: np.ndarray, sample: data.HangSample) -> np.ndarray:
@@ -44,6 +45,12 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
+        "--stage2-clearance", type=float, default=stage2.ANSWER_CLEARANCE, metavar="M",
+        help="the Stage-2 poses' clearance in metres along the observed support normal (default "
+        "stage2.ANSWER_CLEARANCE, the Stages 1+2 answer; 0: the paper's); Stage 3 (--value) "
+        "starts from Stage 2 without it, as the evaluated pipeline",
+    )  # fmt: skip
+    parser.add_argument(
         "--value",
         default=None,
         metavar="DIR",
@@ -57,7 +64,9 @@ def main(argv=None) -> dict:
     )
     args = parser.parse_args(argv)
 
-    predictor = predict.load_predictor(args.model, seed=args.seed)
+    predictor = predict.load_predictor(
+        args.model, seed=args.seed, stage2_overrides={"clearance": args.stage2_clearance}
+    )
     config, _, _ = train.restore_stage(os.path.join(args.model, "stage1"))
     if args.data == "synthetic":
         batch = data.synthetic_batch(
@@ -66,7 +75,12 @@ def main(argv=None) -> dict:
     else:
         dataset = data.load_hang_dataset(args.data, split=args.split)
         batch = dataset.sample_batch(np.random.default_rng(args.seed), args.pairs)
-    out = predictor(batch.object_points, batch.support_points, num_proposals=args.proposals)
+    out = predictor(
+        batch.object_points,
+        batch.support_points,
+        num_proposals=args.proposals,
+        support_normals=batch.support_normals,
+    )
     stage3_out = None
     if args.value:
         from omnihang_jax import stage3

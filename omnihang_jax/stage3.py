@@ -452,14 +452,16 @@ ANSWER_PIPELINE = PipelineConfig(
 # (docs/stage3.md, "Fourteenth session").
 CEM_VALUE = "weights/value_s14_hardneg"
 # The value folders that rank CEM's candidates beside the CEM's V in the default pipeline
-# (the mean log V of CEM_VALUE and these, PipelineConfig.rank_values): the
-# twelfth session's second V (hard-negative rounds on all training pairs; K = 5 held-out 66.9 ->
-# 68.0 %) and the thirteenth session's (the same continued: 6 more hard-negative rounds from
-# both starts). The set was chosen on validation objects among all subsets at K = 10
-# (experiments.ensemble_stage3 --from-records: none 71.2, both 73.3 %); held-out 70.5 %
-# (docs/stage3.md); chosen again with CEM on CEM_VALUE (fourteenth session). Used by predict.load_hang_pipeline, eval_stage3 --rank-value and the hang
-# command.
-RANK_VALUES: tuple[str, ...] = ("weights/value_s12_hardneg", "weights/value_s13_hardneg")
+# (the mean log V of CEM_VALUE and these, PipelineConfig.rank_values). Chosen on the 345
+# validation-object pairs among every subset of {s12, s13, s15} with CEM on CEM_VALUE
+# (experiments.ensemble_stage3 on that run's records, every V recomputed on the CPU,
+# results/ensemble_stage3_s15_cpu.json): none 77.7, s12 + s13 (the thirteenth session's set,
+# with which the held-out GPU run measured 74.5 %) 78.3, **s13 + s15 79.3** (chosen); on the
+# held-out run's records the same way 74.2 -> 75.7. value_s13_hardneg: the thirteenth
+# session's third V (11 hard-negative rounds); value_s15_hardneg: the fourteenth session's
+# fifth (CEM_VALUE continued 6 rounds on a fresh machine). Used by predict.load_hang_pipeline,
+# eval_stage3 --rank-value and the hang command.
+RANK_VALUES: tuple[str, ...] = ("weights/value_s13_hardneg", "weights/value_s15_hardneg")
 
 
 class HangOutput(NamedTuple):

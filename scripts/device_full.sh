@@ -251,7 +251,7 @@ if [ "$CALL" = valeval ]; then
     [ "$(ls "$C/ds/derived/train" 2>/dev/null | wc -l)" -ge 300 ] || derive_val 4 &
     [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1794 ] || derive_test 12 &
     wait
-    RANKS=${RANK_CANDIDATES:-weights/value_s12_hardneg weights/value_s13_hardneg $([ -d "$C/stage3/run/value" ] && echo "$C/stage3/run/value")}
+    RANKS=${RANK_CANDIDATES:-$([ -d weights/value_s12_hardneg ] && echo weights/value_s12_hardneg) weights/value_s13_hardneg weights/value_s15_hardneg $([ -d "$C/stage3/run/value" ] && echo "$C/stage3/run/value")}
     derived_only "$VALPAIRS" "$C/ds/derived/train" >"$C/val.jsonl"
     log "validation pairs: $(wc -l <"$C/val.jsonl"); ranking candidates: $RANKS"
     timeout $(($(left) - 240)) $PY -m experiments.eval_stage3 --data "$C/ds" --split train \

@@ -36,6 +36,8 @@ LIST=(
     # (fourteenth session: device_full.sh reads the held-out pairs from results/heldout_pairs.jsonl)
     results/hanging_success.pairs.jsonl results/hanging_success_stage3_s14_cemv.pairs.jsonl.gz
     results/validation_where_s14 results/stage3_train_s14 results/stage3_train_s15
+    # (the ranking networks' first set, s12, is no default any more: carry it by hand to compare)
+    weights/value_s12_hardneg
 )
 case ${1:-} in
 out)
