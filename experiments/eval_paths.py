@@ -590,7 +590,7 @@ def summarise(rows: list[dict], methods=METHODS) -> dict:
                     if k in ("pairs", "returned", "collision_free", "precision", "recall", "f1")
                 }
                 for m, e in summarise(stable, methods).items()
-                if isinstance(e, dict)
+                if m in methods
             }
     return out
 

@@ -186,4 +186,5 @@ def test_eval_paths_answer_goals_from_pipeline_records(tmp_path):
                   methods=("nce",))  # fmt: skip
     assert s["goal_statuses"] == {"penetrating": 1, "stable": 2}
     assert s["nce"]["recall"] == round(100 / 3, 1)
+    assert set(s["stable_goals"]) == {"nce"}
     assert s["stable_goals"]["nce"]["pairs"] == 2 and s["stable_goals"]["nce"]["recall"] == 50.0
