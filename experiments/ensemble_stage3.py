@@ -3,7 +3,7 @@
     python -m experiments.ensemble_stage3 \\
         --select-on results/validation_where_s11/val_committed.pairs.jsonl.gz --select-split train \\
         --apply-to results/hanging_success_stage3_s10_answer.pairs.jsonl.gz --apply-split test \\
-        --value weights/value_small_paper --extra-value weights/value_s12 \\
+        --value weights/value_small_paper --extra-value weights/value_s12_hardneg \\
         --out results/ensemble_stage3.json
 
 V's ranking among the clear refined candidates is the largest loss of the answer rule (docs/

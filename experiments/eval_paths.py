@@ -19,7 +19,10 @@ hanging pose with four collision checkers, and check every returned path with th
 
 Per held-out pair (``DATA/derived/collision/test``, derived on demand: a seeded random sample,
 round robin over the object categories) and its first stable pose (the paper's protocol: the dataset's stable
-poses as goals), OMPL's RRT-Connect plans with (``omnihang_jax.planner``):
+poses as goals; ``--pairs-from RECORDS`` draws the pairs among an ``eval_stage3`` run's and
+``--goal answer`` plans to that run's all-stages answer instead, the summary then adding
+``goal_statuses`` and ``stable_goals``: the figures over the pairs whose answer hangs), OMPL's
+RRT-Connect plans with (``omnihang_jax.planner``):
 
 - ``nce``: the neural collision estimator on the partial clouds;
 - ``hce``: the heuristic with normals predicted by the HCE normal net;
@@ -84,9 +87,17 @@ class PairCase(NamedTuple):
     goal: np.ndarray  # [7]
 
 
-def read_goals(path: str | os.PathLike) -> dict[int, tuple[np.ndarray, str]]:
-    """The where-to-hang pipeline's answers as goals: ``pair_index -> (pose [7], status)`` from
-    an ``eval_stage3`` run's per-pair records (``.pairs.jsonl[.gz]``): the all-stages answer
+class Answer(NamedTuple):
+    """One record's all-stages answer: pose [7], simulated status, (object, support) names."""
+
+    pose: np.ndarray
+    status: str
+    names: tuple = ()
+
+
+def read_goals(path: str | os.PathLike) -> dict[int, Answer]:
+    """The where-to-hang pipeline's answers as goals: ``pair_index -> Answer`` from an
+    ``eval_stage3`` run's per-pair records (``.pairs.jsonl[.gz]``): the all-stages answer
     (``poses_all[answer_index]``) and its simulated status (stable / fallen / penetrating)."""
     opener = gzip.open if str(path).endswith(".gz") else open
     goals = {}
@@ -107,7 +118,8 @@ def read_goals(path: str | os.PathLike) -> dict[int, tuple[np.ndarray, str]]:
                 raise ValueError(
                     f"{path}: pair {rec['pair_index']}: answer pose {pose.tolist()} is not 7 finite numbers"
                 )
-            goals[int(rec["pair_index"])] = (pose, str(rec["all_stages"]["status"]))
+            names = (rec["object"], rec["support"]) if "object" in rec and "support" in rec else ()
+            goals[int(rec["pair_index"])] = Answer(pose, str(rec["all_stages"]["status"]), names)
     if not goals:
         raise ValueError(f"{path}: no records")
     return goals
@@ -138,6 +150,11 @@ def load_pairs(
     ]
     config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(data))
     library = build_library(config.library, progress=False)
+    if records is not None and len(files) < n:
+        raise ValueError(
+            f"{len(files)} held-out pairs of the dataset are among the {len(records)} records, "
+            f"{n} asked: --pairs-from must be a held-out (test split) eval_stage3 run of this dataset"
+        )
     cases = []
     for path in files:
         with np.load(path) as f:
@@ -149,7 +166,13 @@ def load_pairs(
             sup = library.supports[meta["support_name"]]
             goal = f["stable_poses"][0].astype(float)
             if answer_goals:
-                goal, meta["goal_status"] = records[int(meta["pair_index"])]
+                rec = records[int(meta["pair_index"])]
+                if rec.names and rec.names != (meta["object_name"], meta["support_name"]):
+                    raise ValueError(
+                        f"pair {meta['pair_index']}: the records name {rec.names}, the dataset "
+                        f"{(meta['object_name'], meta['support_name'])}: another dataset's run"
+                    )
+                goal, meta["goal_status"] = rec.pose, rec.status
             cases.append(
                 PairCase(
                     name=path.stem,
@@ -777,6 +800,9 @@ def main(argv=None) -> dict:
     )
     jsonl = out / "pairs.jsonl"
     rows = [json.loads(x) for x in jsonl.read_text().splitlines()] if jsonl.exists() else []
+    # a resumed run reuses only rows planned to the same kind of goal (older rows: stable)
+    kind = args.goal if args.goal == "stable" else f"answer:{args.pairs_from}"
+    rows = [r for r in rows if r.get("goal_kind", "stable") == kind]
     done = {(r["pair"], r["method"]) for r in rows}
     figure_items = []
     t0 = time.time()
@@ -785,6 +811,8 @@ def main(argv=None) -> dict:
         if not todo:
             continue
         new_rows, paths = evaluate_pair(case, est, config, todo)
+        for row in new_rows:
+            row["goal_kind"] = kind
         with open(jsonl, "a") as f:
             for row in new_rows:
                 f.write(json.dumps(row) + "\n")

@@ -141,7 +141,8 @@ def main(argv=None) -> dict:
         judge=args.judge,
         seed=args.seed,
         split=args.split,
-        stage2_clearance=args.stage2_clearance,
+        # ground truth runs no Stage 2: no clearance to record
+        stage2_clearance=None if args.model == "ground_truth" else args.stage2_clearance,
     )
     results = evaluate.evaluate_where(
         None if args.model == "ground_truth" else args.model,

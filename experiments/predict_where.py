@@ -122,6 +122,7 @@ def main(argv=None) -> dict:
         "model": args.model,
         "data": args.data,
         "pairs": len(records),
+        "stage2_clearance_m": args.stage2_clearance,
         "mean_stage1_position_error_m": float(
             np.mean([r["stage1_position_error_m"] for r in records])
         ),

@@ -156,7 +156,12 @@ def record_study_parser(doc: str) -> argparse.ArgumentParser:
     parser.add_argument("--apply-to", default=None, help="held-out run's .pairs.jsonl[.gz]")
     parser.add_argument("--apply-split", default="test")
     parser.add_argument("--data", default="datasets/paper", help="dataset with derived/<split>")
-    parser.add_argument("--value", default="weights/value_small_paper", help="V of the runs")
+    parser.add_argument(
+        "--value",
+        required=True,
+        help="V of the runs (the CEM's V they recorded: weights/value_small_paper until the "
+        "thirteenth session, stage3.CEM_VALUE since)",
+    )
     parser.add_argument(
         "--proposals", type=int, default=None,
         help="K of the runs, checked against their records (default: read from them)",

@@ -1,13 +1,14 @@
 """Per-category hanging success against the paper's table, one panel per stage.
 
     python -m experiments.success_figure                      # results/hanging_success.json
-    python -m experiments.success_figure --results R.json --out docs/img/success_categories.png
+    python -m experiments.success_figure --results R.json --out out/R_categories.png   # + out/R_categories.json
 
 Reads the four rows of a held-out evaluation (``stage1``, ``stage1_2``, ``stage1_3``,
 ``all_stages``: each with ``mean`` and ``per_category``, as ``eval_stage3`` and
 ``results/hanging_success.json`` write them) and draws, per stage, our success per object
-category and the mean over categories beside the paper's (its hanging-success table, also
-written into the JSON beside the figure). Nothing is computed here but the plot.
+category and the mean over categories beside the paper's (its hanging-success table). The
+table also goes to JSON: ``results/success_categories.json`` for the default figure, else
+beside ``--out`` (``--json`` to choose). Nothing is computed here but the plot.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 from experiments import _cli
 
 STAGES = ("stage1", "stage1_2", "stage1_3", "all_stages")
+DEFAULT_OUT = "docs/img/success_categories.png"
 TITLES = {"stage1": "Stage 1", "stage1_2": "Stages 1+2", "stage1_3": "Stages 1+3",
           "all_stages": "All stages"}  # fmt: skip
 CATEGORIES = ("bag", "cap", "clothes_hanger", "cooking_utensil", "headphone", "knife", "mug",
@@ -101,9 +103,12 @@ def main(argv=None) -> dict:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--results", default="results/hanging_success.json")
-    parser.add_argument("--out", default="docs/img/success_categories.png", help="PNG")
+    parser.add_argument("--out", default=DEFAULT_OUT, help="PNG")
     parser.add_argument(
-        "--json", default="results/success_categories.json", help="the table as JSON"
+        "--json",
+        default=None,
+        help="the table as JSON (default: results/success_categories.json for the default "
+        "--out, else OUT with .json)",
     )
     args = parser.parse_args(argv)
     path = Path(args.results)
@@ -115,7 +120,13 @@ def main(argv=None) -> dict:
     draw(rows, Path(args.out), f"held-out hanging success per category ({path.name}"
          + (f", {n} pairs)" if n else ")"))  # fmt: skip
     record = {"results": str(path), "figure": args.out, "stages": rows}
-    jpath = Path(args.json)
+    if args.json:
+        jpath = Path(args.json)
+    elif args.out == DEFAULT_OUT:
+        jpath = Path("results/success_categories.json")
+    else:
+        jpath = Path(args.out).with_suffix(".json")
+    jpath.parent.mkdir(parents=True, exist_ok=True)
     jpath.write_text(json.dumps(record, indent=1) + "\n")
     print(f"wrote {args.out} and {jpath}: "
           + ", ".join(f"{TITLES[s]} {r['ours']['mean']:.1f} (paper {r['paper']['mean']:.1f})"

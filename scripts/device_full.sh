@@ -17,7 +17,7 @@
 #            warm-up 300 and cosine over STEPS1 (30000, spread over calls: a warm next call
 #            resumes it), validation every 500 steps;
 #          - the Stage-3 part (scripts/chain/stage3.sh, hard-negative V, S3_W = 11 workers,
-#            V from weights/value_small_paper, 1,000 pretraining steps, 512 pairs a round, at
+#            V from INIT_VALUE (default VALUE, stage3.CEM_VALUE), 1,000 pretraining steps, 512 pairs a round, at
 #            most S3_PAIRS = 4000 pairs seeded) on the same clouds;
 #          - the held-out pairs derived (3 workers) for the eval call.
 #   eval   derive the held-out pairs if absent; eval_stage3 on all 1,794 of them (the 1,814 of
@@ -152,7 +152,7 @@ if [ "$CALL" = train ]; then
     fi
     if [ -z "${NO_S3:-}" ]; then
         CHAIN_DS=$C/ds3 STAGE3_STATE=$C/stage3 CHAIN_WORKERS=${S3_W:-11} \
-            INIT_VALUE=weights/value_small_paper \
+            INIT_VALUE=${INIT_VALUE:-$V_CEM} \
             EXTRA="--pretrain-steps 1000 --round-pairs 512 --max-pairs ${S3_PAIRS:-4000}" \
             bash scripts/chain/stage3.sh $(($(left) - 15)) "$OUT/stage3.tgz" \
             >>"$C/logs/stage3_part.log" 2>&1 &
@@ -210,7 +210,7 @@ if [ "$CALL" = smooth ]; then
     timeout $(($(left) - 5)) $PY -m experiments.smooth_stage3 --data "$C/ds" \
         --select-on "${SMOOTH_VAL:-results/validation_where_s11/val_committed.pairs.jsonl.gz}" \
         --apply-to "${SMOOTH_HELD:-results/hanging_success_stage3_s10_answer.pairs.jsonl.gz}" \
-        --batch 32 --out "$OUT/smooth_stage3.json" ${SMOOTH_ARGS:-} --no-progress 2>&1 |
+        --value weights/value_small_paper --batch 32 --out "$OUT/smooth_stage3.json" ${SMOOTH_ARGS:-} --no-progress 2>&1 |
         tail -4 | tee -a "$OUT/$LOG"
     log "done"
     exit 0

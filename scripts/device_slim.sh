@@ -33,7 +33,9 @@ LIST=(
     results/hanging_success_stage3_s10_answer.pairs.jsonl.gz results/hanging_success_stage3_s12_ens.pairs.jsonl.gz
     results/validation_where_s12 results/stage3_train_s12
     results/hanging_success_stage3_s13_k10ens.pairs.jsonl.gz results/validation_where_s13 results/stage3_train_s13
-    # (fourteenth session: device_full.sh reads the held-out pairs from results/heldout_pairs.jsonl)
+    # (fourteenth session: device_full.sh reads the held-out pairs from results/heldout_pairs.jsonl;
+    # the older device_stage3.sh / device_chain.sh still read hanging_success.pairs.jsonl: put it
+    # back with `in` before using them)
     results/hanging_success.pairs.jsonl results/hanging_success_stage3_s14_cemv.pairs.jsonl.gz
     results/validation_where_s14 results/stage3_train_s14 results/stage3_train_s15
     # (the ranking networks' first set, s12, is no default any more: carry it by hand to compare)

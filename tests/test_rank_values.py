@@ -130,6 +130,8 @@ def test_evaluation_ranks_by_the_ensemble_and_records_each_v(monkeypatch, tmp_pa
             [
                 "--select-on",
                 str(runs),
+                "--value",
+                "V",
                 "--extra-value",
                 "V2",
                 "--extra-value",

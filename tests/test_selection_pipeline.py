@@ -114,7 +114,7 @@ def test_smooth_stage3_rescored_records(monkeypatch, tmp_path):
     out = smooth_stage3.main([
         "--select-on", str(runs), "--select-split", "test", "--data", str(tmp_path),
         "--proposals", "2", "--samples", "2", "--widths", "0:0,0.002:0.05", "--batch", "2",
-        "--out", str(tmp_path / "smooth.json"), "--no-progress",
+        "--value", "V", "--out", str(tmp_path / "smooth.json"), "--no-progress",
     ])  # fmt: skip
     assert out["v_check_select_on"]["max_abs_diff"] < 1e-4
     rows = {(r["score"], r.get("sigma_translation_m")): r for r in out["table"]}

@@ -14,16 +14,7 @@ def _row(v):
 def test_figure_and_table_from_a_results_file(tmp_path):
     res = tmp_path / "hs.json"
     res.write_text(json.dumps({"pairs": 3, "stage1": _row(10.0), "all_stages": _row(70.0)}))
-    out = F.main(
-        [
-            "--results",
-            str(res),
-            "--out",
-            str(tmp_path / "f.png"),
-            "--json",
-            str(tmp_path / "f.json"),
-        ]
-    )
+    out = F.main(["--results", str(res), "--out", str(tmp_path / "f.png")])  # JSON beside it
     assert (tmp_path / "f.png").stat().st_size > 1000
     assert set(out["stages"]) == {"stage1", "all_stages"}  # only the rows present
     assert out["stages"]["all_stages"]["paper"]["mean"] == 68.3

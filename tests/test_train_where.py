@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from experiments import pack_dataset, predict_where, train_where
-from omnihang_jax import data, predict, train
+from omnihang_jax import data, predict, stage2, train
 from omnihang_jax.config import config_from_dict, config_to_dict
 
 
@@ -95,6 +95,22 @@ def test_cli_train_and_predict(trained_dir):
     with open(os.path.join(trained_dir, "predictions.json")) as f:
         pairs = json.load(f)["pairs"]
     assert np.asarray(pairs[0]["stage2_poses"]).shape == (3, 7)
+    # the Stages 1+2 answer's clearance is the default: the same Stage-2 poses moved
+    # stage2.ANSWER_CLEARANCE along the observed support normal, 0 gives the solved ones
+    assert summary["stage2_clearance_m"] == stage2.ANSWER_CLEARANCE
+    out0 = os.path.join(trained_dir, "predictions_0.json")
+    predict_where.main(
+        ["--model", trained_dir, "--pairs", "2", "--proposals", "3", "--out", out0,
+         "--stage2-clearance", "0"]
+    )  # fmt: skip
+    with open(out0) as f:
+        pairs0 = json.load(f)["pairs"]
+    for a, b in zip(pairs, pairs0, strict=True):
+        moved = np.asarray(a["stage2_poses"]) - np.asarray(b["stage2_poses"])
+        np.testing.assert_allclose(
+            np.linalg.norm(moved[:, :3], axis=1), stage2.ANSWER_CLEARANCE, atol=1e-4
+        )
+        np.testing.assert_allclose(moved[:, 3:], 0.0, atol=1e-6)  # rotations untouched
 
 
 def test_exported_weights_predict_like_the_checkpoints(trained_dir, tmp_path):
