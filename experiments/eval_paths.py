@@ -58,6 +58,7 @@ import gzip
 import json
 import os
 import time
+from collections import Counter
 from pathlib import Path
 from typing import NamedTuple
 
@@ -95,7 +96,7 @@ class Answer(NamedTuple):
     names: tuple = ()
 
 
-def read_goals(path: str | os.PathLike) -> dict[int, Answer]:
+def read_answers(path: str | os.PathLike) -> dict[int, Answer]:
     """The where-to-hang pipeline's answers as goals: ``pair_index -> Answer`` from an
     ``eval_stage3`` run's per-pair records (``.pairs.jsonl[.gz]``): the all-stages answer
     (``poses_all[answer_index]``) and its simulated status (stable / fallen / penetrating)."""
@@ -134,7 +135,7 @@ def load_pairs(
     answer_goals: bool = False,
 ) -> list[PairCase]:
     """``n`` held-out pairs (derived on demand) with their scenes, drawn among the pairs of
-    ``records`` (:func:`read_goals`) when given; goal = the pair's first stable pose, or with
+    ``records`` (:func:`read_answers`) when given; goal = the pair's first stable pose, or with
     ``answer_goals`` the pipeline's answer in ``records`` (``meta["goal_status"]``: its
     simulated status)."""
     if answer_goals and records is None:
@@ -601,10 +602,8 @@ def summarise(rows: list[dict], methods=METHODS) -> dict:
         # goals from the pipeline: the figures again over the pairs whose answer hangs (a path
         # to a penetrating answer cannot be collision-free), and the answers' statuses
         stable = [r for r in rows if r["goal_status"] == "stable"]
-        status = {r["pair"]: r["goal_status"] for r in rows}
-        out["goal_statuses"] = {
-            s: list(status.values()).count(s) for s in sorted(set(status.values()))
-        }
+        by_pair = {r["pair"]: r["goal_status"] for r in rows}
+        out["goal_statuses"] = dict(sorted(Counter(by_pair.values()).items()))
         if stable and len(stable) < len(rows):
             out["stable_goals"] = {
                 m: {
@@ -794,7 +793,7 @@ def main(argv=None) -> dict:
     est = load_estimators(
         args.weights, args.nce_threshold, args.nce_far_threshold, args.nce_goal_ball, geo
     )
-    records = read_goals(args.pairs_from) if args.pairs_from else None
+    records = read_answers(args.pairs_from) if args.pairs_from else None
     cases = load_pairs(
         args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer"
     )

@@ -151,7 +151,7 @@ def test_eval_paths_answer_goals_from_pipeline_records(tmp_path):
 
     import pytest
 
-    from experiments.eval_paths import read_goals, summarise
+    from experiments.eval_paths import read_answers, summarise
 
     poses = [[0.0, 0.0, 0.1 * i, 1.0, 0.0, 0.0, 0.0] for i in range(4)]
     recs = [
@@ -162,7 +162,7 @@ def test_eval_paths_answer_goals_from_pipeline_records(tmp_path):
     path = tmp_path / "run.pairs.jsonl.gz"
     with gzip.open(path, "wt") as f:
         f.write("".join(json.dumps(r) + "\n" for r in recs))
-    goals = read_goals(path)
+    goals = read_answers(path)
     assert sorted(goals) == [7, 9]
     np.testing.assert_allclose(goals[7][0], poses[2])
     assert goals[7][1] == "stable"
@@ -171,10 +171,10 @@ def test_eval_paths_answer_goals_from_pipeline_records(tmp_path):
     bad.write_text(json.dumps({"pair_index": 1, "poses_all": [[np.nan] * 7], "answer_index": 0,
                                "all_stages": {"status": "stable"}}) + "\n")  # fmt: skip
     with pytest.raises(ValueError, match="finite"):
-        read_goals(bad)
+        read_answers(bad)
     bad.write_text(json.dumps({"pair_index": 1}) + "\n")
     with pytest.raises(ValueError, match="not an eval_stage3 pairs file"):
-        read_goals(bad)
+        read_answers(bad)
 
     def row(i, status, free):
         return dict(pair=f"p{i}", method="nce", object_category="mug", returned=True,
