@@ -1,6 +1,6 @@
 """Latency of the whole where-to-hang pipeline (Stages 1-3 incl. CEM) in one jitted call.
 
-    python -m experiments.bench_stage3 --value weights/value_s14_hardneg --out results/bench_stage3.json
+    python -m experiments.bench_stage3 --value weights/value_s16_hardneg --out results/bench_stage3.json
 
 Times ``jax.jit(make_hang_pipeline(...))`` on random clouds (the cost does not depend on the
 values) at batch 1 and at larger batches after one warm-up call (compilation, timed apart):

@@ -3,7 +3,7 @@
 Example (after deriving held-out pairs and training V):
 
     python -m experiments.derive_dataset --data datasets/paper --split test --limit 16
-    python -m experiments.eval_stage3 --value weights/value_s14_hardneg --limit 16 \\
+    python -m experiments.eval_stage3 --value weights/value_s16_hardneg --limit 16 \\
         --out out/hanging_success_stage3.json
 
 ``--pairs-from results/hanging_success.pairs.jsonl`` evaluates exactly the pairs of an earlier

@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--value", default=None,
         help="Stage-3 value weights (default: found in weights/value_*, e.g. weights/"
-        "value_s14_hardneg); 'off': rank by observed-cloud clearance, no CEM",
+        "value_s16_hardneg); 'off': rank by observed-cloud clearance, no CEM",
     )  # fmt: skip
     p.add_argument(
         "--num-proposals", type=int, default=d.num_proposals,

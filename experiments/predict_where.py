@@ -6,8 +6,9 @@
 Loads MODEL/stage1 and MODEL/stage2b (config.json + latest checkpoint), predicts
 --proposals poses per pair, and writes OUT (default out/predict_where/predictions.json;
 never into the model folder unless asked): per pair the
-Stage-1 and Stage-2 poses (xyz metres + quaternion wxyz, object frame in support frame; Stage 2
-with the answer's clearance, ``--stage2-clearance``), the
+Stage-1 and Stage-2 poses (xyz metres + quaternion wxyz, object frame in support frame; Stage 1
+released ``--stage1-lift`` above the network's pose and Stage 2 with the answer's clearance,
+``--stage2-clearance``: the answers evaluated by eval_where), the
 chosen contact correspondences and, where ground truth is known, the distance from each
 predicted position to the nearest stable pose.
 """
@@ -23,7 +24,7 @@ import jax
 import numpy as np
 
 from experiments import _cli
-from omnihang_jax import data, predict, stage2, train
+from omnihang_jax import data, predict, stage1, stage2, train
 
 
 def position_errors(poses7: np.ndarray, sample: data.HangSample) -> np.ndarray:
@@ -45,6 +46,12 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
+        "--stage1-lift", type=float, default=stage1.ANSWER_LIFT, metavar="M",
+        help="the Stage-1 poses released M metres above the network's pose (+z of the support "
+        "frame; default stage1.ANSWER_LIFT, the Stage-1 answer; 0: the network's pose). Stage 2 "
+        "starts from the network's pose either way",
+    )  # fmt: skip
+    parser.add_argument(
         "--stage2-clearance", type=float, default=stage2.ANSWER_CLEARANCE, metavar="M",
         help="the Stage-2 poses' clearance in metres along the observed support normal (default "
         "stage2.ANSWER_CLEARANCE, the Stages 1+2 answer; 0: the paper's); Stage 3 (--value) "
@@ -54,7 +61,7 @@ def main(argv=None) -> dict:
         "--value",
         default=None,
         metavar="DIR",
-        help="also run Stage 3 (CEM on this value function, e.g. weights/value_s14_hardneg): "
+        help="also run Stage 3 (CEM on this value function, e.g. weights/value_s16_hardneg): "
         "the whole pipeline as one jitted call; adds stage3_poses, stage3_scores, answer",
     )
     parser.add_argument(
@@ -81,6 +88,8 @@ def main(argv=None) -> dict:
         num_proposals=args.proposals,
         support_normals=batch.support_normals,
     )
+    stage1_poses = np.array(out.stage1_poses, np.float64, copy=True)
+    stage1_poses[..., 2] += args.stage1_lift
     stage3_out = None
     if args.value:
         from omnihang_jax import stage3
@@ -100,13 +109,13 @@ def main(argv=None) -> dict:
         records.append(
             {
                 "pair": i,
-                "stage1_poses": out.stage1_poses[i].tolist(),
+                "stage1_poses": stage1_poses[i].tolist(),
                 "stage2_poses": out.stage2_poses[i].tolist(),
                 "object_indices": out.object_indices[i].tolist(),
                 "support_indices": out.support_indices[i].tolist(),
                 "pair_probability": out.probability[i].tolist(),
                 "pair_weight": out.weight[i].tolist(),
-                "stage1_position_error_m": position_errors(out.stage1_poses[i], sample).tolist(),
+                "stage1_position_error_m": position_errors(stage1_poses[i], sample).tolist(),
                 "stage2_position_error_m": position_errors(out.stage2_poses[i], sample).tolist(),
             }
         )
@@ -122,6 +131,7 @@ def main(argv=None) -> dict:
         "model": args.model,
         "data": args.data,
         "pairs": len(records),
+        "stage1_lift_m": args.stage1_lift,
         "stage2_clearance_m": args.stage2_clearance,
         "mean_stage1_position_error_m": float(
             np.mean([r["stage1_position_error_m"] for r in records])

@@ -94,6 +94,10 @@ class EvalConfig:
     # back every proposal out of the observed support before it is scored
     # (omnihang_jax.heuristics.separate); applied before ``select``
     separate: bool = False
+    # release the Stage-1 proposals this far (m) above the predicted pose (+z of the support
+    # frame, against gravity): a pose a few mm inside the support becomes one that drops onto
+    # it; applied after ``separate``, before ``select``; 0 = the network's pose (the paper's)
+    stage1_lift: float = 0.0
     backend: str = "cpu"  # physics backend of sim.kernels.stability
     # who judges "it hangs" (sim.judges): "mujoco", "pybullet" (original engine, set-up matched
     # to MuJoCo's physics) or "both" (success only if both agree); docs/judges.md
@@ -201,6 +205,20 @@ def separated_fn(predict: PredictFn, object_stride: int = 8) -> PredictFn:
         return PairPrediction(*poses)
 
     return separated
+
+
+def lifted_fn(predict: PredictFn, lift: float) -> PredictFn:
+    """Every Stage-1 proposal moved ``lift`` metres up (+z of the support frame, against
+    gravity), rotation kept; the Stage-2 poses are left as they are (they carry their own
+    clearance along the observed support normal)."""
+
+    def lifted(sample: HangSample, meta: dict) -> PairPrediction:
+        out = predict(sample, meta)
+        poses = np.array(out.stage1_poses, np.float64, copy=True)
+        poses[..., 2] += lift
+        return PairPrediction(poses, out.stage2_poses)
+
+    return lifted
 
 
 def ground_truth_fn(index: int = 0) -> PredictFn:
@@ -549,6 +567,8 @@ def evaluate_where(
         predict = predictor_fn(predictor, k, config.seed)
         if config.separate:
             predict = separated_fn(predict)
+        if config.stage1_lift:
+            predict = lifted_fn(predict, config.stage1_lift)
         if config.select == "penetration":
             predict = ranked_fn(predict)
         elif config.select != "first":
@@ -595,6 +615,7 @@ def evaluate_where(
             ),
             "select": config.select,
             "separate": config.separate,
+            "stage1_lift_m": config.stage1_lift,
             "stage2_clearance_m": config.stage2_clearance,
             "stage1_2": "Stage-2 refinement of the same proposal",
             "success": "status stable after 1 s from rest; fails if initial penetration > 3 mm, "

@@ -688,16 +688,16 @@ def _clearance_scores(obj: Body, sup: Body, poses: np.ndarray) -> np.ndarray:
 # (stage3.CEM_VALUE, chosen on validation objects), then the paper-recipe V and the folders
 # scripts/device_stage3.sh writes; then any weights/value_* folder
 VALUE_WEIGHTS = (
-    "weights/value_s14_hardneg",
+    "weights/value_s16_hardneg",
     "weights/value_small_paper",
     "weights/value_paper",
     "weights/stage3_paper",
 )
 # CEM refines the CEM_STARTS best-V Stage-1 proposals and as many Stage-2 proposals (as many
-# as stage3.ANSWER_PIPELINE refines of each: K = 10 since the thirteenth session; population x
+# as stage3.ANSWER_PIPELINE refines of each: K = 16 since the fifteenth session; population x
 # iterations = 320 value-network states each), and the refined candidates are ranked by the
 # answer rule chosen on validation objects (omnihang_jax.selection.CHOSEN)
-CEM_STARTS = 10
+CEM_STARTS = 16
 
 
 def find_value_weights(model: str | os.PathLike = DEFAULT_MODEL) -> Path | None:
@@ -806,7 +806,7 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
     """The where-to-hang step on the committed networks: K Stage-1 proposals and their
     Stage-2 refinements (2K candidates). With ``stage3``: the CEM_STARTS best-V candidates of
     each stage refined by CEM on the value network (stage "stage1_3" from Stage 1, "stage3"
-    from Stage 2; with K = 10 every one, as ``stage3.ANSWER_PIPELINE``) and ranked as that
+    from Stage 2; with K = 16 every one, as ``stage3.ANSWER_PIPELINE``) and ranked as that
     pipeline picks its answer: the refined candidates first, by
     ``selection.select_key`` of ``selection.CHOSEN`` (log V, minus 1e4 per object point more
     than 0.5 mm inside the observed support), then the unrefined ones by the same key; without:

@@ -437,31 +437,41 @@ class PipelineConfig:
 
 # The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
 # answer picked among all of them by the observed-cloud rule chosen on validation objects
-# (selection.CHOSEN); since the thirteenth session K = 10 proposals (20 refined candidates),
-# what the validation objects chose (eleventh session 66.9 -> 71.4 %; with the ranking networks
-# below 73.3 %) at 76.8 ms per pair at batch 1 on one H100 (K = 5: 65.5 ms) and half the
-# pairs/s at batch 256. PipelineConfig() keeps the paper's: K = 5, Stage-2 starts, highest V.
+# (selection.CHOSEN). K = 10 proposals (20 refined candidates) from the thirteenth session
+# (eleventh session 66.9 -> 71.4 % on validation objects; 76.8 ms per pair at batch 1 on one
+# H100, K = 5: 65.5 ms); since the fifteenth session K = 16 (32 refined candidates), with CEM on
+# CEM_VALUE: validation objects 78.5 (K = 10, ranking s13 + s15) -> 78.8 % (K = 16, CEM's V
+# ranking alone, chosen among the subsets of {s13, s15}), held-out 75.7 -> 76.5 %
+# (docs/stage3.md, "Fifteenth session"; latency in results/bench_stage3_k16_gpu.json).
+# PipelineConfig() keeps the paper's: K = 5, Stage-2 starts, highest V.
 ANSWER_PIPELINE = PipelineConfig(
-    num_proposals=10, starts=("stage2", "stage1"), select=selection.CHOSEN, pool_starts=True
+    num_proposals=16, starts=("stage2", "stage1"), select=selection.CHOSEN, pool_starts=True
 )
-# The V that CEM searches on in the default pipeline (fourteenth session): the thirteenth
-# session's third V continued for 18 more hard-negative RL rounds (each round's CEM searching on
-# the V being trained) on all training pairs (results/stage3_train_s14/). Chosen on the 345
-# validation-object pairs over the paper-recipe V (weights/value_small_paper, CEM's V until the
-# thirteenth session): all stages 73.3 -> 78.6 % with the ranking below; held-out 70.7 -> 74.5 %
-# (docs/stage3.md, "Fourteenth session").
-CEM_VALUE = "weights/value_s14_hardneg"
+# The V that CEM searches on in the default pipeline (fifteenth session): the fourteenth
+# session's fifth V (value_s15_hardneg) continued for 18 more hard-negative RL rounds on one warm
+# machine (each round's CEM searching on the V being trained; 1.22 M transitions,
+# results/stage3_train_s16/). Chosen on the 345 validation-object pairs over CEM on the
+# fourteenth session's value_s14_hardneg, both run in the same session: all stages 77.8 -> 78.5 %
+# (each with the ranking chosen there); held-out 75.67 -> 75.69 %, Stages 1+3 71.1 -> 72.7, the
+# paper's answer rule 67.1 -> 68.1 (docs/stage3.md, "Fifteenth session"). Before it:
+# value_s14_hardneg (fourteenth session: 73.3 -> 78.6 % on validation objects over the
+# paper-recipe V weights/value_small_paper; held-out 70.7 -> 74.5 %).
+CEM_VALUE = "weights/value_s16_hardneg"
 # The value folders that rank CEM's candidates beside the CEM's V in the default pipeline
-# (the mean log V of CEM_VALUE and these, PipelineConfig.rank_values). Chosen on the 345
-# validation-object pairs among every subset of {s12, s13, s15} with CEM on CEM_VALUE
-# (experiments.ensemble_stage3 on that run's records, every V recomputed on the CPU,
-# results/ensemble_stage3_s15_cpu.json): none 77.7, s12 + s13 (the thirteenth session's set,
-# with which the held-out GPU run measured 74.5 %) 78.3, **s13 + s15 79.3** (chosen); on the
-# held-out run's records the same way 74.2 -> 75.7. value_s13_hardneg: the thirteenth
-# session's third V (11 hard-negative rounds); value_s15_hardneg: the fourteenth session's
-# fifth (CEM_VALUE continued 6 rounds on a fresh machine). Used by predict.load_hang_pipeline,
+# (the mean log V of CEM_VALUE and these, PipelineConfig.rank_values). value_s13_hardneg: the
+# thirteenth session's third V (11 hard-negative rounds); value_s15_hardneg: the fourteenth
+# session's fifth (value_s14_hardneg continued 6 rounds on a fresh machine). Chosen twice on the
+# 345 validation-object pairs among every subset of the candidates (experiments.ensemble_stage3
+# on a run's records): fourteenth session, CEM on value_s14_hardneg, {s12, s13, s15}, every V
+# recomputed on the CPU (results/ensemble_stage3_s15_cpu.json): none 77.7, s12 + s13 78.3,
+# **s13 + s15 79.3**; fifteenth session, CEM on CEM_VALUE, {s13, s15, s16} on the GPU
+# (results/validation_where_s15/ensemble_choice_cemv_s16.json): none 77.4, **s13 + s15 78.5**,
+# all three 78.5; fifteenth session at K = 16 (ANSWER_PIPELINE), CEM on CEM_VALUE, {s13, s15}
+# (results/validation_where_s15/ensemble_choice_k16.json): **none 78.8**, s15 78.6, s13 77.4,
+# s13 + s15 77.6. So since then CEM's V ranks alone; value_s13_hardneg and value_s15_hardneg
+# stay committed as the candidates of the next choice. Used by predict.load_hang_pipeline,
 # eval_stage3 --rank-value and the hang command.
-RANK_VALUES: tuple[str, ...] = ("weights/value_s13_hardneg", "weights/value_s15_hardneg")
+RANK_VALUES: tuple[str, ...] = ()
 
 
 class HangOutput(NamedTuple):

@@ -41,7 +41,7 @@
 #          (stage3.ANSWER_PIPELINE) and the paper's side by side (~3 min with compilation).
 # S3_ONLY=1 (train): derive the clouds (skipped when there), no pack, no Stage 1: the Stage-3
 # part alone on S3_W (15) workers, every training pair (S3_PAIRS, 0 = all), V from INIT_VALUE
-# (weights/value_s14_hardneg = stage3.CEM_VALUE), S3_PRETRAIN (2000) steps, S3_EXTRA more train_stage3 flags (e.g.
+# (weights/value_s16_hardneg = stage3.CEM_VALUE), S3_PRETRAIN (2000) steps, S3_EXTRA more train_stage3 flags (e.g.
 # "--round-start alternate"); a warm next S3_ONLY call resumes the job (/tmp/full/stage3/run).
 # eval: VALUE (the V of the first evaluation; default the committed one), NO_NEWV=1 skips the
 # second evaluation with the train call's V.
@@ -65,7 +65,7 @@ INIT1=${INIT1:-weights/where_small_paper}
 # five fields each, so that the tree stays under the device's 64 MiB)
 HELDOUT=${HELDOUT_PAIRS:-results/heldout_pairs.jsonl}
 # the V CEM searches on (VALUE; default stage3.CEM_VALUE, since the fourteenth session)
-V_CEM=${VALUE:-weights/value_s14_hardneg}
+V_CEM=${VALUE:-weights/value_s16_hardneg}
 
 derive_test() {  # workers
     timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split test \

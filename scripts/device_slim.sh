@@ -40,6 +40,14 @@ LIST=(
     results/validation_where_s14 results/stage3_train_s14 results/stage3_train_s15
     # (the ranking networks' first set, s12, is no default any more: carry it by hand to compare)
     weights/value_s12_hardneg
+    # (fifteenth session: CEM searches on value_s16_hardneg; the earlier CEM Vs, this session's
+    # records and older large pair files are read by no device call; value_small_paper only by
+    # `smooth`: put it back by hand for that call. val_s9_counts.pairs stays: the `eval` call's
+    # rerank step reads it)
+    weights/value_s14_hardneg weights/value_small_paper results/validation_where_s11/val_committed.pairs.jsonl.gz
+    results/hanging_success_stage2_clearance_s14_12mm.pairs.jsonl.gz
+    results/hanging_success_stage3_s15_default.pairs.jsonl.gz results/hanging_success_stage3_s16_cemv.pairs.jsonl.gz
+    results/validation_where_s15 results/stage3_train_s16
 )
 case ${1:-} in
 out)

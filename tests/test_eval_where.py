@@ -264,6 +264,15 @@ def test_evaluate_where_writes_results(derived, library, tmp_path):
     shift = np.linalg.norm(b.stage2_poses[:, :3] - a.stage2_poses[:, :3], axis=-1)
     np.testing.assert_allclose(shift, 0.006, atol=1e-5)
 
+    # EvalConfig.stage1_lift (evaluate.lifted_fn): every Stage-1 pose moves exactly that far
+    # up (+z), rotation and Stage 2 untouched
+    c = evaluate.lifted_fn(evaluate.predictor_fn(predictor, 2), 0.0075)(sample, meta)
+    np.testing.assert_allclose(c.stage1_poses[:, 2] - a.stage1_poses[:, 2], 0.0075, atol=1e-7)
+    np.testing.assert_array_equal(
+        c.stage1_poses[:, [0, 1, 3, 4, 5, 6]], a.stage1_poses[:, [0, 1, 3, 4, 5, 6]]
+    )
+    np.testing.assert_array_equal(c.stage2_poses, a.stage2_poses)
+
 
 def test_stage2_from_ground_truth_diagnostic(derived):
     out, _ = derived

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from experiments import pack_dataset, predict_where, train_where
-from omnihang_jax import data, predict, stage2, train
+from omnihang_jax import data, predict, stage1, stage2, train
 from omnihang_jax.config import config_from_dict, config_to_dict
 
 
@@ -101,7 +101,7 @@ def test_cli_train_and_predict(trained_dir):
     out0 = os.path.join(trained_dir, "predictions_0.json")
     predict_where.main(
         ["--model", trained_dir, "--pairs", "2", "--proposals", "3", "--out", out0,
-         "--stage2-clearance", "0"]
+         "--stage2-clearance", "0", "--stage1-lift", "0"]
     )  # fmt: skip
     with open(out0) as f:
         pairs0 = json.load(f)["pairs"]
@@ -111,6 +111,10 @@ def test_cli_train_and_predict(trained_dir):
             np.linalg.norm(moved[:, :3], axis=1), stage2.ANSWER_CLEARANCE, atol=1e-4
         )
         np.testing.assert_allclose(moved[:, 3:], 0.0, atol=1e-6)  # rotations untouched
+        # the Stage-1 answer is released stage1.ANSWER_LIFT above the network's pose
+        up = np.asarray(a["stage1_poses"]) - np.asarray(b["stage1_poses"])
+        np.testing.assert_allclose(up[:, 2], stage1.ANSWER_LIFT, atol=1e-6)
+        np.testing.assert_allclose(up[:, [0, 1, 3, 4, 5, 6]], 0.0, atol=1e-7)
 
 
 def test_exported_weights_predict_like_the_checkpoints(trained_dir, tmp_path):
