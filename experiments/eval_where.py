@@ -9,7 +9,9 @@ them; proposal 0 (Stages 1 and 1+2) is loaded at rest and simulated for 1 s
 bounding box, touches the ground or diverges). The answers carry what the validation objects
 chose: Stage 1 is released --stage1-lift (stage1.ANSWER_LIFT, 7.5 mm) above the network's pose,
 Stage 1+2 moved --stage2-clearance (stage2.ANSWER_CLEARANCE, 12 mm) along the observed support
-normal; 0 for both gives the paper's poses. Writes OUT (success per stage: mean over
+normal, and of each stage's K proposals the one least inside the observed support is the answer
+(--select penetration, evaluate.ANSWER_SELECT). `--select first --stage1-lift 0
+--stage2-clearance 0` gives the paper's: the network's first proposal as predicted. Writes OUT (success per stage: mean over
 categories and per category, %), ERRORS (pose errors to the nearest ground-truth stable pose)
 and OUT with suffix .pairs.jsonl (one line per pair). --model ground_truth evaluates the
 dataset's own stable poses instead (a check of the protocol).
@@ -48,10 +50,12 @@ def main(argv=None) -> dict:
     parser.add_argument("--candidate", type=int, default=0, help="proposal that is evaluated")
     parser.add_argument(
         "--select",
-        choices=["first", "penetration"],
-        default="first",
-        help="which proposal is evaluated: the first drawn, or the one whose object cloud "
-        "least enters the observed support cloud (omnihang_jax.heuristics)",
+        choices=evaluate.SELECTS,
+        default=evaluate.ANSWER_SELECT,
+        help="which proposal of each stage is evaluated: the one whose object cloud least "
+        "enters the observed support cloud (omnihang_jax.heuristics; default "
+        "evaluate.ANSWER_SELECT, chosen on validation objects), or the first drawn (the "
+        "paper's: with --stage1-lift 0 --stage2-clearance 0 the network's own first proposal)",
     )
     parser.add_argument(
         "--separate",

@@ -8,7 +8,8 @@ Loads MODEL/stage1 and MODEL/stage2b (config.json + latest checkpoint), predicts
 never into the model folder unless asked): per pair the
 Stage-1 and Stage-2 poses (xyz metres + quaternion wxyz, object frame in support frame; Stage 1
 released ``--stage1-lift`` above the network's pose and Stage 2 with the answer's clearance,
-``--stage2-clearance``: the answers evaluated by eval_where), the
+``--stage2-clearance``), each stage's answer among them (``--select``: the least penetrating
+of the observed support, as eval_where evaluates it), the
 chosen contact correspondences and, where ground truth is known, the distance from each
 predicted position to the nearest stable pose.
 """
@@ -24,7 +25,7 @@ import jax
 import numpy as np
 
 from experiments import _cli
-from omnihang_jax import data, predict, stage1, stage2, train
+from omnihang_jax import data, evaluate, predict, stage1, stage2, train
 
 
 def position_errors(poses7: np.ndarray, sample: data.HangSample) -> np.ndarray:
@@ -50,6 +51,12 @@ def main(argv=None) -> dict:
         help="the Stage-1 poses released M metres above the network's pose (+z of the support "
         "frame; default stage1.ANSWER_LIFT, the Stage-1 answer; 0: the network's pose). Stage 2 "
         "starts from the network's pose either way",
+    )  # fmt: skip
+    parser.add_argument(
+        "--select", choices=evaluate.SELECTS, default=evaluate.ANSWER_SELECT,
+        help="which proposal of each stage is the pair's answer (stage1_answer / stage2_answer): "
+        "the one whose object cloud least enters the observed support cloud (default "
+        "evaluate.ANSWER_SELECT, as eval_where), or the first drawn",
     )  # fmt: skip
     parser.add_argument(
         "--stage2-clearance", type=float, default=stage2.ANSWER_CLEARANCE, metavar="M",
@@ -90,6 +97,20 @@ def main(argv=None) -> dict:
     )
     stage1_poses = np.array(out.stage1_poses, np.float64, copy=True)
     stage1_poses[..., 2] += args.stage1_lift
+    # the answers: each stage's K proposals ranked as eval_where ranks them (after the lift)
+    answer1 = np.zeros(len(stage1_poses), int)
+    answer2 = np.zeros(len(stage1_poses), int)
+    if args.select == "penetration":
+        from omnihang_jax.heuristics import rank_by_penetration
+
+        for i in range(len(stage1_poses)):
+            obj = np.asarray(batch.object_points[i])[::4]
+            sup, nrm = np.asarray(batch.support_points[i]), np.asarray(batch.support_normals[i])
+            answer1[i] = int(
+                rank_by_penetration(obj, sup, nrm, stage1_poses[i].astype(np.float32))[0][0]
+            )
+            stage2_i = np.asarray(out.stage2_poses[i], np.float32)
+            answer2[i] = int(rank_by_penetration(obj, sup, nrm, stage2_i)[0][0])
     stage3_out = None
     if args.value:
         from omnihang_jax import stage3
@@ -111,6 +132,10 @@ def main(argv=None) -> dict:
                 "pair": i,
                 "stage1_poses": stage1_poses[i].tolist(),
                 "stage2_poses": out.stage2_poses[i].tolist(),
+                "stage1_answer": stage1_poses[i][answer1[i]].tolist(),
+                "stage1_answer_index": int(answer1[i]),
+                "stage2_answer": np.asarray(out.stage2_poses[i][answer2[i]]).tolist(),
+                "stage2_answer_index": int(answer2[i]),
                 "object_indices": out.object_indices[i].tolist(),
                 "support_indices": out.support_indices[i].tolist(),
                 "pair_probability": out.probability[i].tolist(),
@@ -132,6 +157,7 @@ def main(argv=None) -> dict:
         "data": args.data,
         "pairs": len(records),
         "stage1_lift_m": args.stage1_lift,
+        "select": args.select,
         "stage2_clearance_m": args.stage2_clearance,
         "mean_stage1_position_error_m": float(
             np.mean([r["stage1_position_error_m"] for r in records])

@@ -98,6 +98,11 @@ def test_cli_train_and_predict(trained_dir):
     # the Stages 1+2 answer's clearance is the default: the same Stage-2 poses moved
     # stage2.ANSWER_CLEARANCE along the observed support normal, 0 gives the solved ones
     assert summary["stage2_clearance_m"] == stage2.ANSWER_CLEARANCE
+    # each stage's answer is one of its proposals, the least penetrating by default
+    assert summary["select"] == "penetration"
+    for p in pairs:
+        for st in ("stage1", "stage2"):
+            assert p[f"{st}_answer"] == p[f"{st}_poses"][p[f"{st}_answer_index"]]
     out0 = os.path.join(trained_dir, "predictions_0.json")
     predict_where.main(
         ["--model", trained_dir, "--pairs", "2", "--proposals", "3", "--out", out0,
