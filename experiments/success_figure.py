@@ -23,8 +23,10 @@ from experiments import _cli
 
 STAGES = ("stage1", "stage1_2", "stage1_3", "all_stages")
 DEFAULT_OUT = "docs/img/success_categories.png"
-TITLES = {"stage1": "Stage 1", "stage1_2": "Stages 1+2", "stage1_3": "Stages 1+3",
-          "all_stages": "All stages"}  # fmt: skip
+# (the answers of each stage as the project evaluates them: docs/evaluation.md)
+TITLES = {"stage1": "Stage 1 (answer: least penetrating of 5, released 7.5 mm up)",
+          "stage1_2": "Stages 1+2 (answer: least penetrating of 5, 12-mm clearance)",
+          "stage1_3": "Stages 1+3", "all_stages": "All stages"}  # fmt: skip
 CATEGORIES = ("bag", "cap", "clothes_hanger", "cooking_utensil", "headphone", "knife", "mug",
               "others", "racquet", "scissors", "wrench")  # fmt: skip
 # The paper's hanging-success table ("Hanging pose prediction accuracy"), per stage: mean and
