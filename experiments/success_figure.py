@@ -25,7 +25,7 @@ STAGES = ("stage1", "stage1_2", "stage1_3", "all_stages")
 DEFAULT_OUT = "docs/img/success_categories.png"
 # (the answers of each stage as the project evaluates them: docs/evaluation.md)
 TITLES = {"stage1": "Stage 1 (answer: least penetrating of 5, released 7.5 mm up)",
-          "stage1_2": "Stages 1+2 (answer: least penetrating of 5, 12-mm clearance)",
+          "stage1_2": "Stages 1+2 (answer: least penetrating of 5, 8-mm clearance)",
           "stage1_3": "Stages 1+3", "all_stages": "All stages"}  # fmt: skip
 CATEGORIES = ("bag", "cap", "clothes_hanger", "cooking_utensil", "headphone", "knife", "mug",
               "others", "racquet", "scissors", "wrench")  # fmt: skip

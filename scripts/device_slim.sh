@@ -47,7 +47,9 @@ LIST=(
     weights/value_s14_hardneg weights/value_small_paper results/validation_where_s11/val_committed.pairs.jsonl.gz
     results/hanging_success_stage2_clearance_s14_12mm.pairs.jsonl.gz
     results/hanging_success_stage3_s15_default.pairs.jsonl.gz results/hanging_success_stage3_s16_cemv.pairs.jsonl.gz
-    results/validation_where_s15 results/stage3_train_s16
+    results/validation_where_s15 results/stage3_train_s16 results/release_lift
+    results/hanging_success_stage1_select_lift_s15.pairs.jsonl.gz results/hanging_success_stage12_select_clear8_s15.pairs.jsonl.gz
+    results/hanging_success_stage3_s16_k16.pairs.jsonl.gz
 )
 case ${1:-} in
 out)
