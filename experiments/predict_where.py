@@ -95,22 +95,15 @@ def main(argv=None) -> dict:
         num_proposals=args.proposals,
         support_normals=batch.support_normals,
     )
-    stage1_poses = np.array(out.stage1_poses, np.float64, copy=True)
-    stage1_poses[..., 2] += args.stage1_lift
+    stage1_poses = evaluate.lift_poses(out.stage1_poses, args.stage1_lift)
+    samples = data.unstack(batch)
     # the answers: each stage's K proposals ranked as eval_where ranks them (after the lift)
-    answer1 = np.zeros(len(stage1_poses), int)
-    answer2 = np.zeros(len(stage1_poses), int)
+    answer1 = np.zeros(len(samples), int)
+    answer2 = np.zeros(len(samples), int)
     if args.select == "penetration":
-        from omnihang_jax.heuristics import rank_by_penetration
-
-        for i in range(len(stage1_poses)):
-            obj = np.asarray(batch.object_points[i])[::4]
-            sup, nrm = np.asarray(batch.support_points[i]), np.asarray(batch.support_normals[i])
-            answer1[i] = int(
-                rank_by_penetration(obj, sup, nrm, stage1_poses[i].astype(np.float32))[0][0]
-            )
-            stage2_i = np.asarray(out.stage2_poses[i], np.float32)
-            answer2[i] = int(rank_by_penetration(obj, sup, nrm, stage2_i)[0][0])
+        for i, sample in enumerate(samples):
+            answer1[i] = evaluate.penetration_order(sample, stage1_poses[i])[0]
+            answer2[i] = evaluate.penetration_order(sample, out.stage2_poses[i])[0]
     stage3_out = None
     if args.value:
         from omnihang_jax import stage3
@@ -126,7 +119,7 @@ def main(argv=None) -> dict:
         stage3_out = hang(params, jax.random.key(args.seed), clouds)
 
     records = []
-    for i, sample in enumerate(data.unstack(batch)):
+    for i, sample in enumerate(samples):
         records.append(
             {
                 "pair": i,

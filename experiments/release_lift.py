@@ -21,7 +21,6 @@ finishes; a rerun skips the pairs already there, so a stopped run resumes.
 from __future__ import annotations
 
 import argparse
-import gzip
 import json
 import os
 import time
@@ -31,17 +30,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from experiments import _cli
+from experiments.summarise_heldout import read_rows
 from omnihang_jax import dataset_bridge, evaluate
-
-
-def read_records(path: str) -> list[dict]:
-    """The per-pair records of an ``eval_where`` / ``eval_stage3`` run (JSONL, optionally .gz)."""
-    opener = gzip.open if str(path).endswith(".gz") else open
-    with opener(path, "rt") as fh:
-        rows = [json.loads(line) for line in fh if line.strip()]
-    if not rows:
-        raise ValueError(f"{path}: no records")
-    return rows
 
 
 def parse_lifts(text: str) -> list[float]:
@@ -54,13 +44,6 @@ def parse_lifts(text: str) -> list[float]:
     return sorted(set(lifts) | {0.0})
 
 
-def lifted(pose, lift: float) -> np.ndarray:
-    """The pose [7] (xyz + wxyz) moved ``lift`` metres along +z, rotation kept."""
-    out = np.array(pose, np.float64, copy=True).reshape(7)
-    out[2] += lift
-    return out
-
-
 def judge_pair(scene, record: dict, stages, lifts, stability) -> dict:
     """One batched stability call for every (stage, lift) of a record -> {stage: {lift: status}}."""
     from sim import judges, kernels
@@ -70,7 +53,7 @@ def judge_pair(scene, record: dict, stages, lifts, stability) -> dict:
         pose = np.asarray(record[stage]["pose"], np.float64)
         for lift in lifts:
             keys.append((stage, lift))
-            poses.append(lifted(pose, lift))
+            poses.append(evaluate.lift_poses(pose.reshape(7), lift))
     poses = np.stack(poses)
     finite = np.isfinite(poses).all(1) & (np.linalg.norm(poses[:, 3:], axis=1) > 1e-6)
     status = np.full(len(poses), kernels.DIVERGED, np.int8)
@@ -146,7 +129,7 @@ def main(argv=None) -> dict:
 
     stages = [s for s in args.stages.split(",") if s]
     lifts = parse_lifts(args.lifts)
-    records = read_records(args.records)[: args.limit]
+    records = read_rows(args.records)[: args.limit]
     for r in records:
         for s in stages:
             if s not in r or "pose" not in r[s]:

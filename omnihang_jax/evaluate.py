@@ -174,21 +174,37 @@ def default_errors_path(results_path: str | os.PathLike) -> Path:
     return p.with_name(p.stem + ".pose_errors.json")
 
 
+def lift_poses(poses, lift: float) -> np.ndarray:
+    """Poses [..., 7] (xyz + wxyz) moved ``lift`` metres up (+z of the support frame, against
+    gravity), rotation kept: the release height of the Stage-1 answer (stage1.ANSWER_LIFT)."""
+    out = np.array(poses, np.float64, copy=True)
+    out[..., 2] += lift
+    return out
+
+
+def penetration_order(sample: HangSample, poses, object_stride: int = 4) -> np.ndarray:
+    """Indices [K] of ``poses`` [K, 7], least penetrating of the sample's observed support
+    first (:func:`omnihang_jax.heuristics.rank_by_penetration`, every ``object_stride``-th
+    object point; ties keep the order): the ``select="penetration"`` rule."""
+    from omnihang_jax.heuristics import rank_by_penetration
+
+    obj = np.asarray(sample.object_points, np.float32)[::object_stride]
+    sup, nrm = np.asarray(sample.support_points), np.asarray(sample.support_normals)
+    order, _ = rank_by_penetration(obj, sup, nrm, np.asarray(poses, np.float32))
+    return np.asarray(order)
+
+
 def ranked_fn(predict: PredictFn, object_stride: int = 4) -> PredictFn:
     """Reorder each stage's K proposals by :func:`omnihang_jax.heuristics.rank_by_penetration`
     (least penetration of the object cloud into the observed support cloud first), so that
     the evaluated candidate is the heuristic's pick. Uses only the sample's partial clouds
     (every ``object_stride``-th object point, for speed)."""
-    from omnihang_jax.heuristics import rank_by_penetration
 
     def ranked(sample: HangSample, meta: dict) -> PairPrediction:
         out = predict(sample, meta)
-        obj = np.asarray(sample.object_points)[::object_stride]
-        sup, nrm = np.asarray(sample.support_points), np.asarray(sample.support_normals)
         poses = []
         for stage in (out.stage1_poses, out.stage2_poses):
-            order, _ = rank_by_penetration(obj, sup, nrm, np.asarray(stage, np.float32))
-            poses.append(np.asarray(stage)[np.asarray(order)])
+            poses.append(np.asarray(stage)[penetration_order(sample, stage, object_stride)])
         return PairPrediction(*poses)
 
     return ranked
@@ -225,9 +241,7 @@ def lifted_fn(predict: PredictFn, lift: float) -> PredictFn:
 
     def lifted(sample: HangSample, meta: dict) -> PairPrediction:
         out = predict(sample, meta)
-        poses = np.array(out.stage1_poses, np.float64, copy=True)
-        poses[..., 2] += lift
-        return PairPrediction(poses, out.stage2_poses)
+        return PairPrediction(lift_poses(out.stage1_poses, lift), out.stage2_poses)
 
     return lifted
 

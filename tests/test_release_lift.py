@@ -39,7 +39,7 @@ def test_a_pose_inside_the_hook_hangs_when_released_above_it(ring_scene):
     assert got[f"{stage1.ANSWER_LIFT:g}"] == "stable", got  # 1.5 mm above the rest pose
     # far above the hook the same ring still drops onto it, far beside it falls
     res = kernels.stability(
-        scene, np.stack([release_lift.lifted(rest, 0.0), rest + [0.1, 0, 0, 0, 0, 0, 0]])
+        scene, np.stack([evaluate.lift_poses(rest, 0.02), rest + [0.1, 0, 0, 0, 0, 0, 0]])
     )
     assert res.status.tolist() == [kernels.STABLE, kernels.FALLEN]
 

@@ -22,6 +22,11 @@ def test_figure_and_table_from_a_results_file(tmp_path):
     assert (
         json.loads((tmp_path / "f.json").read_text())["stages"]["stage1"]["paper"]["mean"] == 36.0
     )
+    # a stage's "answer" (how the results chose it) travels with its row, absent ones stay absent
+    assert F.table({"stage1": {**_row(5.0), "answer": "released 7.5 mm up"}})["stage1"][
+        "answer"
+    ] == ("released 7.5 mm up")
+    assert "answer" not in out["stages"]["stage1"]
     # the paper's table: 11 categories per row, its means as printed
     for mean, cats in F.PAPER.values():
         assert set(cats) == set(F.CATEGORIES) and 0 < mean < 100
