@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
+import math
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -346,6 +348,7 @@ class CollisionData:
     far_pair: np.ndarray | None = None  # [F] int32: extra training poses:
     far_poses: np.ndarray | None = None  # [F, 7] far_free_poses, stable poses, near poses
     far_labels: np.ndarray | None = None  # [F] bool (True = colliding; near poses only)
+    far_near: np.ndarray | None = None  # [F] bool: the row is a near-contact pose (--near-share)
     # near-contact poses of the pairs (near_contact_poses; files derived with them), labelled
     # by the planner's ground truth (penetration > NEAR_TOLERANCE on the full meshes)
     near_pair: np.ndarray | None = None  # [K] int32
@@ -378,17 +381,24 @@ def load_collision_data(
     recipe_library=None,
     stable_free: bool = False,
     near_train: bool = False,
+    planner_labels: bool = False,
 ) -> CollisionData:
     """Clouds and labels of the pair files; ``far_per_pair`` far free poses per pair
     (:func:`far_free_poses`), with ``stable_free`` the pair's stable poses as free labels and
     with ``near_train`` its near-contact poses (not the stable ones) with their mesh labels,
     for training (see ``main``'s ``--stable-free`` / ``--near``). The near-contact poses are
-    always loaded (``near_*``, for the metrics) when the files have them."""
+    always loaded (``near_*``, for the metrics) when the files have them.
+
+    ``planner_labels``: the dataset's labelled poses are labelled by the planner's ground
+    truth instead (deepest mesh penetration ``collision_penetration`` > NEAR_TOLERANCE, where
+    the file has it): the dataset calls any touch colliding, the planner and its evaluation
+    allow 1 mm, and the stable poses (free labels) rest in contact, so without this the NCE
+    is taught both sides of the same millimetre."""
     if not files:
         raise ValueError("no pair files to load")
     rng = np.random.default_rng(seed)
     cache: dict = {} if recipe_library is None else {"library": recipe_library}
-    far_pair, far_poses, far_labels = [], [], []
+    far_pair, far_poses, far_labels, far_near = [], [], [], []
     near: dict[str, list] = {"pair": [], "poses": [], "kind": [], "labels": []}
     keys = ("object_points", "object_normals", "support_points", "support_normals")
     clouds: dict[str, list] = {k: [] for k in keys}
@@ -404,7 +414,10 @@ def load_collision_data(
         for k in keys:
             clouds[k].append(f[k])
         poses.append(f["collision_poses"])
-        labels.append(f["collision_labels"])
+        if planner_labels and "collision_penetration" in f.files:
+            labels.append(f["collision_penetration"] > NEAR_TOLERANCE)
+        else:
+            labels.append(f["collision_labels"])
         pair.append(np.full(len(f["collision_labels"]), i, np.int32))
         meta.append({k: f[k].item() for k in dataset_bridge.META_KEYS})
         if far_per_pair:
@@ -420,11 +433,13 @@ def load_collision_data(
             )
             far_pair.append(np.full(far_per_pair, i, np.int32))
             far_labels.append(np.zeros(far_per_pair, bool))
+            far_near.append(np.zeros(far_per_pair, bool))
         if stable_free:
             stable = f["stable_poses"].astype(np.float32)
             far_poses.append(stable)
             far_pair.append(np.full(len(stable), i, np.int32))
             far_labels.append(np.zeros(len(stable), bool))
+            far_near.append(np.zeros(len(stable), bool))
         if "near_poses" in f.files:
             kind = f["near_kind"]
             label = f["near_penetration"] > NEAR_TOLERANCE
@@ -437,6 +452,7 @@ def load_collision_data(
                 far_poses.append(f["near_poses"][moved].astype(np.float32))
                 far_pair.append(np.full(int(moved.sum()), i, np.int32))
                 far_labels.append(label[moved])
+                far_near.append(np.ones(int(moved.sum()), bool))
     return CollisionData(
         *(np.stack(clouds[k]) for k in keys),
         pair=np.concatenate(pair),
@@ -446,6 +462,7 @@ def load_collision_data(
         far_pair=np.concatenate(far_pair) if far_pair else None,
         far_poses=np.concatenate(far_poses) if far_poses else None,
         far_labels=np.concatenate(far_labels) if far_labels else None,
+        far_near=np.concatenate(far_near) if far_near else None,
         **{f"near_{k}": np.concatenate(v) if v else None for k, v in near.items()},
     )
 
@@ -471,30 +488,56 @@ def train_nce(
     params=None,
     progress: bool = True,
     stop_at: float | None = None,
+    near_share: float = 0.0,
+    schedule: str = "constant",
+    val: CollisionData | None = None,
+    val_every: int = 0,
+    val_labels: int = 8192,
 ) -> tuple[dict, dict]:
     """Cross entropy on (pair, pose, label) triples. Returns (params, log). ``stop_at``: a
     unix time training stops at, whatever the budget (initialisation and compilation
-    included)."""
+    included).
+
+    ``near_share``: this fraction of every batch is drawn from the near-contact training poses
+    (``CollisionData.far_near``; the rest uniformly from all rows), so that the millimetres
+    around the goals, where the planner's last edges run, get more of the training.
+    ``schedule``: "constant" (the paper's Adam at ``learning_rate``) or "cosine" (a linear
+    warm-up over the first 3 % of the time budget, then cosine decay to 5 % of the rate at
+    its end: the budget, not a step count, is what a device call fixes).
+    ``val`` (pairs never trained on) with ``val_every`` > 0: every ``val_every`` steps the
+    loss and accuracy on a fixed set of at most ``val_labels`` of their labelled poses (half
+    near-contact poses, planner labels; half dataset poses), with the planner's fixed cloud
+    subsets, go to ``log["val_history"]``."""
     nets = collision.make_nce(config)
     key = jax.random.key(seed)
     key, init_key = jax.random.split(key)
     params = nets.init(init_key) if params is None else params
-    opt = optax.adam(learning_rate)
+    opt = optax.inject_hyperparams(optax.adam)(learning_rate=learning_rate)
     opt_state = opt.init(params)
     obj_clouds = jnp.asarray(data.object_points)
     sup_clouds = jnp.asarray(data.support_points)
     pair, poses, labels = data.pair, data.poses, data.labels
+    near_rows = np.zeros(0, np.int64)
     if data.far_poses is not None:  # far / stable (free) and near-contact poses
+        if data.far_near is not None:
+            near_rows = len(pair) + np.flatnonzero(data.far_near)
         pair = np.concatenate([pair, data.far_pair])
         poses = np.concatenate([poses, data.far_poses])
         labels = np.concatenate([labels, data.far_labels])
+    n_near = int(round(near_share * batch)) if len(near_rows) else 0
+    if near_share > 0 and not n_near:
+        print("warning: --near-share without near-contact training poses: uniform batches")
+    near_rows = jnp.asarray(near_rows if n_near else np.zeros(1, np.int64))
     pair, poses = jnp.asarray(pair), jnp.asarray(poses)
     labels = jnp.asarray(labels, jnp.float32)
 
     @jax.jit
     def step(params, opt_state, key):
-        k_pick, k_obj, k_sup = jax.random.split(key, 3)
-        pick = jax.random.randint(k_pick, (batch,), 0, labels.shape[0])
+        k_pick, k_near, k_obj, k_sup = jax.random.split(key, 4)
+        pick = jax.random.randint(k_pick, (batch - n_near,), 0, labels.shape[0])
+        if n_near:
+            near = near_rows[jax.random.randint(k_near, (n_near,), 0, near_rows.shape[0])]
+            pick = jnp.concatenate([pick, near])
         p = pair[pick]
         obj = _sample_points(k_obj, obj_clouds[p], config.object_points)
         sup = _sample_points(k_sup, sup_clouds[p], config.support_input)
@@ -508,7 +551,88 @@ def train_nce(
         updates, opt_state = opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss, acc
 
-    return _loop(step, params, opt_state, key, steps, time_budget, batch, "nce", progress, stop_at)
+    lr_at = None
+    if schedule == "cosine":
+        lr_at = functools.partial(warmup_cosine, peak=learning_rate)
+    elif schedule != "constant":
+        raise ValueError(f"schedule must be 'constant' or 'cosine', got {schedule!r}")
+    evaluate = None
+    if val is not None and val_every > 0:
+        evaluate = _validation_fn(nets, config, val, val_labels, seed)
+    params, log = _loop(
+        step, params, opt_state, key, steps, time_budget, batch, "nce", progress, stop_at,
+        lr_at=lr_at, evaluate=evaluate, eval_every=val_every,
+    )  # fmt: skip
+    log |= dict(near_share=n_near / batch, schedule=schedule, peak_lr=learning_rate)
+    return params, log
+
+
+def warmup_cosine(frac: float, peak: float, warmup: float = 0.03, final: float = 0.05) -> float:
+    """The learning rate at ``frac`` (0..1) of a run: linear warm-up from 10 % of ``peak``
+    over the first ``warmup`` of it, then cosine decay to ``final`` x ``peak`` at its end."""
+    frac = min(max(frac, 0.0), 1.0)
+    if frac < warmup:
+        return peak * (0.1 + 0.9 * frac / warmup)
+    t = (frac - warmup) / (1.0 - warmup)
+    return peak * (final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * t)))
+
+
+def validation_rows(val: CollisionData, max_labels: int, seed: int = 0):
+    """A fixed validation set: (pair [V], poses [V, 7], labels [V] bool, near [V] bool), at
+    most ``max_labels`` rows, half near-contact poses (planner labels) where the files have
+    them, the rest dataset poses."""
+    rng = np.random.default_rng([seed, 7])
+    n_near = 0 if val.near_poses is None else min(len(val.near_poses), max_labels // 2)
+    near = np.sort(rng.choice(len(val.near_poses), n_near, False)) if n_near else []
+    n_data = min(len(val.labels), max_labels - n_near)
+    rows = np.sort(rng.choice(len(val.labels), n_data, False))
+    pair = np.concatenate([val.pair[rows], val.near_pair[near] if n_near else []])
+    poses = np.concatenate([val.poses[rows], val.near_poses[near] if n_near else np.zeros((0, 7))])
+    labels = np.concatenate([val.labels[rows], val.near_labels[near] if n_near else []])
+    is_near = np.concatenate([np.zeros(n_data, bool), np.ones(n_near, bool)])
+    return pair.astype(np.int32), poses.astype(np.float32), labels.astype(bool), is_near
+
+
+def _validation_fn(nets, config, val: CollisionData, max_labels: int, seed: int):
+    """evaluate(params) -> dict of the validation loss / accuracy (all rows and near-contact
+    rows) on :func:`validation_rows`, with the planner's fixed cloud subsets."""
+    pair, poses, labels, is_near = validation_rows(val, max_labels, seed)
+    obj, sup = zip(
+        *(
+            planner_clouds(o, s, config.object_points, config.support_input)
+            for o, s in zip(val.object_points, val.support_points)
+        )
+    )
+    obj, sup = jnp.asarray(np.stack(obj)), jnp.asarray(np.stack(sup))
+    chunk = 1024
+    pad = (-len(pair)) % chunk
+    pair_p = jnp.asarray(np.concatenate([pair, np.repeat(pair[:1], pad)]))
+    poses_p = jnp.asarray(np.concatenate([poses, np.repeat(poses[:1], pad, 0)]))
+
+    @jax.jit
+    def logits_of(params, p, x):
+        return nets.apply(params, obj[p], sup[p], x)
+
+    y = labels.astype(np.float32)
+
+    def evaluate(params) -> dict:
+        logits = np.concatenate(
+            [
+                np.asarray(logits_of(params, pair_p[a : a + chunk], poses_p[a : a + chunk]))
+                for a in range(0, len(pair_p), chunk)
+            ]
+        )[: len(pair)]
+        loss = np.asarray(optax.sigmoid_binary_cross_entropy(logits, y))
+        right = (logits > 0) == labels
+        out = dict(val_loss=float(loss.mean()), val_accuracy=float(right.mean()))
+        if is_near.any():
+            out |= dict(
+                val_near_loss=float(loss[is_near].mean()),
+                val_near_accuracy=float(right[is_near].mean()),
+            )
+        return out
+
+    return evaluate
 
 
 def train_normals(
@@ -554,21 +678,49 @@ def train_normals(
     )
 
 
-def _loop(step, params, opt_state, key, steps, time_budget, batch, name, progress, stop_at=None):
+def _loop(
+    step, params, opt_state, key, steps, time_budget, batch, name, progress, stop_at=None,
+    lr_at=None, evaluate=None, eval_every=0,
+):  # fmt: skip
+    """Run ``step`` until ``steps`` or the time budget. ``lr_at(frac)``: the learning rate at
+    this fraction of the budget (an ``optax.inject_hyperparams`` state); ``evaluate(params)``
+    every ``eval_every`` steps (and at the end) -> a dict logged in ``val_history``."""
     t_compile = time.perf_counter()
     key, k = jax.random.split(key)
+
+    def set_lr(frac):
+        if lr_at is not None:
+            opt_state.hyperparams["learning_rate"] = jnp.asarray(lr_at(frac), jnp.float32)
+
+    set_lr(0.0)
     params, opt_state, loss, metric = step(params, opt_state, k)
     jax.block_until_ready(loss)
     compile_s = time.perf_counter() - t_compile
     t0 = time.perf_counter()
-    history = []
+    history, val_history = [], []
     done = 1
     bar = tqdm(total=steps, desc=f"train {name}", disable=not progress)
     bar.update(1)
     losses, metrics = [], []
     if stop_at is not None:  # the budget, or less if the wall clock says so
         time_budget = min(time_budget, stop_at - time.time())
-    while done < steps and time.perf_counter() - t0 < time_budget:
+
+    def validate():
+        if evaluate is not None:
+            t = time.perf_counter()
+            row = dict(step=done, seconds=round(t - t0, 1), **evaluate(params))
+            val_history.append(row)
+            print(f"{name} validation at step {done}: " + json.dumps(row), flush=True)
+            return time.perf_counter() - t  # not counted against the training budget
+        return 0.0
+
+    paused = validate()
+    while (
+        done < steps
+        and time.perf_counter() - t0 - paused < time_budget
+        and (stop_at is None or time.time() < stop_at)
+    ):
+        set_lr((time.perf_counter() - t0 - paused) / max(time_budget, 1e-9))
         key, k = jax.random.split(key)
         params, opt_state, loss, metric = step(params, opt_state, k)
         losses.append(loss)
@@ -581,9 +733,13 @@ def _loop(step, params, opt_state, key, steps, time_budget, batch, name, progres
             history.append((done, mean_loss, mean_metric))
             bar.set_postfix(loss=f"{mean_loss:.3f}", metric=f"{mean_metric:.3f}")
             losses, metrics = [], []
+        if eval_every and done % eval_every == 0:
+            paused += validate()
     jax.block_until_ready(params)
+    if evaluate is not None and (not val_history or val_history[-1]["step"] != done):
+        paused += validate()
     bar.close()
-    seconds = time.perf_counter() - t0
+    seconds = time.perf_counter() - t0 - paused
     log = dict(
         steps=done,
         batch=batch,
@@ -592,7 +748,48 @@ def _loop(step, params, opt_state, key, steps, time_budget, batch, name, progres
         samples_per_s=round((done - 1) * batch / max(seconds, 1e-9), 1),
         history=history,
     )
+    if evaluate is not None:
+        log["val_history"] = val_history
     return params, log
+
+
+def write_curves(out: Path, log: dict) -> None:
+    """Append this call's NCE log to ``OUT/nce_history.jsonl`` (one line per training call:
+    a resumed job keeps every call's curve) and draw all calls, steps counted on, into
+    ``OUT/nce_curves.png``: training loss and, where measured, validation loss (all rows and
+    near-contact rows)."""
+    with open(out / "nce_history.jsonl", "a") as f:
+        f.write(json.dumps(log) + "\n")
+    calls = [json.loads(line) for line in open(out / "nce_history.jsonl") if line.strip()]
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    offset = 0
+    for i, call in enumerate(calls):
+        hist = np.asarray(call.get("history") or np.zeros((0, 3)), float).reshape(-1, 3)
+        ax.plot(offset + hist[:, 0], hist[:, 1], "C0", lw=1, label="train" if i == 0 else None)
+        val = call.get("val_history") or []
+        if val:
+            steps = offset + np.array([r["step"] for r in val])
+            ax.plot(steps, [r["val_loss"] for r in val], "C1o-", ms=3,
+                    label="validation" if i == 0 else None)  # fmt: skip
+            if "val_near_loss" in val[0]:
+                ax.plot(steps, [r["val_near_loss"] for r in val], "C2s--", ms=3,
+                        label="validation, near contact" if i == 0 else None)  # fmt: skip
+        if i:
+            ax.axvline(offset, color="0.7", lw=0.8)
+        offset += int(call.get("steps", 0))
+    ax.set_xlabel("NCE step (calls joined; grey: a resumed call)")
+    ax.set_ylabel("cross entropy")
+    ax.set_yscale("log")
+    ax.legend()
+    ax.set_title("NCE training")
+    fig.tight_layout()
+    fig.savefig(out / "nce_curves.png", dpi=110)
+    plt.close(fig)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -800,7 +997,32 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--batch", type=int, default=64, help="NCE batch (poses)")
     parser.add_argument("--normal-batch", type=int, default=16, help="normal-net batch (clouds)")
-    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--lr", type=float, default=1e-3, help="Adam lr (the cosine's peak)")
+    parser.add_argument(
+        "--lr-schedule",
+        choices=["constant", "cosine"],
+        default="constant",
+        help="NCE: constant, or warm-up + cosine decay over its time budget (train_nce)",
+    )
+    parser.add_argument(
+        "--near-share",
+        type=float,
+        default=0.0,
+        help="NCE: fraction of each batch drawn from the near-contact training poses (--near 1)",
+    )
+    parser.add_argument(
+        "--planner-labels",
+        type=int,
+        default=0,
+        help="1: the dataset's poses labelled by the planner's ground truth (mesh penetration "
+        "> 1 mm, as the evaluation) instead of any touch; training pairs only",
+    )
+    parser.add_argument(
+        "--val-curve-every",
+        type=int,
+        default=0,
+        help="NCE: validation loss on the validation pairs every N steps (0: off)",
+    )
     parser.add_argument(
         "--stable-free",
         type=int,
@@ -935,6 +1157,7 @@ def main(argv=None) -> dict:
         far_per_pair=args.far_per_pair,
         stable_free=bool(args.stable_free),
         near_train=bool(args.near),
+        planner_labels=bool(args.planner_labels),
     )
     test = load_collision_data(test_files)
     val = load_collision_data(val_files) if val_files else None
@@ -980,8 +1203,11 @@ def main(argv=None) -> dict:
         train, nce_cfg, args.steps, nce_budget, args.batch, args.lr, params=nce_params,
         progress=progress,
         stop_at=args.deadline - after if args.deadline else None,
+        near_share=args.near_share, schedule=args.lr_schedule,
+        val=val if args.val_curve_every > 0 else None, val_every=args.val_curve_every,
     )  # fmt: skip
     collision.save_estimator(out / "nce", nce_cfg, nce_params, train=nce_log, evaluated=False)
+    write_curves(out, nce_log)
     phase(f"NCE trained ({nce_log['steps']} steps, compiled in {nce_log['compile_s']} s)")
 
     # the NCE threshold: stable goals of validation pairs pass (near_metrics, --goal-pass)
@@ -1019,6 +1245,10 @@ def main(argv=None) -> dict:
         nce=nce_log,
         nce_threshold=nce_cfg.threshold,
         near_training=bool(args.near),
+        near_share=args.near_share,
+        planner_labels=bool(args.planner_labels),
+        lr=args.lr,
+        lr_schedule=args.lr_schedule,
         validation_pairs=len(val_files),
         validation=validation,
         held_out=metrics,

@@ -8,6 +8,7 @@ from dataclasses import replace
 import jax
 import mujoco
 import numpy as np
+import pytest
 
 from omnihang_jax import collision
 
@@ -298,3 +299,73 @@ def test_penetration_test_calls_5mm_inside_colliding_and_5mm_above_free():
         np.testing.assert_array_equal(batched, np.broadcast_to(want, batched.shape))
         single = [bool(hybrid(hybrid_params, oc, sc, p[None])[0]) for p in many]
         np.testing.assert_array_equal(batched, single)
+
+
+def test_planner_labels_allow_the_evaluations_millimetre(tmp_path):
+    """--planner-labels: a dataset pose touching the support 0.4 mm deep is colliding for the
+    dataset but free for the planner (1 mm tolerance); 5 mm deep stays colliding; near-contact
+    rows are flagged for --near-share."""
+    from experiments.train_collision import load_collision_data
+    from omnihang_jax.dataset_bridge import META_KEYS
+
+    rng = np.random.default_rng(0)
+    meta = dict(zip(META_KEYS, (7, "mug_0", "hook_0", "mug", "hook", "train"), strict=False))
+    poses = np.tile(np.array([0, 0, 0, 1, 0, 0, 0], np.float32), (3, 1))
+    np.savez(
+        tmp_path / "00007_pair.npz",
+        object_points=rng.normal(size=(16, 3)).astype(np.float32),
+        object_normals=rng.normal(size=(16, 3)).astype(np.float32),
+        support_points=rng.normal(size=(16, 3)).astype(np.float32),
+        support_normals=rng.normal(size=(16, 3)).astype(np.float32),
+        collision_poses=poses,
+        collision_labels=np.array([True, True, False]),
+        collision_penetration=np.array([4e-4, 5e-3, 0.0], np.float32),
+        near_poses=np.tile(poses[:1], (4, 1)),
+        near_kind=np.array([0, 1, 1, 3], np.int8),
+        near_penetration=np.array([0.0, 2e-3, 1e-4, 0.0], np.float32),
+        **{k: np.asarray(v) for k, v in meta.items()},
+    )
+    files = [tmp_path / "00007_pair.npz"]
+    dataset = load_collision_data(files, near_train=True)
+    planner = load_collision_data(files, near_train=True, planner_labels=True)
+    np.testing.assert_array_equal(dataset.labels, [True, True, False])
+    np.testing.assert_array_equal(planner.labels, [False, True, False])
+    # the three moved near-contact poses (not the stable one) train, flagged as near contact
+    np.testing.assert_array_equal(planner.far_labels, [True, False, False])
+    np.testing.assert_array_equal(planner.far_near, [True, True, True])
+
+
+def test_nce_schedule_near_share_and_validation_curve():
+    """train_nce with --near-share, the cosine schedule and a validation curve: the batches
+    hold the asked share of near-contact rows, the validation loss falls, the lr follows
+    warm-up + cosine."""
+    import dataclasses as dc
+
+    from experiments.train_collision import train_nce, warmup_cosine
+
+    assert warmup_cosine(0.0, 1e-3) == pytest.approx(1e-4)
+    assert warmup_cosine(0.03, 1e-3) == pytest.approx(1e-3)
+    assert warmup_cosine(1.0, 1e-3) == pytest.approx(5e-5)
+    assert warmup_cosine(0.5, 1e-3) < warmup_cosine(0.3, 1e-3) < 1e-3
+
+    rng = np.random.default_rng(5)
+    train, val = _rod_task(rng, 1500), _rod_task(rng, 300)
+    near = _rod_task(rng, 200)  # stand-ins for the near-contact rows
+    train = dc.replace(
+        train, far_pair=near.pair, far_poses=near.poses, far_labels=near.labels,
+        far_near=np.ones(200, bool),
+    )  # fmt: skip
+    val = dc.replace(
+        val, near_pair=near.pair[:100], near_poses=near.poses[:100],
+        near_kind=np.ones(100, np.int8), near_labels=near.labels[:100],
+    )  # fmt: skip
+    cfg = collision.NCE_PRESETS["tiny"]
+    params, log = train_nce(
+        train, cfg, steps=120, time_budget=120, batch=32, progress=False, near_share=0.25,
+        schedule="cosine", val=val, val_every=60, val_labels=256,
+    )  # fmt: skip
+    assert log["near_share"] == 0.25 and log["schedule"] == "cosine"
+    curve = log["val_history"]
+    assert [r["step"] for r in curve] == [1, 60, 120]
+    assert curve[-1]["val_loss"] < curve[0]["val_loss"]
+    assert 0.0 <= curve[-1]["val_near_accuracy"] <= 1.0

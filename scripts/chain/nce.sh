@@ -34,6 +34,11 @@
 # run_crop/ (tarball: weights_crop/; NCE only, no normal net), that is given 2,048 support points and keeps the 256
 # nearest to the posed object (collision.crop_support: ~8x denser support where contact is).
 # GPU memory: XLA_PYTHON_CLIENT_MEM_FRACTION 0.12 per process unless set (2 x ~9.6 GB).
+# NCE_ARGS: more train_collision flags for both NCEs (e.g. "--planner-labels 1 --near-share
+# 0.3 --lr-schedule cosine --val-curve-every 1000"); CROP_GPU: the crop variant on this GPU
+# (CUDA_VISIBLE_DEVICES; default: the base's); BASE_ARGS / CROP_ARGS: flags for one of the two
+# only (a controlled pair: e.g. the base with --support-crop-from 2048 and the new flags, the
+# crop variant with the old ones).
 set -uo pipefail
 BUDGET=${1:?usage: nce.sh BUDGET_S OUT_TGZ}
 OUT_TGZ=${2:?usage: nce.sh BUDGET_S OUT_TGZ}
@@ -113,17 +118,18 @@ else
     if [ "$CROP_FROM" -gt 0 ]; then
         CROP_RESUME=
         [ -f "$STATE/run_crop/nce/config.json" ] && CROP_RESUME=--resume
+        CUDA_VISIBLE_DEVICES=${CROP_GPU:-${CUDA_VISIBLE_DEVICES:-0}} \
         timeout -k 5 $(($(left) - 12)) "$PY" -m experiments.train_collision "${COMMON[@]}" \
             --out "$STATE/run_crop" --support-crop-from "$CROP_FROM" \
             --existing-only $CROP_RESUME --batch "$BATCH" --normal-batch "$NORMAL_BATCH" \
             --time-budget "nce=$NCE_S,normals=0" "${TIMING[@]}" --eval-labels "$EVAL_LABELS" \
-            --threshold-labels "$THRESHOLD_LABELS" >"$STATE/logs/train_crop_$CALL.log" 2>&1 &
+            --threshold-labels "$THRESHOLD_LABELS" ${NCE_ARGS:-} ${CROP_ARGS:-} >"$STATE/logs/train_crop_$CALL.log" 2>&1 &
         CROP_PID=$!
     fi
     timeout -k 5 $(($(left) - 12)) "$PY" -m experiments.train_collision "${COMMON[@]}" \
         --existing-only $RESUME --batch "$BATCH" --normal-batch "$NORMAL_BATCH" \
         --time-budget "nce=$NCE_S,normals=$NORMALS_S" "${TIMING[@]}" --eval-labels "$EVAL_LABELS" \
-        --threshold-labels "$THRESHOLD_LABELS" >"$STATE/logs/train_$CALL.log" 2>&1
+        --threshold-labels "$THRESHOLD_LABELS" ${NCE_ARGS:-} ${BASE_ARGS:-} >"$STATE/logs/train_$CALL.log" 2>&1
     STATUS=$?
     grep -E "^pairs:|^held-out" "$STATE/logs/train_$CALL.log" | tee -a "$LOG"
     [ "$STATUS" -eq 0 ] || log "error: train_collision exited $STATUS (see logs/train_$CALL.log)"
