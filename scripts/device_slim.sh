@@ -50,6 +50,9 @@ LIST=(
     results/validation_where_s15 results/stage3_train_s16 results/release_lift
     results/hanging_success_stage1_select_lift_s15.pairs.jsonl.gz results/hanging_success_stage12_select_clear8_s15.pairs.jsonl.gz
     results/hanging_success_stage3_s16_k16.pairs.jsonl.gz
+    # (sixteenth session: the new collision weights, Stage-2 training records; the Stage-2
+    # candidate weights/where_s16_stage2ft stays for the val call that compares it)
+    weights/collision_s16_planner weights/collision_s16_control results/train_where_s16_stage2
 )
 case ${1:-} in
 out)
