@@ -9,7 +9,8 @@ never into the model folder unless asked): per pair the
 Stage-1 and Stage-2 poses (xyz metres + quaternion wxyz, object frame in support frame; Stage 1
 released ``--stage1-lift`` above the network's pose and Stage 2 with the answer's clearance,
 ``--stage2-clearance``), each stage's answer among them (``--select``: the least penetrating
-of the observed support, as eval_where evaluates it), the
+of the observed support, as eval_where evaluates it; the Stages 1+2 answer released
+``--stage2-lift`` higher), the
 chosen contact correspondences and, where ground truth is known, the distance from each
 predicted position to the nearest stable pose.
 """
@@ -63,6 +64,11 @@ def main(argv=None) -> dict:
         help="the Stage-2 poses' clearance in metres along the observed support normal (default "
         "stage2.ANSWER_CLEARANCE, the Stages 1+2 answer; 0: the paper's); Stage 3 (--value) "
         "starts from Stage 2 without it, as the evaluated pipeline",
+    )  # fmt: skip
+    parser.add_argument(
+        "--stage2-lift", type=float, default=stage2.ANSWER_LIFT, metavar="M",
+        help="the Stages 1+2 answer (stage2_answer) released M metres above the chosen pose, "
+        "after the clearance and the selection (default stage2.ANSWER_LIFT; 0: none)",
     )  # fmt: skip
     parser.add_argument(
         "--value",
@@ -127,7 +133,9 @@ def main(argv=None) -> dict:
                 "stage2_poses": out.stage2_poses[i].tolist(),
                 "stage1_answer": stage1_poses[i][answer1[i]].tolist(),
                 "stage1_answer_index": int(answer1[i]),
-                "stage2_answer": np.asarray(out.stage2_poses[i][answer2[i]]).tolist(),
+                "stage2_answer": evaluate.lift_poses(
+                    out.stage2_poses[i][answer2[i]], args.stage2_lift
+                ).tolist(),
                 "stage2_answer_index": int(answer2[i]),
                 "object_indices": out.object_indices[i].tolist(),
                 "support_indices": out.support_indices[i].tolist(),
@@ -152,6 +160,7 @@ def main(argv=None) -> dict:
         "stage1_lift_m": args.stage1_lift,
         "select": args.select,
         "stage2_clearance_m": args.stage2_clearance,
+        "stage2_lift_m": args.stage2_lift,
         "mean_stage1_position_error_m": float(
             np.mean([r["stage1_position_error_m"] for r in records])
         ),

@@ -118,6 +118,10 @@ class EvalConfig:
     # Stage2Config.clearance for the loaded model (None: the model's own, 0 unless trained
     # otherwise): the Stage-2 pose moves this far along the observed support normal
     stage2_clearance: float | None = None
+    # release the Stage-2 poses this far (m) above (+z of the support frame) AFTER ``select``:
+    # the chosen Stages 1+2 answer is let go above its clearance-moved pose (stage2.ANSWER_LIFT);
+    # 0 = the pose as solved and moved by the clearance
+    stage2_lift: float = 0.0
 
 
 class PairPrediction(NamedTuple):
@@ -242,6 +246,18 @@ def lifted_fn(predict: PredictFn, lift: float) -> PredictFn:
     def lifted(sample: HangSample, meta: dict) -> PairPrediction:
         out = predict(sample, meta)
         return PairPrediction(lift_poses(out.stage1_poses, lift), out.stage2_poses)
+
+    return lifted
+
+
+def lifted_stage2_fn(predict: PredictFn, lift: float) -> PredictFn:
+    """Every Stage-2 pose moved ``lift`` metres up (+z of the support frame), rotation kept.
+    Wrapped around the ranked predictor, so the answer is chosen first and released above
+    (a uniform shift after ranking keeps the order); the Stage-1 poses are left as they are."""
+
+    def lifted(sample: HangSample, meta: dict) -> PairPrediction:
+        out = predict(sample, meta)
+        return PairPrediction(out.stage1_poses, lift_poses(out.stage2_poses, lift))
 
     return lifted
 
@@ -598,6 +614,8 @@ def evaluate_where(
             predict = ranked_fn(predict)
         elif config.select != "first":
             raise ValueError(f"select must be one of {SELECTS}, got {config.select!r}")
+        if config.stage2_lift:
+            predict = lifted_stage2_fn(predict, config.stage2_lift)
     else:
         predict = ground_truth_fn()
     records = evaluate_pairs(files, predict, library, config, progress)
@@ -642,6 +660,7 @@ def evaluate_where(
             "separate": config.separate,
             "stage1_lift_m": config.stage1_lift,
             "stage2_clearance_m": config.stage2_clearance,
+            "stage2_lift_m": config.stage2_lift,
             "stage1_2": "Stage-2 refinement of the same proposal",
             "success": "status stable after 1 s from rest; fails if initial penetration > 3 mm, "
             "boxes stop overlapping, ground touched or simulation diverged",

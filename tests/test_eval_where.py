@@ -273,6 +273,18 @@ def test_evaluate_where_writes_results(derived, library, tmp_path):
     )
     np.testing.assert_array_equal(c.stage2_poses, a.stage2_poses)
 
+    # EvalConfig.stage2_lift (evaluate.lifted_stage2_fn) wraps the ranked predictor: the answer
+    # is chosen first, then every Stage-2 pose (the answer first) is released exactly that far
+    # up, order, rotations and Stage 1 untouched
+    ranked = evaluate.ranked_fn(evaluate.predictor_fn(predictor, 2))
+    r = ranked(sample, meta)
+    d = evaluate.lifted_stage2_fn(ranked, 0.005)(sample, meta)
+    np.testing.assert_allclose(d.stage2_poses[:, 2] - r.stage2_poses[:, 2], 0.005, atol=1e-7)
+    np.testing.assert_array_equal(
+        d.stage2_poses[:, [0, 1, 3, 4, 5, 6]], r.stage2_poses[:, [0, 1, 3, 4, 5, 6]]
+    )
+    np.testing.assert_array_equal(d.stage1_poses, r.stage1_poses)
+
 
 def test_stage2_from_ground_truth_diagnostic(derived):
     out, _ = derived
