@@ -98,11 +98,16 @@ def test_cli_train_and_predict(trained_dir):
     # the Stages 1+2 answer's clearance is the default: the same Stage-2 poses moved
     # stage2.ANSWER_CLEARANCE along the observed support normal, 0 gives the solved ones
     assert summary["stage2_clearance_m"] == stage2.ANSWER_CLEARANCE
-    # each stage's answer is one of its proposals, the least penetrating by default
+    # each stage's answer is one of its proposals, the least penetrating by default; the
+    # Stages 1+2 answer is then released stage2.ANSWER_LIFT higher (+z, rotation kept)
     assert summary["select"] == "penetration"
+    assert summary["stage2_lift_m"] == stage2.ANSWER_LIFT
     for p in pairs:
-        for st in ("stage1", "stage2"):
-            assert p[f"{st}_answer"] == p[f"{st}_poses"][p[f"{st}_answer_index"]]
+        assert p["stage1_answer"] == p["stage1_poses"][p["stage1_answer_index"]]
+        chosen = np.asarray(p["stage2_poses"][p["stage2_answer_index"]])
+        up = np.asarray(p["stage2_answer"]) - chosen
+        np.testing.assert_allclose(up[2], stage2.ANSWER_LIFT, atol=1e-7)
+        np.testing.assert_allclose(up[[0, 1, 3, 4, 5, 6]], 0.0, atol=1e-7)
     out0 = os.path.join(trained_dir, "predictions_0.json")
     predict_where.main(
         ["--model", trained_dir, "--pairs", "2", "--proposals", "3", "--out", out0,
