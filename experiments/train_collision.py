@@ -1160,7 +1160,13 @@ def main(argv=None) -> dict:
         planner_labels=bool(args.planner_labels),
     )
     test = load_collision_data(test_files)
-    val = load_collision_data(val_files) if val_files else None
+    # the validation curve measures the training objective: the same labels as training
+    # (the threshold and the metrics below read the near-contact poses, labelled either way)
+    val = (
+        load_collision_data(val_files, planner_labels=bool(args.planner_labels))
+        if val_files
+        else None
+    )
     held_out = {m["pair_index"] for m in test.meta}
     if val is not None:
         held_out |= {m["pair_index"] for m in val.meta}

@@ -67,7 +67,7 @@ print(sum(1 for p in r['pairs'] if p[2] == 'train'))" 2>/dev/null || echo 0; }
 n_derived() { ls "$DS/derived/train" 2>/dev/null | grep -c '\.npz$'; }
 TOTAL=$(n_train_pairs)
 [ "$N_TRAIN" -gt 0 ] && TOTAL=$N_TRAIN
-log "budget $BUDGET s; $(n_derived) of $TOTAL training pairs derived; init $INIT; batch $BATCH, lr $LR, $STEPS steps"
+log "budget $BUDGET s; $(n_derived) training pairs derived (of $TOTAL in the recipe; pairs without a stable pose are never derived); init $INIT; batch $BATCH, lr $LR, $STEPS steps"
 
 # 1. derive (resumable: files already there are skipped)
 DERIVE_END=$(awk "BEGIN {print int($BUDGET * $DERIVE_FRACTION)}")
@@ -79,7 +79,7 @@ elif [ "$(n_derived)" -lt "$TOTAL" ]; then
     [ "$N_TRAIN" -gt 0 ] && LIMIT=(--limit "$((N_TRAIN - $(n_derived)))")
     timeout -k 5 $((DERIVE_END - $(elapsed))) "$PY" -m experiments.derive_dataset --data "$DS" \
         --split train --workers "$WORKERS" "${LIMIT[@]}" --no-progress >>"$STATE/logs/derive_$CALL.log" 2>&1
-    log "derive: exit $? ; $(n_derived) of $TOTAL training pairs derived"
+    log "derive: exit $? ; $(n_derived) training pairs derived (of $TOTAL in the recipe; pairs without a stable pose are never derived)"
 fi
 
 # 2. pack (again when more pairs were derived than the pack holds)
