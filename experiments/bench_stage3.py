@@ -64,7 +64,8 @@ def main(argv=None) -> dict:
     pred = load_predictor(args.weights)
     vcfg, vparams = refine.load_value(args.value)
     rank_dirs = list(stage3.RANK_VALUES if args.rank_value is None else args.rank_value)
-    params = {"stage1": pred.stage1_params, "stage2": pred.stage2_params, "value": vparams,
+    stage1_config, stage1_params = pred.stage1_spec  # a Stage-1 mix ("A+B") too
+    params = {"stage1": stage1_params, "stage2": pred.stage2_params, "value": vparams,
               "rank_values": load_rank_values(rank_dirs, vcfg)}  # fmt: skip
     configs, hangs = {}, {}
     for a in answers:
@@ -73,7 +74,7 @@ def main(argv=None) -> dict:
         k = args.proposals or base.num_proposals
         configs[a] = dataclasses.replace(base, num_proposals=k, rank_values=ranks)
         hangs[a] = jax.jit(
-            stage3.make_hang_pipeline(pred.stage1_config, pred.stage2_config, vcfg, configs[a])
+            stage3.make_hang_pipeline(stage1_config, pred.stage2_config, vcfg, configs[a])
         )
     rows = []
     for batch in (int(b) for b in args.batches.split(",")):

@@ -1373,13 +1373,27 @@ def hang(
 def network_sizes(model: str | os.PathLike) -> tuple[int, int]:
     """(points per cloud, fewest points allowed) of a trained model folder, read from its
     Stage-1 config.json without loading the networks: the encoder's ``num_points`` and its
-    first set-abstraction level's ``npoint`` (the centres it samples)."""
+    first set-abstraction level's ``npoint`` (the centres it samples). ``"A+B"`` (a Stage-1
+    mix, ``predict.load_predictor``): the most over the networks."""
+    if "+" in os.fspath(model):
+        first, *more = os.fspath(model).split("+")
+        sizes = [network_sizes(first)]
+        for other in more:
+            path = Path(other) / "stage1" / "config.json"
+            if not path.exists():
+                raise HangInputError(f"{other}: no Stage-1 network there (the mix {model})")
+            sizes.append(_stage1_sizes(path))
+        return max(n for n, _ in sizes), max(f for _, f in sizes)
     path = Path(model) / "stage1" / "config.json"
     if not path.exists() or not (Path(model) / "stage2b" / "config.json").exists():
         raise HangInputError(
             f"{model}: no trained model there (expected stage1/ and stage2b/ with config.json, "
             f"e.g. {DEFAULT_MODEL})"
         )
+    return _stage1_sizes(path)
+
+
+def _stage1_sizes(path: Path) -> tuple[int, int]:
     try:
         encoder = json.loads(path.read_text())["config"]["stage1"]["encoder"]
         first = int(encoder["sa_levels"][0]["npoint"])
@@ -1389,9 +1403,9 @@ def network_sizes(model: str | os.PathLike) -> tuple[int, int]:
 
 
 def _predictor_sizes(predictor) -> tuple[int, int]:
-    encoder = predictor.stage1_config.encoder
-    first = int(encoder.sa_levels[0].npoint)
-    return int(max(encoder.num_points, first)), first
+    configs = (predictor.stage1_config,) + tuple(c for c, _ in predictor.stage1_mix)
+    first = max(int(c.encoder.sa_levels[0].npoint) for c in configs)
+    return predictor.num_points, first
 
 
 def _partner(kind: str, obj_asset, sup_asset):

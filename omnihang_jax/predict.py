@@ -19,7 +19,7 @@ import numpy as np
 
 from omnihang_jax.data import check_point_clouds
 from omnihang_jax.poses import pose6_to_pose7
-from omnihang_jax.stage1 import Stage1Config, make_stage1
+from omnihang_jax.stage1 import make_stage1
 from omnihang_jax.stage2 import Stage2Config, make_stage2
 from omnihang_jax.train import restore_stage
 
@@ -43,13 +43,42 @@ class Prediction(NamedTuple):
     weight: Any
 
 
-def make_predict(stage1_config: Stage1Config, stage2_config: Stage2Config) -> Callable:
+def mix_counts(num_proposals: int, networks: int) -> tuple[int, ...]:
+    """Proposals of each Stage-1 network of a mix: K split evenly, the first networks take
+    the remainder (16 over 2 -> (8, 8); 5 over 2 -> (3, 2))."""
+    if networks < 1 or num_proposals < networks:
+        raise ValueError(f"{num_proposals} proposals cannot be split over {networks} networks")
+    base, extra = divmod(num_proposals, networks)
+    return tuple(base + (i < extra) for i in range(networks))
+
+
+def make_predict(stage1_config, stage2_config: Stage2Config) -> Callable:
     """``predict(stage1_params, stage2_params, object_points [B,N,3], support_points [B,M,3],
     key, num_proposals, support_normals=None [B,M,3]) -> Prediction``. Pure and un-jitted;
     ``num_proposals`` is static. The support normals serve only Stage 2's clearance
-    (``Stage2Config.clearance``; without them Stage 2 estimates them)."""
-    stage1 = make_stage1(stage1_config)
+    (``Stage2Config.clearance``; without them Stage 2 estimates them).
+
+    A Stage-1 mix (seventeenth session, issue 12): ``stage1_config`` a tuple of Stage1Configs
+    and ``stage1_params`` the tuple of their params; the K proposals are split over the
+    networks (:func:`mix_counts`), network 0's first (its noise drawn with ``key`` itself, as
+    a single network's; network i's with ``fold_in(key, i)``), and Stage 2 refines them all."""
+    if isinstance(stage1_config, (tuple, list)):
+        networks = [make_stage1(c) for c in stage1_config]
+    else:
+        networks = None
+    stage1 = make_stage1(stage1_config) if networks is None else None
     stage2 = make_stage2(stage2_config)
+
+    def propose(stage1_params, object_points, support_points, key, k):
+        if networks is None:
+            return stage1.propose(stage1_params, object_points, support_points, key, k)
+        if len(stage1_params) != len(networks):
+            raise ValueError(f"{len(networks)} Stage-1 configs, {len(stage1_params)} params")
+        parts = [
+            net.propose(p, object_points, support_points, key if i == 0 else jax.random.fold_in(key, i), n)
+            for i, (net, p, n) in enumerate(zip(networks, stage1_params, mix_counts(k, len(networks))))
+        ]  # fmt: skip
+        return jnp.concatenate(parts, axis=1)
 
     def predict(
         stage1_params,
@@ -63,7 +92,7 @@ def make_predict(stage1_config: Stage1Config, stage2_config: Stage2Config) -> Ca
         batch, n, _ = object_points.shape
         m = support_points.shape[1]
         k = num_proposals
-        pose6 = stage1.propose(stage1_params, object_points, support_points, key, k)  # [B, K, 6]
+        pose6 = propose(stage1_params, object_points, support_points, key, k)  # [B, K, 6]
 
         def tile(x, size):  # [B, size, 3] -> [B*K, size, 3]
             return jnp.broadcast_to(x[:, None], (batch, k, size, 3)).reshape(batch * k, size, 3)
@@ -98,16 +127,34 @@ class Predictor:
     clouds are accepted too (B = 1). ``support_normals`` only matter for a Stage-2 clearance.
     """
 
-    def __init__(self, stage1_config, stage1_params, stage2_config, stage2_params, seed: int = 0):
-        self.stage1_config = stage1_config
+    def __init__(self, stage1_config, stage1_params, stage2_config, stage2_params, seed: int = 0,
+                 mix: tuple = ()):  # fmt: skip
+        self.stage1_config = stage1_config  # network 0's (of a mix: the first)
         self.stage2_config = stage2_config
         self.stage1_params = stage1_params
         self.stage2_params = stage2_params
+        # more Stage-1 networks ((config, params), ...) whose proposals join network 0's
+        self.stage1_mix = tuple(mix)
         self._key = jax.random.key(seed)
         self._calls = 0
         self._predict = jax.jit(
-            make_predict(stage1_config, stage2_config), static_argnames="num_proposals"
+            make_predict(self.stage1_spec[0], stage2_config), static_argnames="num_proposals"
         )
+
+    @property
+    def stage1_spec(self) -> tuple:
+        """(config, params) for ``make_predict`` / ``stage3.make_hang_pipeline``: network 0's,
+        or with a mix the tuples of all networks' configs and params."""
+        if not self.stage1_mix:
+            return self.stage1_config, self.stage1_params
+        configs = (self.stage1_config,) + tuple(c for c, _ in self.stage1_mix)
+        return configs, (self.stage1_params,) + tuple(p for _, p in self.stage1_mix)
+
+    @property
+    def num_points(self) -> int:
+        """Points per cloud the Stage-1 networks were designed for (of a mix: the most)."""
+        configs = (self.stage1_config,) + tuple(c for c, _ in self.stage1_mix)
+        return max(max(c.encoder.num_points, c.encoder.sa_levels[0].npoint) for c in configs)
 
     def __call__(
         self,
@@ -144,7 +191,7 @@ class Predictor:
             self._calls += 1
         k = num_proposals or self.stage1_config.num_eval_samples
         out = self._predict(
-            self.stage1_params, self.stage2_params, object_points, support_points, key,
+            self.stage1_spec[1], self.stage2_params, object_points, support_points, key,
             num_proposals=k, support_normals=support_normals,
         )  # fmt: skip
         return Prediction(*(np.asarray(x) for x in out))
@@ -156,8 +203,23 @@ def load_predictor(
     """Rebuild the predictor from a training folder holding ``stage1/`` and ``stage2b/``
     (each with config.json + checkpoints/), as written by ``train.train_where``.
     ``stage2_overrides``: inference-only ``Stage2Config`` fields to replace, e.g.
-    ``{"clearance": 0.004}``."""
+    ``{"clearance": 0.004}``. ``"A+B"``: a Stage-1 mix (:func:`make_predict`): Stage 2 and
+    the first Stage 1 from folder A, more Stage-1 networks from B (``B/stage1``), ..."""
     folder = os.fspath(folder)
+    if "+" in folder:
+        first, *more = folder.split("+")
+        base = load_predictor(first, seed=seed, stage2_overrides=stage2_overrides)
+        mix = []
+        for other in more:
+            path = os.path.join(other, "stage1")
+            if not os.path.exists(os.path.join(path, "config.json")):
+                raise FileNotFoundError(
+                    f"{path}/config.json not found (the Stage-1 mix {folder!r})"
+                )
+            config, params, _ = restore_stage(path)
+            mix.append((config.stage1, params))
+        return Predictor(base.stage1_config, base.stage1_params, base.stage2_config,
+                         base.stage2_params, seed=seed, mix=tuple(mix))  # fmt: skip
     stages = {}
     for stage in ("stage1", "stage2b"):
         path = os.path.join(folder, stage)
@@ -196,10 +258,11 @@ def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.P
         rank_value_folders = stage3.RANK_VALUES if config.select == selection.CHOSEN else ()
     extra = load_rank_values(rank_value_folders, value_config)
     config = dataclasses.replace(config, rank_values=len(extra))
+    stage1_config, stage1_params = where.stage1_spec
     hang = jax.jit(
-        stage3.make_hang_pipeline(where.stage1_config, where.stage2_config, value_config, config)
+        stage3.make_hang_pipeline(stage1_config, where.stage2_config, value_config, config)
     )
-    params = {"stage1": where.stage1_params, "stage2": where.stage2_params, "value": value_params}
+    params = {"stage1": stage1_params, "stage2": where.stage2_params, "value": value_params}
     if extra:
         params["rank_values"] = extra
     return hang, params

@@ -45,6 +45,8 @@
 # "--round-start alternate"); a warm next S3_ONLY call resumes the job (/tmp/full/stage3/run).
 # eval: VALUE (the V of the first evaluation; default the committed one), NO_NEWV=1 skips the
 # second evaluation with the train call's V.
+# S1_VARIANTS="6d 6dorig" (INIT1=none): the small and the original preset (the paper's encoder,
+# 4,096 points) side by side, both with the 6-D head (issue 14's preset comparison).
 # INIT1=none trains Stage 1 from scratch; S1_ARGS adds train_where flags, e.g. S1_ARGS="--stage1
 # rotation=6d --stage1 set_loss_mean=true" (a changed head needs INIT1=none).
 # VIEWS=2: also derive every pair's next candidate view (`--view 1`, ~100 s more) and train on
@@ -75,7 +77,8 @@ derive_test() {  # workers
 export_where() {  # RUN NAME: stage-1 best + latest (+ Stage 2b) -> $C/export_NAME (base: also $C/export)
     local run=$1 name=$2 ex=$C/export_$2 rel=${1#"$C"/}
     local s2b=$INIT1/stage2b
-    [ "$INIT1" = none ] && s2b=weights/where_small_paper/stage2b
+    # a Stage-1-only INIT1 (e.g. the original preset's) takes the committed Stage 2b
+    [ -d "$s2b" ] || s2b=weights/where_small_paper/stage2b
     $PY - >>"$C/logs/export_$name.log" 2>&1 <<EOF
 import shutil
 from omnihang_jax import train
@@ -158,8 +161,11 @@ if [ "$CALL" = train ]; then
             >>"$C/logs/stage3_part.log" 2>&1 &
         S3_PID=$!
     fi
-    (derive_test "${TEST_W:-3}"; derive_val "${TEST_W:-3}") &
-    TEST_PID=$!
+    # TEST_W=0: no held-out / validation derive (evaluated elsewhere)
+    if [ "${TEST_W:-3}" -gt 0 ]; then
+        (derive_test "${TEST_W:-3}"; derive_val "${TEST_W:-3}") &
+        TEST_PID=$!
+    fi
     BUDGET=$(($(left) - 45))
     # S1_VARIANTS: Stage-1 runs side by side on the one GPU, same data and budget; name -> flags
     # (6daug / 6dyaw / 6dmean / 6dlo: the 6-D head with issue 14's augmentation, the mean set loss or lr 1e-4;
@@ -168,7 +174,8 @@ if [ "$CALL" = train ]; then
         [6daug]="--stage1 rotation=6d --augment-jitter 0.002 --augment-yaw 0.5"
         [6dyaw]="--stage1 rotation=6d --augment-yaw 3.1416"
         [6dmean]="--stage1 rotation=6d --stage1 set_loss_mean=true"
-        [6dlo]="--stage1 rotation=6d --lr-stage1 1e-4")
+        [6dlo]="--stage1 rotation=6d --lr-stage1 1e-4"
+        [6dorig]="--stage1 rotation=6d --preset original")
     PIDS=
     for name in ${S1_VARIANTS:-base}; do
         dir=$C/where$([ "$name" != base ] && echo "_$name")
@@ -185,7 +192,7 @@ if [ "$CALL" = train ]; then
         log "Stage 1 ($name): $(tail -1 "$C/logs/where_$name.log" | cut -c1-200)"
         export_where "$C/where$([ "$name" != base ] && echo "_$name")" "$name"
     done
-    wait "$TEST_PID"
+    [ -n "${TEST_PID:-}" ] && wait "$TEST_PID"
     [ -n "${S3_PID:-}" ] && { wait "$S3_PID"; log "Stage-3 part: exit $?"; }
     ls -la "$OUT" | tee -a "$OUT/$LOG"
     log "done"
@@ -289,7 +296,8 @@ derived_only "$HELDOUT" "$C/ds/derived/test" >"$C/heldout.jsonl"
 HELDOUT=$C/heldout.jsonl
 log "held-out pairs to evaluate: $(wc -l <"$HELDOUT")"
 W=${WHERE_W:-$C/export/best}
-[ -d "$W" ] || W=weights/where_small_paper  # no train call on this machine: the committed weights
+# (a Stage-1 mix "A+B": its first folder is checked)
+[ -d "${W%%+*}" ] || W=weights/where_small_paper  # no train call on this machine: the committed weights
 NEWV=$C/stage3/run/value
 evaluate() {  # value label out [eval_stage3 flags]
     local value=$1 label=$2 out=$3

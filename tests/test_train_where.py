@@ -404,3 +404,29 @@ def test_init_from_exported_weights_starts_there(trained_dir, tmp_path):
     with pytest.raises(ValueError, match="network config differs"):
         small = argv[:3] + ["small"] + argv[4:]
         train_where.main(small + ["--out", str(tmp_path / "x"), "--init-from", str(tmp_path / "w")])
+
+
+def test_stage1_mix_splits_the_proposals_over_the_networks(trained_dir, tmp_path):
+    """A Stage-1 mix ("A+B", seventeenth session): K proposals split over the networks,
+    network 0's first and identical to a single network's K/2 with the same key; Stage 2
+    refines them all; a missing second network is a clear error."""
+    assert predict.mix_counts(16, 2) == (8, 8) and predict.mix_counts(5, 2) == (3, 2)
+    with pytest.raises(ValueError):
+        predict.mix_counts(1, 2)
+    other = str(tmp_path / "b")
+    train.export_weights(trained_dir, other, ("1",))
+    obj = np.random.default_rng(0).normal(scale=0.05, size=(2, 128, 3)).astype(np.float32)
+    sup = np.random.default_rng(1).normal(scale=0.1, size=(2, 128, 3)).astype(np.float32)
+    key = jax.random.key(5)
+    mix = predict.load_predictor(f"{trained_dir}+{other}")
+    single = predict.load_predictor(trained_dir)
+    assert len(mix.stage1_mix) == 1 and mix.num_points == single.num_points
+    a = mix(obj, sup, key=key, num_proposals=6)
+    b = single(obj, sup, key=key, num_proposals=3)
+    assert a.stage1_poses.shape == (2, 6, 7) and a.stage2_poses.shape == (2, 6, 7)
+    np.testing.assert_allclose(a.stage1_poses[:, :3], b.stage1_poses, atol=1e-6)
+    np.testing.assert_allclose(a.stage2_poses[:, :3], b.stage2_poses, atol=1e-6)
+    # network 1 (the same weights here) draws its own noise: other proposals
+    assert np.abs(a.stage1_poses[:, 3:] - b.stage1_poses).max() > 1e-4
+    with pytest.raises(FileNotFoundError, match="stage1"):
+        predict.load_predictor(f"{trained_dir}+{tmp_path / 'missing'}")
