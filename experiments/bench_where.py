@@ -72,21 +72,37 @@ def main(argv=None) -> dict:
     parser.add_argument("--proposals", type=int, default=None, help="K (default: the model's)")
     parser.add_argument("--repeat", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--compare",
+        default=None,
+        metavar="MODEL",
+        help="a second model timed beside --model at each batch size (same clouds, same "
+        "points: the larger of the two networks' design sizes); writes the ratio of medians",
+    )
+    parser.add_argument(
+        "--points", type=int, default=None, help="points per cloud (default: the model's)"
+    )
     parser.add_argument("--out", required=True, help="output JSON")
     args = parser.parse_args(argv)
     if args.model:
         predictor, weights = load_predictor(args.model, seed=args.seed), args.model
     else:
         predictor, weights = _random_predictor(args.preset, args.seed), f"random {args.preset}"
-    points = predictor.stage1_config.encoder.num_points
+    other = load_predictor(args.compare, seed=args.seed) if args.compare else None
+    points = args.points or max(predictor.num_points, other.num_points if other else 0)
     k = args.proposals or predictor.stage1_config.num_eval_samples
-    rows = []
+    rows, compared = [], []
     for b in (int(x) for x in args.batches.split(",")):
         rows.append(measure(predictor, b, points, k, args.repeat))
         print(json.dumps(rows[-1]), flush=True)
+        if other is not None:  # side by side, in the same run: the ratio is what to read
+            compared.append(measure(other, b, points, k, args.repeat))
+            compared[-1]["ratio_to_model"] = compared[-1]["median_ms"] / rows[-1]["median_ms"]
+            print(json.dumps(compared[-1]), flush=True)
     result = {
         "latency": rows,
         "weights": weights,
+        **({"compare": {"weights": args.compare, "latency": compared}} if other else {}),
         "points_per_cloud": points,
         "device": str(jax.devices()[0].device_kind),
         "jax_backend": jax.default_backend(),

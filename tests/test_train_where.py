@@ -148,6 +148,13 @@ def test_bench_where_writes_latencies(trained_dir, tmp_path):
     assert [r["batch"] for r in result["latency"]] == [1, 2]
     assert all(r["median_ms"] > 0 for r in result["latency"])
     assert json.loads(out.read_text())["device"]
+    # --compare: a second model timed beside it in the same run, with the ratio of medians
+    both = bench_where.main(["--model", trained_dir, "--compare", trained_dir, "--batches", "1",
+                             "--repeat", "2", "--out", str(tmp_path / "cmp.json")])  # fmt: skip
+    row = both["compare"]["latency"][0]
+    assert row["batch"] == 1 and row["ratio_to_model"] == pytest.approx(
+        row["median_ms"] / both["latency"][0]["median_ms"]
+    )
 
 
 def test_predictor_is_jitted_batched_and_finite(trained_dir):
