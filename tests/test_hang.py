@@ -344,3 +344,13 @@ def test_nce_gets_its_support_input_as_in_training():
         np.testing.assert_array_equal(oc, want[0])
         np.testing.assert_array_equal(sc, want[1])
     assert len(H.nce_clouds(crop, obj, sup)[1]) == 2048
+
+
+def test_network_sizes_of_a_stage1_mix():
+    """'A+B' (a Stage-1 mix): the clouds are sized for the largest network of the mix; a
+    second folder without a Stage 1 is a clear error."""
+    assert H.network_sizes("weights/where_small_paper") == (2048, 128)
+    assert H.network_sizes("weights/where_original_paper") == (4096, 512)
+    assert H.network_sizes("weights/where_small_paper+weights/where_original_paper") == (4096, 512)
+    with pytest.raises(H.HangInputError, match="no Stage-1 network"):
+        H.network_sizes("weights/where_small_paper+weights/nowhere")
