@@ -8,7 +8,7 @@ them; proposal 0 (Stages 1 and 1+2) is loaded at rest and simulated for 1 s
 (omnihang_jax.evaluate: failure if it penetrates > 3 mm at the start, leaves the support's
 bounding box, touches the ground or diverges). The answers carry what the validation objects
 chose: Stage 1 is released --stage1-lift (stage1.ANSWER_LIFT, 7.5 mm) above the network's pose,
-Stage 1+2 moved --stage2-clearance (stage2.ANSWER_CLEARANCE, 8 mm) along the observed support
+Stage 1+2 moved --stage2-clearance (stage2.ANSWER_CLEARANCE, 4 mm) along the observed support
 normal, and of each stage's K proposals the one least inside the observed support is the answer
 (--select penetration, evaluate.ANSWER_SELECT); the chosen Stages 1+2 pose is then released
 --stage2-lift (stage2.ANSWER_LIFT, 5 mm) higher. `--select first --stage1-lift 0
@@ -88,7 +88,7 @@ def main(argv=None) -> dict:
         type=float,
         default=stage2.ANSWER_CLEARANCE,
         metavar="M",
-        help="Stage-2 clearance in metres (default stage2.ANSWER_CLEARANCE, 0.008: the Stages "
+        help="Stage-2 clearance in metres (default stage2.ANSWER_CLEARANCE, 0.004: the Stages "
         "1+2 answer, chosen on validation objects; 0: the paper's, the trained model's own): the "
         "Stage-2 pose moves M along the mean outward normal of the observed support cloud (the "
         "pair's support_normals) at its chosen support contact points",
