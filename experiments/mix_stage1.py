@@ -63,6 +63,12 @@ def paired(path_a: str, path_b: str) -> tuple[list[dict], list[dict], int]:
     return a, [by_file[r["file"]] for r in a], k
 
 
+def refined(k: int, n: int) -> np.ndarray:
+    """Indices, in a record's 4K + 1 candidates, of the refined candidates (both starts: from
+    Stage 1 and from Stage 2) of the first n proposals."""
+    return np.concatenate([np.arange(2 * k, 2 * k + n), np.arange(3 * k, 3 * k + n)])
+
+
 def mix_outcomes(a: list[dict], b: list[dict], k: int, ka: int, kb: int) -> list[bool]:
     """Per pair: the simulated outcome of the answer rule over the pooled refined candidates
     (both starts, Stage 1 and Stage 2, of the first ka proposals of A and kb of B)."""
@@ -72,7 +78,7 @@ def mix_outcomes(a: list[dict], b: list[dict], k: int, ka: int, kb: int) -> list
     for ra, rb in zip(a, b, strict=True):
         v, counts, ok = [], [], []
         for r, n in ((ra, ka), (rb, kb)):
-            idx = np.concatenate([np.arange(2 * k, 2 * k + n), np.arange(3 * k, 3 * k + n)])
+            idx = refined(k, n)
             v += [r["v"][i] for i in idx]
             counts += [r["inside_counts"][key][i] for i in idx]
             ok += [r["stable_all"][i] for i in idx]
@@ -87,12 +93,12 @@ def study(a: list[dict], b: list[dict], k: int) -> dict:
     table = {}
     for ka, kb in mixes(k):
         res = category_means(a, mix_outcomes(a, b, k, ka, kb))
-        res["any_refined"] = category_means(
-            a,
-            [any(ra["stable_all"][i] for i in list(range(2 * k, 2 * k + ka)) + list(range(3 * k, 3 * k + ka)))
-             or any(rb["stable_all"][i] for i in list(range(2 * k, 2 * k + kb)) + list(range(3 * k, 3 * k + kb)))
-             for ra, rb in zip(a, b, strict=True)],
-        )["mean"]  # fmt: skip
+        hangs = [
+            any(ra["stable_all"][i] for i in refined(k, ka))
+            or any(rb["stable_all"][i] for i in refined(k, kb))
+            for ra, rb in zip(a, b, strict=True)
+        ]
+        res["any_refined"] = category_means(a, hangs)["mean"]
         table[f"{ka}+{kb}"] = res
     return table
 

@@ -1403,8 +1403,7 @@ def _stage1_sizes(path: Path) -> tuple[int, int]:
 
 
 def _predictor_sizes(predictor) -> tuple[int, int]:
-    configs = (predictor.stage1_config,) + tuple(c for c, _ in predictor.stage1_mix)
-    first = max(int(c.encoder.sa_levels[0].npoint) for c in configs)
+    first = max(int(c.encoder.sa_levels[0].npoint) for c in predictor.stage1_configs)
     return predictor.num_points, first
 
 

@@ -62,23 +62,19 @@ def make_predict(stage1_config, stage2_config: Stage2Config) -> Callable:
     and ``stage1_params`` the tuple of their params; the K proposals are split over the
     networks (:func:`mix_counts`), network 0's first (its noise drawn with ``key`` itself, as
     a single network's; network i's with ``fold_in(key, i)``), and Stage 2 refines them all."""
-    if isinstance(stage1_config, (tuple, list)):
-        networks = [make_stage1(c) for c in stage1_config]
-    else:
-        networks = None
-    stage1 = make_stage1(stage1_config) if networks is None else None
+    mixed = isinstance(stage1_config, (tuple, list))
+    networks = [make_stage1(c) for c in (stage1_config if mixed else (stage1_config,))]
     stage2 = make_stage2(stage2_config)
 
     def propose(stage1_params, object_points, support_points, key, k):
-        if networks is None:
-            return stage1.propose(stage1_params, object_points, support_points, key, k)
-        if len(stage1_params) != len(networks):
-            raise ValueError(f"{len(networks)} Stage-1 configs, {len(stage1_params)} params")
+        params = tuple(stage1_params) if mixed else (stage1_params,)
+        if len(params) != len(networks):
+            raise ValueError(f"{len(networks)} Stage-1 configs, {len(params)} params")
         parts = [
             net.propose(p, object_points, support_points, key if i == 0 else jax.random.fold_in(key, i), n)
-            for i, (net, p, n) in enumerate(zip(networks, stage1_params, mix_counts(k, len(networks))))
+            for i, (net, p, n) in enumerate(zip(networks, params, mix_counts(k, len(networks))))
         ]  # fmt: skip
-        return jnp.concatenate(parts, axis=1)
+        return parts[0] if len(parts) == 1 else jnp.concatenate(parts, axis=1)
 
     def predict(
         stage1_params,
@@ -142,19 +138,24 @@ class Predictor:
         )
 
     @property
+    def stage1_configs(self) -> tuple:
+        """Every Stage-1 network's config, network 0's first."""
+        return (self.stage1_config,) + tuple(c for c, _ in self.stage1_mix)
+
+    @property
     def stage1_spec(self) -> tuple:
         """(config, params) for ``make_predict`` / ``stage3.make_hang_pipeline``: network 0's,
         or with a mix the tuples of all networks' configs and params."""
         if not self.stage1_mix:
             return self.stage1_config, self.stage1_params
-        configs = (self.stage1_config,) + tuple(c for c, _ in self.stage1_mix)
-        return configs, (self.stage1_params,) + tuple(p for _, p in self.stage1_mix)
+        return self.stage1_configs, (self.stage1_params,) + tuple(p for _, p in self.stage1_mix)
 
     @property
     def num_points(self) -> int:
         """Points per cloud the Stage-1 networks were designed for (of a mix: the most)."""
-        configs = (self.stage1_config,) + tuple(c for c, _ in self.stage1_mix)
-        return max(max(c.encoder.num_points, c.encoder.sa_levels[0].npoint) for c in configs)
+        return max(
+            max(c.encoder.num_points, c.encoder.sa_levels[0].npoint) for c in self.stage1_configs
+        )
 
     def __call__(
         self,

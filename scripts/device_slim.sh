@@ -60,6 +60,7 @@ LIST=(
     weights/value_s13_hardneg weights/value_s15_hardneg weights/where_original_paper
     results/train_where_s17 results/validation_where_s17 results/hanging_success_stage12_orig_s17.pairs.jsonl.gz
     results/hanging_success_stage12_orig_clear4_s17.pairs.jsonl.gz results/hanging_success_stage1_network_orig_s17.pairs.jsonl.gz
+    results/hanging_success_stage3_s17_orig.pairs.jsonl.gz
 )
 case ${1:-} in
 out)
