@@ -54,7 +54,7 @@ def estimator_throughput(
         nce_params = collision.make_nce(nce_cfg).init(jax.random.key(0))
         normal_params = collision.make_normal_net(normal_cfg).init(jax.random.key(1))
     rng = np.random.default_rng(0)
-    oc = rng.uniform(-0.1, 0.1, (nce_cfg.object_points, 3)).astype(np.float32)
+    oc = rng.uniform(-0.1, 0.1, (nce_cfg.object_input, 3)).astype(np.float32)
     sc = rng.uniform(-0.15, 0.15, (nce_cfg.support_input, 3)).astype(np.float32)
     sc_h = rng.uniform(-0.15, 0.15, (normal_cfg.points, 3)).astype(np.float32)
     nce = jax.jit(collision.nce_collides(nce_cfg))

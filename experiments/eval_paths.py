@@ -365,7 +365,7 @@ def select_geometric(
     cfg, params, _ = collision.load_estimator(Path(weights, "nce"))
     nce_fn = nce_score_fn(cfg, params)
     prob = score_poses(
-        val, val.near_pair, val.near_poses, nce_fn, cfg.object_points, cfg.support_input
+        val, val.near_pair, val.near_poses, nce_fn, cfg.object_input, cfg.support_input
     )
     by_nce = prob > cfg.threshold
     nce_s = time.time() - t0
@@ -439,6 +439,7 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
     clock, only when that method is asked for)."""
     sub = collision.subsample_cloud
     n_obj, n_sup = est.nce_config.object_points, est.nce_config.support_input
+    n_nce_obj = est.nce_config.object_input  # the contact NCE is given more (NCEConfig)
     nce_params = est.nce_params
     if est.nce_far_threshold is not None:  # goal_ball_collides
         weight = np.float32(planner.object_radius(case.scene))
@@ -446,7 +447,7 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
     nce = planner.EstimatorChecker(
         est.nce,
         nce_params,
-        sub(case.object_points, n_obj, SUBSET_SEED_OBJECT),
+        sub(case.object_points, n_nce_obj, SUBSET_SEED_OBJECT),
         sub(case.support_points, n_sup, SUBSET_SEED_SUPPORT),
     )
     h_sup = est.normal_config.points

@@ -539,7 +539,7 @@ def train_nce(
             near = near_rows[jax.random.randint(k_near, (n_near,), 0, near_rows.shape[0])]
             pick = jnp.concatenate([pick, near])
         p = pair[pick]
-        obj = _sample_points(k_obj, obj_clouds[p], config.object_points)
+        obj = _sample_points(k_obj, obj_clouds[p], config.object_input)
         sup = _sample_points(k_sup, sup_clouds[p], config.support_input)
 
         def loss_fn(params):
@@ -599,7 +599,7 @@ def _validation_fn(nets, config, val: CollisionData, max_labels: int, seed: int)
     pair, poses, labels, is_near = validation_rows(val, max_labels, seed)
     obj, sup = zip(
         *(
-            planner_clouds(o, s, config.object_points, config.support_input)
+            planner_clouds(o, s, config.object_input, config.support_input)
             for o, s in zip(val.object_points, val.support_points)
         )
     )
@@ -915,7 +915,7 @@ def evaluate_only(
     config."""
     cfg, params, meta = collision.load_estimator(out / "nce")
     fn = nce_score_fn(cfg, params)
-    n_obj, n_sup = cfg.object_points, cfg.support_input
+    n_obj, n_sup = cfg.object_input, cfg.support_input
     result = {}
     if val is not None and val.near_poses is not None:
         s = score_poses(val, val.near_pair, val.near_poses, fn, n_obj, n_sup)
@@ -1217,7 +1217,7 @@ def main(argv=None) -> dict:
     phase(f"NCE trained ({nce_log['steps']} steps, compiled in {nce_log['compile_s']} s)")
 
     # the NCE threshold: stable goals of validation pairs pass (near_metrics, --goal-pass)
-    n_obj, n_sup = nce_cfg.object_points, nce_cfg.support_input
+    n_obj, n_sup = nce_cfg.object_input, nce_cfg.support_input
     nce_fn = nce_score_fn(nce_cfg, nce_params)
     validation = {}
     if val is not None and args.goal_pass > 0 and val.near_poses is not None:

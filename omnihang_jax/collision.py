@@ -73,6 +73,7 @@ __all__ = [
     "inverse_transform_points",
     "make_nce",
     "crop_support",
+    "contact_patch",
     "make_normal_net",
     "normal_loss",
     "heuristic_score",
@@ -119,6 +120,13 @@ class NCEConfig:
       support_points: it is given N support points and keeps the ``support_points`` of them
       nearest to the posed object (:func:`crop_support`): ~N / support_points times denser
       where contact happens, for the millimetre gaps of a hanging pose.
+    local_points: 0 (one global branch), or L > 0: the **contact NCE** (eighteenth session).
+      The estimator is given ``local_from`` points of each cloud. The global branch sees an
+      evenly strided ``object_points`` / ``support_points`` of them (or the support crop, when
+      ``support_crop_from`` is set); a second, local branch (``local_pointnet``, millimetre-scale
+      balls) sees the L support points nearest the posed object and the L object points nearest
+      those (:func:`contact_patch`), centred on the patch, each point with its offset to the
+      nearest point of the other cloud as a feature. Both codes go to the head.
     """
 
     pointnet: str = "small"
@@ -127,11 +135,21 @@ class NCEConfig:
     head: tuple[int, ...] = (128, 64)
     threshold: float = 0.5
     support_crop_from: int = 0
+    local_points: int = 0
+    local_from: int = 2048
+    local_pointnet: str = "local"
 
     @property
     def support_input(self) -> int:
         """Support points the estimator is given (the planner's fixed subset)."""
+        if self.local_points:
+            return self.local_from
         return self.support_crop_from or self.support_points
+
+    @property
+    def object_input(self) -> int:
+        """Object points the estimator is given (the planner's fixed subset)."""
+        return self.local_from if self.local_points else self.object_points
 
 
 @dataclasses.dataclass(frozen=True)
@@ -160,17 +178,40 @@ FAST = PointNet2Config(
     fp_mlps=((128,), (128, 64), (64, 64), (64, 64)),
     num_points=512,
 )
-POINTNETS = {**PRESETS, "fast": FAST}
+# The contact NCE's local branch (``NCEConfig.local_points``): the patch where object and support
+# are closest, ~2-5 mm point spacing; 1 / 2.5 cm balls, then group-all on patch-centred xyz
+# (scale 6 cm, the size of a patch).
+LOCAL = PointNet2Config(
+    sa_levels=(
+        SALevel(64, 0.01, 16, (32, 32, 64)),
+        SALevel(16, 0.025, 16, (64, 64, 128)),
+        SALevel(1, 0.06, 0, (128, 256), group_all=True),
+    ),
+    fp_mlps=((128,), (128, 64), (64, 64)),
+    num_points=512,
+)
+POINTNETS = {**PRESETS, "fast": FAST, "local": LOCAL}
 
 NCE_PRESETS = {
     "tiny": NCEConfig(pointnet="tiny", object_points=64, support_points=64, head=(32,)),
     "fast": NCEConfig(pointnet="fast", object_points=256, support_points=256, head=(128, 64)),
     "small": NCEConfig(),
+    "tiny_contact": NCEConfig(
+        pointnet="tiny", object_points=64, support_points=64, head=(32,),
+        local_points=32, local_from=128, local_pointnet="tiny",
+    ),  # fmt: skip
+    # fast's global branch on strided subsets + the local contact branch (eighteenth session)
+    "contact": NCEConfig(
+        pointnet="fast", object_points=256, support_points=256, head=(128, 64),
+        local_points=256, local_from=2048,
+    ),  # fmt: skip
 }
 NORMAL_PRESETS = {
     "tiny": NormalNetConfig(pointnet="tiny", points=128),
     "fast": NormalNetConfig(pointnet="fast", points=512),
     "small": NormalNetConfig(),
+    "tiny_contact": NormalNetConfig(pointnet="tiny", points=128),
+    "contact": NormalNetConfig(pointnet="fast", points=512),  # the HCE beside the contact NCE
 }
 
 
@@ -221,12 +262,24 @@ class _NCENet(nn.Module):
     config: NCEConfig
 
     @nn.compact
-    def __call__(self, object_posed: jax.Array, support_points: jax.Array) -> jax.Array:
-        """object_posed [B, N, 3] (support frame), support_points [B, M, 3] -> logits [B]."""
+    def __call__(
+        self,
+        object_posed: jax.Array,
+        support_points: jax.Array,
+        patch: tuple[jax.Array, jax.Array] | None = None,
+    ) -> jax.Array:
+        """object_posed [B, N, 3] (support frame), support_points [B, M, 3] -> logits [B].
+        patch: the local branch's (points [B, 2L, 3], features [B, 2L, 5]) when
+        ``config.local_points`` (:func:`contact_patch`)."""
         points, flags = combine_clouds(object_posed, support_points)
         feature, _ = PointNet2Encoder(POINTNETS[self.config.pointnet], name="encoder")(
             points, flags
         )
+        if self.config.local_points:
+            local, _ = PointNet2Encoder(POINTNETS[self.config.local_pointnet], name="local")(
+                *patch
+            )
+            feature = jnp.concatenate([feature, local], axis=-1)
         x = feature
         for width in self.config.head:
             x = nn.relu(nn.Dense(width)(x))
@@ -244,15 +297,69 @@ def make_nce(config: NCEConfig) -> EstimatorNets:
     def init(key):  # jitted: op-by-op PointNet++ initialisation takes ~10x longer
         obj = jnp.zeros((1, config.object_points, 3))
         sup = jnp.zeros((1, config.support_points, 3))
-        return jax.jit(lambda k: net.init(k, obj, sup)["params"])(key)
+        patch = None
+        if config.local_points:
+            patch = (
+                jnp.zeros((1, 2 * config.local_points, 3)),
+                jnp.zeros((1, 2 * config.local_points, 5)),
+            )
+        return jax.jit(lambda k: net.init(k, obj, sup, patch)["params"])(key)
 
     def apply(params, object_points, support_points, poses):
         posed = transform_points(poses, object_points)
+        patch = None
+        if config.local_points:
+            patch = contact_patch(posed, support_points, config.local_points)
+            posed = _strided(posed, config.object_points)
         if support_points.shape[1] > config.support_points:
-            support_points = crop_support(posed, support_points, config.support_points)
-        return net.apply({"params": params}, posed, support_points)
+            if config.support_crop_from:
+                support_points = crop_support(posed, support_points, config.support_points)
+            else:
+                support_points = _strided(support_points, config.support_points)
+        return net.apply({"params": params}, posed, support_points, patch)
 
     return EstimatorNets(init, apply)
+
+
+def _strided(points: jax.Array, n: int) -> jax.Array:
+    """[B, N, 3] -> [B, n, 3]: every (N // n)-th point (the fixed subsets are random already)."""
+    if points.shape[1] <= n:
+        return points
+    return points[:, :: points.shape[1] // n][:, :n]
+
+
+# Offsets to the other cloud are given in units of 1 cm, clipped at 3 cm: millimetres matter,
+# a far point only needs to know it is far.
+PATCH_SCALE = 0.01
+PATCH_CLIP = 3.0
+
+
+def contact_patch(object_posed: jax.Array, support_points: jax.Array, k: int, probes: int = 32):
+    """The contact NCE's local input: where the posed object and the support are closest.
+
+    object_posed [B, N, 3], support_points [B, M, 3] (support frame) -> (points [B, 2k, 3],
+    features [B, 2k, 5]). The k support points nearest the posed object (:func:`crop_support`
+    with ``probes`` object probes), then the k object points nearest those; xyz relative to the
+    support patch's centroid; features = (flag 1 object / 0 support, offset to the nearest
+    point of the other patch / 1 cm (3), its length / 1 cm), clipped at 3 cm."""
+    sup = crop_support(object_posed, support_points, k, probes)
+    obj = crop_support(sup, object_posed, k, probes)
+    centre = jnp.mean(sup, axis=1, keepdims=True)
+    obj, sup = obj - centre, sup - centre
+    # squared distances [B, k_obj, k_sup] as |a|^2 + |b|^2 - 2 a.b at full f32 precision (no
+    # TF32: millimetres on centred coordinates of a few cm), then gathers from the [B, k, 3]
+    # clouds. (The first version gathered from a broadcast [B, k, k, 3] difference: XLA's GPU
+    # compiler spent minutes on that fusion; the eighteenth session's first device call.)
+    cross = jnp.einsum("bic,bjc->bij", obj, sup, precision=jax.lax.Precision.HIGHEST)
+    d2 = jnp.sum(obj**2, -1)[:, :, None] + jnp.sum(sup**2, -1)[:, None, :] - 2.0 * cross
+    to_sup = jnp.take_along_axis(sup, jnp.argmin(d2, axis=2)[..., None], axis=1) - obj
+    to_obj = jnp.take_along_axis(obj, jnp.argmin(d2, axis=1)[..., None], axis=1) - sup
+    offsets = jnp.concatenate([to_sup, to_obj], axis=1) / PATCH_SCALE
+    length = jnp.sqrt(jnp.sum(offsets**2, axis=-1, keepdims=True) + 1e-12)
+    offsets = offsets * jnp.minimum(1.0, PATCH_CLIP / length)
+    points, flags = combine_clouds(obj, sup)
+    features = jnp.concatenate([flags, offsets, jnp.minimum(length, PATCH_CLIP)], axis=-1)
+    return points, features
 
 
 def crop_support(object_posed: jax.Array, support_points: jax.Array, k: int, probes: int = 32):

@@ -985,7 +985,7 @@ def _captured_stderr():
 
 def nce_clouds(cfg, object_points: np.ndarray, support_points: np.ndarray):
     """The NCE's fixed cloud subsets, as ``train_collision`` trains and ``eval_paths`` plans
-    with them (``train_collision.planner_clouds``, seeds 0 / 1): ``cfg.object_points`` object
+    with them (``train_collision.planner_clouds``, seeds 0 / 1): ``cfg.object_input`` object
     points and ``cfg.support_input`` support points: a support-crop NCE
     (``support_crop_from``) is given that many and keeps the nearest ``support_points``
     itself; given only ``support_points`` it would see a sparse uniform subset, not the
@@ -993,7 +993,7 @@ def nce_clouds(cfg, object_points: np.ndarray, support_points: np.ndarray):
     from omnihang_jax import collision
 
     return (
-        collision.subsample_cloud(object_points, cfg.object_points, 0),
+        collision.subsample_cloud(object_points, cfg.object_input, 0),
         collision.subsample_cloud(support_points, cfg.support_input, 1),
     )
 

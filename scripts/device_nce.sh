@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# The eighteenth session's GPU job for issue 13 on ONE GPU (16 cores): two NCEs trained side by
+# side by scripts/chain/nce.sh on every training pair derived so far, resuming across warm calls
+# of the same machine (state in /tmp/chain/nce/; a fresh machine starts over).
+#
+#   bash scripts/device_slim.sh out
+#   run(carry=[".whl_min", ".whl_train"], timeout_s=600, command="bash scripts/device_nce.sh")
+#   ... the same again (resumes: more pairs derived, both NCEs trained on)
+#   bash scripts/device_slim.sh in
+#
+# base slot  (weights/):      BASE_PRESET (contact: the contact NCE, NCEConfig.local_points)
+# crop slot  (weights_crop/): CROP_PRESET (small: 512 + 512 points, the support crop from 2,048)
+# Both with the sixteenth session's planner options (planner labels, a near-contact share of
+# 0.3, cosine lr restarted at NCE_LR2 on a resumed call, a validation curve every 2,000 steps);
+# no HCE normal net (NORMALS_S=0). Output: $OUT/nce.tgz (weights, weights_crop, logs,
+# summary.json), $OUT/nce.log.
+set -uo pipefail
+CALL=nce
+C=/tmp/chain
+END_S=${END_S:-580}
+LOG=nce.log
+. scripts/device_preamble.sh
+NEW="--planner-labels 1 --near-share 0.3 --lr-schedule cosine --val-curve-every 2000"
+[ -f "$C/nce/run/nce/config.json" ] && NEW="$NEW --lr ${NCE_LR2:-5e-4}"
+log "derived so far: $(ls $C/nce/derived/train 2>/dev/null | wc -l) training pairs"
+env PYTHON="$PY" CHAIN_WORKERS="${NCE_W:-13}" PRESET="${BASE_PRESET:-contact}" NORMALS_S=0 \
+    XLA_PYTHON_CLIENT_MEM_FRACTION="${MEM_FRACTION:-0.4}" BASE_ARGS="$NEW ${BASE_EXTRA:-}" \
+    CROP_ARGS="--preset ${CROP_PRESET:-small} $NEW ${CROP_EXTRA:-}" \
+    DERIVE_FRACTION="${DERIVE_FRACTION:-0.4}" bash scripts/chain/nce.sh $(($(left) - 10)) "$OUT/nce.tgz" \
+    >>"$C/logs/nce_part.log" 2>&1
+log "nce.sh exit $? | $(tail -8 "$C/nce/logs/call_$(ls "$C/nce/logs" | grep -c '^call_').log" 2>/dev/null | tr '\n' ' ' | cut -c1-1500)"
+ls -la "$OUT" | tee -a "$OUT/$LOG"
