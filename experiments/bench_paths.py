@@ -4,6 +4,7 @@ pair from an ``eval_paths`` run.
 
     python -m experiments.bench_paths --weights weights/collision_fast --out results/bench_paths.json
     python -m experiments.bench_paths --weights ... --paths results/paths.json --out ...
+    python -m experiments.bench_paths --weights A --compare B --out ...   # B's NCE beside A's
 
 Queries: one jitted ``collides`` per estimator, clouds of a real held-out pair (or random
 clouds with ``--synthetic``), batches of 1 to 4,096 poses, best of ``--repeats`` timed calls
@@ -42,10 +43,13 @@ def estimator_throughput(
     repeats: int = 3,
     preset="fast",
     on_row=None,
+    compare: str | None = None,
 ) -> dict:
     """Queries per second of NCE and HCE at each batch size (random clouds of the configured
     sizes, random poses: the cost does not depend on the values). ``on_row(result)`` is
-    called after each batch size (so that a run cut short keeps what it measured)."""
+    called after each batch size (so that a run cut short keeps what it measured).
+    ``compare``: a second weights folder whose NCE is timed in the same run, call for call
+    beside the first (``compare_nce_*`` and ``compare_nce_cost_ratio`` = its time / the first's)."""
     if weights:
         nce_cfg, nce_params, _ = collision.load_estimator(Path(weights, "nce"))
         normal_cfg, normal_params, _ = collision.load_estimator(Path(weights, "hce_normals"))
@@ -62,19 +66,33 @@ def estimator_throughput(
     normals = collision.make_normal_net(normal_cfg).apply(normal_params, sc_h[None])[0]
     heuristic = jax.jit(collision.hce_true_normals_collides(normal_cfg.threshold))
     out = {"nce_config": nce_cfg.__dict__, "normal_config": normal_cfg.__dict__, "rows": []}
+    if compare:
+        cmp_cfg, cmp_params, _ = collision.load_estimator(Path(compare, "nce"))
+        cmp_oc = rng.uniform(-0.1, 0.1, (cmp_cfg.object_input, 3)).astype(np.float32)
+        cmp_sc = rng.uniform(-0.15, 0.15, (cmp_cfg.support_input, 3)).astype(np.float32)
+        cmp_nce = jax.jit(collision.nce_collides(cmp_cfg))
+        out |= {"compare": compare, "compare_nce_config": cmp_cfg.__dict__}
     for b in batches:
         poses = np.concatenate(
             [rng.uniform(-0.1, 0.1, (b, 3)), rng.normal(size=(b, 4))], axis=1
         ).astype(np.float32)
         row = {"batch": b}
-        for name, fn in (
+        fns = [
             ("nce", lambda poses=poses: nce(nce_params, oc, sc, poses)),
             ("hce", lambda poses=poses: hce(normal_params, oc, sc_h, poses)),
             ("hce_normals_cached", lambda poses=poses: heuristic(normals, oc, sc_h, poses)),
-        ):
-            s = _time(fn, repeats)
+        ]
+        if compare:
+            fns.append(
+                ("compare_nce", lambda poses=poses: cmp_nce(cmp_params, cmp_oc, cmp_sc, poses))
+            )
+        seconds = {}
+        for name, fn in fns:
+            seconds[name] = s = _time(fn, repeats)
             row[f"{name}_ms"] = round(1e3 * s, 3)
             row[f"{name}_queries_per_s"] = round(b / s, 1)
+        if compare:
+            row["compare_nce_cost_ratio"] = round(seconds["compare_nce"] / seconds["nce"], 3)
         out["rows"].append(row)
         print(json.dumps(row), flush=True)
         if on_row is not None:
@@ -148,13 +166,20 @@ def main(argv=None) -> dict:
     parser.add_argument("--data", default=None, help="dataset: also time the mesh checker")
     parser.add_argument("--batches", default="1,16,64,256,1024,4096")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--compare", default=None, help="a second weights folder: its NCE timed beside the first"
+    )
+    parser.add_argument(
+        "--key", default=None, help="key of this run in --out (default: the device's name)"
+    )
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     device = jax.devices()[0]
-    key = f"{device.platform}:{getattr(device, 'device_kind', device.platform)}"
+    name = f"{device.platform}:{getattr(device, 'device_kind', device.platform)}"
+    key = args.key or name
     out = Path(args.out)
     entry = {
-        "device": key,
+        "device": name,
         "host_cores": os.cpu_count(),
         "versions": versions(),
         "weights": args.weights,
@@ -174,7 +199,9 @@ def main(argv=None) -> dict:
         entry["mesh_checker_cpu"] = mesh_throughput(args.data)
     batches = tuple(int(b) for b in args.batches.split(",")) if args.batches else ()
     if batches:
-        estimator_throughput(args.weights, batches, args.repeats, args.preset, on_row=save)
+        estimator_throughput(
+            args.weights, batches, args.repeats, args.preset, on_row=save, compare=args.compare
+        )
     save()
     return entry
 
