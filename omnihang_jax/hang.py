@@ -854,13 +854,23 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
     return where
 
 
-# scripts/device_collision.sh's weights are copied to weights/collision_<preset>/
-COLLISION_WEIGHTS = ("weights/collision_paper", "weights/collision_small", "weights/collision_fast")
+# The best NCE first (docs/paths.md: the eighteenth session's contact NCE plans 46.2 / 30.0 /
+# 36.4 alone on the 40 held-out pairs, the sixteenth session's 26.5 / 22.5 / 24.3), then the
+# folders scripts/device_collision.sh writes (weights/collision_<preset>/).
+COLLISION_WEIGHTS = (
+    "weights/collision_s18_contact",
+    "weights/collision_s16_planner",
+    "weights/collision_paper",
+    "weights/collision_small",
+    "weights/collision_fast",
+)
 
 
 def find_collision_weights() -> Path | None:
     """The first trained neural collision estimator (``<folder>/nce/config.json``) among
-    COLLISION_WEIGHTS, then any ``weights/collision_*``; None when there is none yet."""
+    COLLISION_WEIGHTS, then any ``weights/collision_*``; None when there is none yet.
+    (Before the eighteenth session the list held only folders nobody had written, so the
+    alphabetical fallback picked the sixth session's CPU NCE, ``collision_fast_cpu``.)"""
     for folder in [*COLLISION_WEIGHTS, *map(str, sorted(Path("weights").glob("collision_*")))]:
         if (Path(folder) / "nce" / "config.json").exists():
             return Path(folder) / "nce"

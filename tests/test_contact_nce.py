@@ -91,3 +91,16 @@ def test_contact_nce_learns_collisions_on_a_tiny_set():
     after = accuracy(params)
     assert after >= 0.75, f"held-out accuracy {after:.2f} after {log['steps']} steps (chance 0.5)"
     assert after > before + 0.15
+
+
+def test_hang_plans_with_the_best_committed_nce():
+    """The hang command's "how" uses the contact NCE when its weights are in the tree (they are
+    committed), not the alphabetically first folder (the sixth session's CPU NCE)."""
+    from pathlib import Path
+
+    from omnihang_jax import hang
+
+    found = hang.find_collision_weights()
+    assert found == Path("weights/collision_s18_contact/nce")
+    cfg, _, _ = collision.load_estimator(found)
+    assert cfg.local_points > 0 and cfg.threshold > 0.5
