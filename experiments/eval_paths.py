@@ -333,6 +333,7 @@ def select_geometric(
     radii=SELECT_RADII,
     min_points=SELECT_MIN_POINTS,
     symmetric: bool = False,
+    nce_thresholds=None,
 ) -> dict:
     """The penetration test's (depth, radius, min_points) for ``nce_geometric``, on TRAINING
     validation pairs (``pair_index % 20 == 0``, never trained on; ``train_collision
@@ -344,7 +345,11 @@ def select_geometric(
     ``symmetric``: the one-sided test fixed at ``geo``'s depth / radius / min points, the
     same grid and rule choose the symmetric side's ``sym_depth`` / ``sym_radius`` /
     ``sym_min_points`` (the hybrid: NCE OR one-sided OR symmetric); ``chosen`` is None when
-    no setting keeps the goal pass (then the symmetric side stays off)."""
+    no setting keeps the goal pass (then the symmetric side stays off).
+
+    ``nce_thresholds``: the NCE's threshold is searched too (eighteenth session), jointly with
+    the test's settings under the same rule; rows and ``chosen`` then carry ``nce_threshold``,
+    which ``--geometric`` applies (unless ``--nce-threshold`` is given)."""
     from experiments.train_collision import (
         NEAR_APPROACH,
         NEAR_JITTER,
@@ -367,11 +372,12 @@ def select_geometric(
     prob = score_poses(
         val, val.near_pair, val.near_poses, nce_fn, cfg.object_input, cfg.support_input
     )
-    by_nce = prob > cfg.threshold
+    thresholds = [cfg.threshold] if nce_thresholds is None else list(nce_thresholds)
+    nce_calls = {t: prob > t for t in thresholds}
     nce_s = time.time() - t0
     if symmetric:
         one = _geometric_grid(val, val.near_pair, val.near_poses, geo, [geo.depth], [geo.radius])
-        by_nce = by_nce | (one[:, 0, 0] > geo.min_points)  # the one-sided hybrid, fixed
+        nce_calls = {t: c | (one[:, 0, 0] > geo.min_points) for t, c in nce_calls.items()}
     counts = _geometric_grid(val, val.near_pair, val.near_poses, geo, depths, radii, symmetric)
     stable = val.near_kind == NEAR_STABLE
     moved = ~stable
@@ -392,23 +398,28 @@ def select_geometric(
         )  # fmt: skip
 
     table, best = [], None
-    for i, d in enumerate(depths):
-        for j, r in enumerate(radii):
-            for m in min_points:
-                by_test = counts[:, i, j] > m
-                setting = dict(depth=d, radius=r, min_points=m)
-                if symmetric:
-                    setting = dict(
-                        depth=geo.depth, radius=geo.radius, min_points=geo.min_points,
-                        sym_depth=d, sym_radius=r, sym_min_points=m,
-                    )  # fmt: skip
-                row = dict(**setting, **metrics(by_nce | by_test))
-                row["test_alone"] = metrics(by_test)
-                table.append(row)
-                ok = row["goal_pass"] >= goal_pass
-                key = (row["free_precision"], row["specificity"])
-                if ok and (best is None or key > (best["free_precision"], best["specificity"])):
-                    best = row
+    for threshold, by_nce in nce_calls.items():
+        for i, d in enumerate(depths):
+            for j, r in enumerate(radii):
+                for m in min_points:
+                    by_test = counts[:, i, j] > m
+                    setting = dict(depth=d, radius=r, min_points=m)
+                    if symmetric:
+                        setting = dict(
+                            depth=geo.depth, radius=geo.radius, min_points=geo.min_points,
+                            sym_depth=d, sym_radius=r, sym_min_points=m,
+                        )  # fmt: skip
+                    if nce_thresholds is not None:
+                        setting["nce_threshold"] = float(threshold)
+                    row = dict(**setting, **metrics(by_nce | by_test))
+                    row["test_alone"] = metrics(by_test)
+                    table.append(row)
+                    ok = row["goal_pass"] >= goal_pass
+                    key = (row["free_precision"], row["specificity"])
+                    if ok and (best is None or key > (best["free_precision"], best["specificity"])):
+                        best = row
+    # the NCE's own row: at its threshold (with the fixed one-sided test when symmetric)
+    by_nce = nce_calls[cfg.threshold] if cfg.threshold in nce_calls else prob > cfg.threshold
     out = dict(
         validation_pairs=len(val.meta),
         near_poses=int(moved.sum()),
@@ -727,6 +738,14 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--val-pairs", type=int, default=60, help="for --select-geometric")
     parser.add_argument(
+        "--select-goal-pass", type=float, default=0.9,
+        help="--select-geometric: the hybrid goal pass the chosen setting must keep",
+    )  # fmt: skip
+    parser.add_argument(
+        "--select-nce-thresholds", default=None, metavar="T1,T2,...",
+        help="--select-geometric: search the NCE's threshold too, jointly with the test",
+    )  # fmt: skip
+    parser.add_argument(
         "--symmetric",
         action="store_true",
         help="the penetration test also counts support points behind the observed object "
@@ -764,14 +783,20 @@ def main(argv=None) -> dict:
         if args.symmetric and not args.select_geometric:
             keys += tuple(k for k in ("sym_depth", "sym_radius", "sym_min_points") if k in chosen)
         geo = dataclasses.replace(geo, **{k: chosen[k] for k in keys})
+        if "nce_threshold" in chosen and args.nce_threshold is None:  # a joint selection
+            args.nce_threshold = float(chosen["nce_threshold"])
     if args.sym_solid:
         if not args.symmetric:
             parser.error("--sym-solid needs --symmetric")
         geo = dataclasses.replace(geo, sym_solid_only=True)
     if args.select_geometric:
+        thresholds = None
+        if args.select_nce_thresholds:
+            thresholds = [float(t) for t in args.select_nce_thresholds.split(",") if t]
         sel = select_geometric(
-            args.data, args.weights, args.val_pairs, geo=geo, symmetric=args.symmetric
-        )
+            args.data, args.weights, args.val_pairs, goal_pass=args.select_goal_pass, geo=geo,
+            symmetric=args.symmetric, nce_thresholds=thresholds,
+        )  # fmt: skip
         Path(args.select_geometric).parent.mkdir(parents=True, exist_ok=True)
         Path(args.select_geometric).write_text(json.dumps(sel, indent=1))
         print(json.dumps({"nce": sel["nce"], "chosen": sel["chosen"]}, indent=1))

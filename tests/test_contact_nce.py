@@ -104,3 +104,27 @@ def test_hang_plans_with_the_best_committed_nce():
     assert found == Path("weights/collision_s18_contact/nce")
     cfg, _, _ = collision.load_estimator(found)
     assert cfg.local_points > 0 and cfg.threshold > 0.5
+
+
+def test_joint_selection_of_the_nce_threshold_and_the_observed_cloud_test():
+    """``eval_paths --select-geometric --select-nce-thresholds``: the NCE's threshold is
+    searched with the test's settings on training validation pairs; a higher threshold never
+    lowers the goal pass at the same test setting, and the chosen row keeps the target."""
+    from experiments.eval_paths import select_geometric
+
+    sel = select_geometric(
+        "datasets/paper", "weights/collision_s18_contact", val_pairs=2, goal_pass=0.8,
+        depths=(0.001, 0.003), radii=(0.003,), min_points=(0, 5), nce_thresholds=(0.3, 0.9),
+    )  # fmt: skip
+    assert sel["validation_pairs"] == 2 and len(sel["table"]) == 2 * 2 * 1 * 2
+    rows = {(r["nce_threshold"], r["depth"], r["min_points"]): r for r in sel["table"]}
+    for (t, d, m), row in rows.items():
+        if t == 0.3:
+            assert rows[(0.9, d, m)]["goal_pass"] >= row["goal_pass"]
+            assert rows[(0.9, d, m)]["near_recall"] <= row["near_recall"]
+    chosen = sel["chosen"]
+    if chosen is not None:
+        assert chosen["goal_pass"] >= 0.8 and chosen["nce_threshold"] in (0.3, 0.9)
+        best = max(r["free_precision"] for r in sel["table"] if r["goal_pass"] >= 0.8)
+        assert chosen["free_precision"] == best
+    assert sel["nce"]["threshold"] == 0.56  # the NCE's own row at its own threshold
