@@ -197,13 +197,22 @@ NCE_PRESETS = {
     "fast": NCEConfig(pointnet="fast", object_points=256, support_points=256, head=(128, 64)),
     "small": NCEConfig(),
     "tiny_contact": NCEConfig(
-        pointnet="tiny", object_points=64, support_points=64, head=(32,),
-        local_points=32, local_from=128, local_pointnet="tiny",
+        pointnet="tiny",
+        object_points=64,
+        support_points=64,
+        head=(32,),
+        local_points=32,
+        local_from=128,
+        local_pointnet="tiny",
     ),  # fmt: skip
     # fast's global branch on strided subsets + the local contact branch (eighteenth session)
     "contact": NCEConfig(
-        pointnet="fast", object_points=256, support_points=256, head=(128, 64),
-        local_points=256, local_from=2048,
+        pointnet="fast",
+        object_points=256,
+        support_points=256,
+        head=(128, 64),
+        local_points=256,
+        local_from=2048,
     ),  # fmt: skip
 }
 NORMAL_PRESETS = {
@@ -276,9 +285,7 @@ class _NCENet(nn.Module):
             points, flags
         )
         if self.config.local_points:
-            local, _ = PointNet2Encoder(POINTNETS[self.config.local_pointnet], name="local")(
-                *patch
-            )
+            local, _ = PointNet2Encoder(POINTNETS[self.config.local_pointnet], name="local")(*patch)
             feature = jnp.concatenate([feature, local], axis=-1)
         x = feature
         for width in self.config.head:

@@ -27,7 +27,9 @@ def test_contact_patch_is_the_closest_region_with_offsets_to_the_other_cloud():
     far = (rng.normal(0, 0.003, (256, 3)) + [0.1, 0, 0.5]).astype(np.float32)
     obj = np.concatenate([blob, far])
     k = 32
-    points, features = collision.contact_patch(jnp.asarray(obj[None]), jnp.asarray(support[None]), k)
+    points, features = collision.contact_patch(
+        jnp.asarray(obj[None]), jnp.asarray(support[None]), k
+    )
     points, features = np.asarray(points)[0], np.asarray(features)[0]
     assert points.shape == (2 * k, 3) and features.shape == (2 * k, 5)
     np.testing.assert_array_equal(features[:k, 0], 1.0)  # flags: object first, then support
