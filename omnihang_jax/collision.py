@@ -319,10 +319,10 @@ def make_nce(config: NCEConfig) -> EstimatorNets:
             patch = contact_patch(posed, support_points, config.local_points)
             posed = _strided(posed, config.object_points)
         if support_points.shape[1] > config.support_points:
-            if config.support_crop_from:
-                support_points = crop_support(posed, support_points, config.support_points)
-            else:
+            if config.local_points and not config.support_crop_from:  # the contact NCE
                 support_points = _strided(support_points, config.support_points)
+            else:  # as before the contact NCE: given more support points, keep the nearest
+                support_points = crop_support(posed, support_points, config.support_points)
         return net.apply({"params": params}, posed, support_points, patch)
 
     return EstimatorNets(init, apply)
