@@ -372,12 +372,13 @@ def select_geometric(
     prob = score_poses(
         val, val.near_pair, val.near_poses, nce_fn, cfg.object_input, cfg.support_input
     )
-    thresholds = [cfg.threshold] if nce_thresholds is None else list(nce_thresholds)
-    nce_calls = {t: prob > t for t in thresholds}
     nce_s = time.time() - t0
-    if symmetric:
+    fixed = np.zeros(len(prob), bool)
+    if symmetric:  # the one-sided hybrid, fixed
         one = _geometric_grid(val, val.near_pair, val.near_poses, geo, [geo.depth], [geo.radius])
-        nce_calls = {t: c | (one[:, 0, 0] > geo.min_points) for t, c in nce_calls.items()}
+        fixed = one[:, 0, 0] > geo.min_points
+    thresholds = [cfg.threshold] if nce_thresholds is None else list(nce_thresholds)
+    nce_calls = {t: (prob > t) | fixed for t in thresholds}
     counts = _geometric_grid(val, val.near_pair, val.near_poses, geo, depths, radii, symmetric)
     stable = val.near_kind == NEAR_STABLE
     moved = ~stable
@@ -418,8 +419,7 @@ def select_geometric(
                     key = (row["free_precision"], row["specificity"])
                     if ok and (best is None or key > (best["free_precision"], best["specificity"])):
                         best = row
-    # the NCE's own row: at its threshold (with the fixed one-sided test when symmetric)
-    by_nce = nce_calls[cfg.threshold] if cfg.threshold in nce_calls else prob > cfg.threshold
+    by_nce = (prob > cfg.threshold) | fixed  # the NCE's own row, at its own threshold
     out = dict(
         validation_pairs=len(val.meta),
         near_poses=int(moved.sum()),

@@ -204,7 +204,7 @@ NCE_PRESETS = {
         local_points=32,
         local_from=128,
         local_pointnet="tiny",
-    ),  # fmt: skip
+    ),
     # fast's global branch on strided subsets + the local contact branch (eighteenth session)
     "contact": NCEConfig(
         pointnet="fast",
@@ -213,15 +213,16 @@ NCE_PRESETS = {
         head=(128, 64),
         local_points=256,
         local_from=2048,
-    ),  # fmt: skip
+    ),
 }
 NORMAL_PRESETS = {
     "tiny": NormalNetConfig(pointnet="tiny", points=128),
     "fast": NormalNetConfig(pointnet="fast", points=512),
     "small": NormalNetConfig(),
-    "tiny_contact": NormalNetConfig(pointnet="tiny", points=128),
-    "contact": NormalNetConfig(pointnet="fast", points=512),  # the HCE beside the contact NCE
 }
+# train_collision --preset names the normal net too: the contact NCEs' HCE is their global
+# branch's
+NORMAL_PRESETS |= {"tiny_contact": NORMAL_PRESETS["tiny"], "contact": NORMAL_PRESETS["fast"]}
 
 
 class EstimatorNets(NamedTuple):

@@ -115,14 +115,16 @@ def _rod_task(rng, n_labels):
     )
 
 
-def test_nce_learns_collisions_on_a_tiny_set():
+@pytest.mark.parametrize("preset", ["tiny", "tiny_contact"])  # tiny_contact: the contact NCE
+def test_nce_learns_collisions_on_a_tiny_set(preset):
     from experiments.train_collision import train_nce
 
     rng = np.random.default_rng(3)
     train, held_out = _rod_task(rng, 2000), _rod_task(rng, 256)
-    cfg = collision.NCE_PRESETS["tiny"]
+    cfg = collision.NCE_PRESETS[preset]
     prob = jax.jit(collision.nce_probability(cfg))
-    oc, sc = held_out.object_points[0, :64], held_out.support_points[0, :64]
+    oc = held_out.object_points[0, : cfg.object_input]
+    sc = held_out.support_points[0, : cfg.support_input]
 
     def accuracy(params):
         return float(
