@@ -112,10 +112,88 @@ def test_estimator_checker_batches_agree_with_single_calls():
     p = np.asarray(prob(params, oc, sc, poses))
     thr = float(np.median(p))  # about half the poses collide
     checker = planner.EstimatorChecker(lambda *a: prob(*a) > thr, params, oc, sc)
-    batched = checker(poses[:5])  # padded to 8, as every single call is
+    batched = checker(poses[:5])  # padded to 8; a single call is a batch of 1
     single = np.array([checker(x[None])[0] for x in poses[:5]])
     np.testing.assert_array_equal(batched, single)
     np.testing.assert_array_equal(batched, p[:5] > thr)
+    eight = planner.EstimatorChecker(lambda *a: prob(*a) > thr, params, oc, sc, min_batch=8)
+    np.testing.assert_array_equal(np.array([eight(x[None])[0] for x in poses[:5]]), single)
+    assert checker(poses[:0]).shape == (0,)
+    with pytest.raises(ValueError, match="power of two"):
+        planner.EstimatorChecker(lambda *a: prob(*a) > thr, params, oc, sc, min_batch=3)
+
+
+class _Counting:
+    """A checker that records the batches it was asked about."""
+
+    def __init__(self, checker):
+        self.checker, self.batches = checker, []
+
+    def __call__(self, poses):
+        self.batches.append(len(poses))
+        return self.checker(poses)
+
+
+def test_cascade_checker_equals_the_jitted_hybrid_and_skips_the_nce_on_blocked_edges():
+    """eval_paths' hybrid is planner.CascadeChecker(observed-cloud test, NCE): per state the
+    same calls as the one jitted collision.nce_geometric_collides; an edge the test blocks
+    never reaches the NCE, and the NCE sees only the states the test calls free."""
+    import dataclasses
+
+    import jax
+
+    from omnihang_jax import collision
+
+    rng = np.random.default_rng(5)
+    n = 3000  # a 6 x 6 cm flat support patch at z = 0, outward normals +z
+    patch = np.concatenate([rng.uniform(-0.03, 0.03, (n, 2)), np.zeros((n, 1))], 1)
+    patch, normals = patch.astype(np.float32), np.tile([0, 0, 1.0], (n, 1)).astype(np.float32)
+    grid = collision.support_grid(patch, normals, max_voxels=200_000)
+    obj = np.concatenate([rng.uniform(-0.01, 0.01, (64, 2)), np.zeros((64, 1))], 1)
+    obj = obj.astype(np.float32)
+    geo = collision.GeometricConfig(depth=0.002, radius=0.004, min_points=2, object_points=64)
+    cfg = collision.NCE_PRESETS["tiny"]
+    params = collision.make_nce(cfg).init(jax.random.key(0))
+    oc = rng.uniform(-0.01, 0.01, (cfg.object_points, 3)).astype(np.float32)
+    sc = patch[: cfg.support_points]
+    # 5 mm inside the patch (the test's), then poses around it, some of them inside
+    poses = np.tile(np.array([0, 0, 0, 1, 0, 0, 0], np.float32), (24, 1))
+    poses[:, :3] = rng.normal(0, 0.01, (24, 3))
+    poses[0, :3] = (0, 0, -0.005)
+    q = rng.normal(size=(24, 4)) * 0.1 + [1, 0, 0, 0]
+    poses[1:, 3:] = (q / np.linalg.norm(q, axis=1, keepdims=True))[1:]
+    p = np.asarray(jax.jit(collision.nce_probability(cfg))(params, oc, sc, poses))
+    cfg = dataclasses.replace(cfg, threshold=float(np.median(p)))  # the NCE calls half
+    test = planner.EstimatorChecker(jax.jit(collision.geometric_collides(geo)), grid, obj, sc)
+    by_test = test(poses)
+    nce = _Counting(planner.EstimatorChecker(jax.jit(collision.nce_collides(cfg)), params, oc, sc))
+    hybrid = jax.jit(collision.nce_geometric_collides(cfg, geo))
+    want = np.asarray(hybrid(collision.NCEGeometricParams(params, obj, grid), oc, sc, poses))
+    assert by_test.any() and (want & ~by_test).any(), "both parts must call some pose"
+    cascade = planner.CascadeChecker(test, nce)
+    np.testing.assert_array_equal(cascade(poses), want)
+    assert nce.batches == [int((~by_test).sum())]  # only what the test called free
+    nce.batches.clear()
+    assert cascade.any_colliding(poses) and nce.batches == []  # the test blocks the edge
+    free = poses[~want]
+    assert not cascade.any_colliding(free) and nce.batches == [len(free)]
+    assert cascade.states_second == int((~by_test).sum()) + len(free)
+
+
+def test_planner_goes_around_two_obstacles_with_a_cascade():
+    """RRT-Connect with a CascadeChecker of two exact checkers avoids both obstacles."""
+    slab = planner.AnalyticChecker([([-0.05, -1.0, -1.0], [0.05, 1.0, 0.3])], radius=0.02)
+    roof = _Counting(planner.AnalyticChecker([([-0.05, -1.0, 0.45], [0.05, 1.0, 1.0])], 0.02))
+    start = np.array([-0.3, 0.0, 0.0, 1, 0, 0, 0])
+    goal = np.array([0.3, 0.0, 0.0, 1, 0, 0, 0])
+    bounds = (np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.6]))
+    cascade = planner.CascadeChecker(slab, roof)
+    res = planner.plan(cascade, start, goal, bounds, 0.05, FAST)
+    assert res.status == "Exact solution"
+    dense = planner.interpolate_path(res.path, 0.002, 0.05)
+    assert not slab(dense).any() and not roof.checker(dense).any()
+    assert 0.32 < dense[np.abs(dense[:, 0]) < 0.05, 2].min()  # through the gap between them
+    assert sum(roof.batches) < cascade.states_first  # the second saw fewer states
 
 
 def test_eval_paths_summary_counts_and_dense_flags():
