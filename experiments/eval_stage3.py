@@ -75,6 +75,11 @@ def main(argv=None) -> dict:
         "over them; repeat for more; default stage3.RANK_VALUES); --rank-value none: the "
         "CEM's V alone",
     )  # fmt: skip
+    parser.add_argument(
+        "--seed", type=int, default=0,
+        help="the key of Stage 1's noise and CEM's samples (0: every committed run); other "
+        "seeds measure the figure's spread",
+    )  # fmt: skip
     parser.add_argument("--label", default="")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -108,11 +113,11 @@ def main(argv=None) -> dict:
         files, args.weights, args.value, dataset_dir, num_proposals=args.proposals,
         cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
         progress=not args.no_progress, stage2_clearance=args.stage2_clearance, select=select,
-        pool_starts=args.pool_starts, rank_value_dirs=rank_values,
+        pool_starts=args.pool_starts, rank_value_dirs=rank_values, seed=args.seed,
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
-                   cem_rounds=args.rounds, num_proposals=args.proposals,
+                   cem_rounds=args.rounds, num_proposals=args.proposals, seed=args.seed,
                    stage2_clearance_m=args.stage2_clearance,
                    select=dataclasses.asdict(select),
                    pool_starts=args.pool_starts, rank_values=rank_values)  # fmt: skip
