@@ -121,6 +121,33 @@ def test_estimator_checker_batches_agree_with_single_calls():
     assert checker(poses[:0]).shape == (0,)
     with pytest.raises(ValueError, match="power of two"):
         planner.EstimatorChecker(lambda *a: prob(*a) > thr, params, oc, sc, min_batch=3)
+    sizes = [checker.padded_size(b) for b in (1, 2, 3, 5, 8, 9, 17, 36, 137)]
+    assert sizes == [1, 2, 4, 8, 8, 16, 24, 40, 144]
+
+
+def test_any_colliding_checks_coarse_states_first_with_the_same_answer():
+    """An edge's states: 8 evenly spaced ones first (the far end among them), the rest only
+    when those are free; the answer is always that of one call on all states."""
+    batches = []
+
+    def collides(params, object_cloud, support_cloud, poses):  # x inside the slab
+        batches.append(len(poses))
+        x = np.asarray(poses)[:, 0]
+        return (x > params[0]) & (x < params[1])
+
+    oc = sc = np.zeros((4, 3), np.float32)
+    edge = np.tile(np.array([0, 0, 0, 1, 0, 0, 0], np.float32), (36, 1))
+    edge[:, 0] = np.arange(1, 37) / 36  # x from 1/36 to 1
+    cases = [((0.3, 0.5), True, [8]), ((2.0, 3.0), False, [8, 32]), ((0.05, 0.07), True, [8, 32])]
+    for slab, want, calls in cases:  # a wide run (caught coarse), none, a narrow run (fine)
+        checker = planner.EstimatorChecker(collides, np.array(slab), oc, sc)
+        batches.clear()
+        assert checker.any_colliding(edge) is want
+        assert batches == calls
+        assert bool(checker(edge).any()) is want
+    checker = planner.EstimatorChecker(collides, np.array((0.3, 0.5)), oc, sc)
+    batches.clear()
+    assert checker.any_colliding(edge[:16]) and batches == [16]  # short edges: one call
 
 
 class _Counting:
