@@ -5,16 +5,30 @@ pair from an ``eval_paths`` run.
     python -m experiments.bench_paths --weights weights/collision_fast --out results/bench_paths.json
     python -m experiments.bench_paths --weights ... --paths results/paths.json --out ...
     python -m experiments.bench_paths --weights A --compare B --out ...   # B's NCE beside A's
+    # the planner's checker before / after the nineteenth session, plan by plan, same pairs
+    python -m experiments.bench_paths --weights weights/collision_s18_contact --batches "" \
+        --planner 4 --planner-seconds 10 --geometric results/paths_hybrid_s18_joint95_selection.json \
+        --data datasets/paper --key cpu_s19_planner_checkers --out results/bench_paths.json
 
 Queries: one jitted ``collides`` per estimator, clouds of a real held-out pair (or random
 clouds with ``--synthetic``), batches of 1 to 4,096 poses, best of ``--repeats`` timed calls
 after a warm-up (compilation excluded). Writes JSON with device and versions; merges into an
 existing file, keyed by device, so CPU and GPU runs sit side by side.
+
+``--planner N``: states a plan checks per second of planning, for the NCE alone and the hybrid
+(NCE OR the observed-cloud test), with the checkers of the eighteenth session (every batch
+padded to a power of two >= 8, an edge in one call, the hybrid as one jitted function) and of
+the nineteenth (batches of 1 for single states, multiples of 8 for edges, an edge's 8 evenly
+spaced states first, the hybrid as ``planner.CascadeChecker``: the test first). Both answer
+every question the same; each plan of N held-out pairs runs under both, in alternating order,
+``--planner-seconds`` each (OMPL's RRT-Connect, seeded once per process, so the two trees
+differ: states per second is the figure, not the plans' outcomes).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -121,6 +135,77 @@ def mesh_throughput(data: str, n_poses: int = 2000) -> dict:
     return {"pair": pairs[0].name, "states": n_poses, "states_per_s": round(n_poses / s, 1)}
 
 
+def planner_states(
+    weights: str, data: str, n_pairs: int, seconds: float, geometric_json: str | None
+) -> dict:
+    """States checked per second of planning, old against new checkers (module docstring)."""
+    from experiments import eval_paths
+    from omnihang_jax import planner
+
+    geo = collision.GeometricConfig()
+    if geometric_json:
+        chosen = json.loads(Path(geometric_json).read_text())["chosen"]
+        geo = dataclasses.replace(geo, **{k: chosen[k] for k in ("depth", "radius", "min_points")})
+        threshold = chosen.get("nce_threshold")
+    else:
+        threshold = None
+    est = eval_paths.load_estimators(weights, nce_threshold=threshold, geometric=geo)
+    cases = eval_paths.load_pairs(data, n_pairs)
+    config = planner.PlannerConfig(time_limit=seconds)
+    rows = []
+    for i, case in enumerate(cases):
+        new = eval_paths.checkers_for(
+            case, est, config.penetration_tolerance, ("nce", "nce_geometric")
+        )
+        old_kw = dict(min_batch=8, pow2=True, coarse=0)
+        nce = new["nce"]
+        grid = new["geometric"].params
+        params = collision.NCEGeometricParams(
+            est.nce_params, new["geometric"].object_cloud, grid, None
+        )
+        old = {
+            "nce": planner.EstimatorChecker(
+                est.nce, nce.params, nce.object_cloud, nce.support_cloud, **old_kw
+            ),
+            "nce_geometric": planner.EstimatorChecker(
+                est.nce_geometric, params, nce.object_cloud, nce.support_cloud, **old_kw
+            ),
+        }
+        for c in old.values():
+            c.warm_up()
+        weight = planner.object_radius(case.scene)
+        bounds = planner.default_bounds(case.scene)
+        start = planner.start_pose(case.scene, case.goal)
+        for method in ("nce", "nce_geometric"):
+            order = (("s18", old), ("s19", new)) if i % 2 == 0 else (("s19", new), ("s18", old))
+            for label, checkers in order:
+                res = planner.plan(checkers[method], start, case.goal, bounds, weight, config)
+                rows.append(
+                    dict(pair=case.name, method=method, checker=label, status=res.status,
+                         planning_s=round(res.planning_s, 3), states=res.states_checked,
+                         calls=res.checker_calls,
+                         states_per_s=round(res.states_checked / max(res.planning_s, 1e-9), 1))
+                )  # fmt: skip
+                print(json.dumps(rows[-1]), flush=True)
+    summary = {}
+    for method in ("nce", "nce_geometric"):
+        rate = {
+            label: float(
+                np.median([r["states_per_s"] for r in rows if (r["method"], r["checker"]) == (method, label)])
+            )
+            for label in ("s18", "s19")
+        }  # fmt: skip
+        rates: dict = {}
+        for r in rows:
+            if r["method"] == method:
+                rates.setdefault(r["pair"], {})[r["checker"]] = r["states_per_s"]
+        ratios = [v["s19"] / v["s18"] for v in rates.values() if len(v) == 2 and v["s18"] > 0]
+        summary[method] = dict(
+            median_states_per_s=rate, median_ratio_s19_over_s18=round(float(np.median(ratios)), 2)
+        )
+    return dict(pairs=len(cases), seconds_per_plan=seconds, summary=summary, rows=rows)
+
+
 def planning_times(paths_json: str) -> dict:
     """Median / p90 planning time per pair and method from an eval_paths run."""
     res = json.loads(Path(paths_json).read_text())
@@ -172,8 +257,18 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--key", default=None, help="key of this run in --out (default: the device's name)"
     )
+    parser.add_argument(
+        "--planner", type=int, default=0, metavar="N",
+        help="states per second of planning on N held-out pairs (--data), old vs new checkers",
+    )  # fmt: skip
+    parser.add_argument("--planner-seconds", type=float, default=10.0)
+    parser.add_argument(
+        "--geometric", default=None, help="--planner: the hybrid's selection JSON (eval_paths)"
+    )
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
+    if args.planner and not (args.data and args.weights):
+        parser.error("--planner needs --data and --weights")
     device = jax.devices()[0]
     name = f"{device.platform}:{getattr(device, 'device_kind', device.platform)}"
     key = args.key or name
@@ -195,7 +290,12 @@ def main(argv=None) -> dict:
 
     if args.paths:
         entry["planning"] = planning_times(args.paths)
-    if args.data:
+    if args.planner:
+        entry["planner_states"] = planner_states(
+            args.weights, args.data, args.planner, args.planner_seconds, args.geometric
+        )
+        save()
+    elif args.data:
         entry["mesh_checker_cpu"] = mesh_throughput(args.data)
     batches = tuple(int(b) for b in args.batches.split(",")) if args.batches else ()
     if batches:

@@ -109,8 +109,18 @@ class EstimatorChecker:
     pegboard pair): powers of two padded the edges by 43 %, multiples of 8 pad them by 7 %."""
 
     def __init__(
-        self, collides_jit: Callable, params, object_cloud, support_cloud, min_batch: int = 1
+        self,
+        collides_jit: Callable,
+        params,
+        object_cloud,
+        support_cloud,
+        min_batch: int = 1,
+        pow2: bool = False,
+        coarse: int = 8,
     ):
+        """``pow2``, ``min_batch=8``, ``coarse=0``: the checker before the nineteenth session
+        (every batch padded to a power of two >= 8, an edge in one call), kept for
+        ``experiments.bench_paths --planner``."""
         if min_batch < 1 or min_batch > 8 or min_batch & (min_batch - 1):
             raise ValueError(f"min_batch must be a power of two in 1 .. 8, got {min_batch}")
         self.collides = collides_jit
@@ -118,9 +128,11 @@ class EstimatorChecker:
         self.object_cloud = jax.numpy.asarray(object_cloud, jax.numpy.float32)
         self.support_cloud = jax.numpy.asarray(support_cloud, jax.numpy.float32)
         self.min_batch = min_batch
+        self.pow2 = pow2
+        self.coarse = coarse
 
     def padded_size(self, b: int) -> int:
-        if b <= 8:
+        if b <= 8 or self.pow2:
             return max(self.min_batch, 1 << int(np.ceil(np.log2(max(b, 1)))))
         return -(-b // 8) * 8
 
@@ -141,15 +153,16 @@ class EstimatorChecker:
         out = self.collides(self.params, self.object_cloud, self.support_cloud, padded)
         return np.asarray(out)[:b]
 
-    def any_colliding(self, poses: np.ndarray, coarse: int = 8) -> bool:
+    def any_colliding(self, poses: np.ndarray) -> bool:
         """Is any state of an edge colliding? ``coarse`` evenly spaced states first (the last
         one the edge's far end), the others only if none of those collides: the same answer as
         ``self(poses).any()``. An edge through the support (colliding over a run of states)
         then costs a batch of ``coarse``, and a free edge the same padded batches as one call
-        (OMPL's own motion validator also checks an edge's states out of order)."""
+        (OMPL's own motion validator also checks an edge's states out of order). ``coarse``
+        0: one call."""
         poses = np.asarray(poses, np.float32).reshape(-1, 7)
-        n = len(poses)
-        if n <= 2 * coarse:
+        n, coarse = len(poses), self.coarse
+        if not coarse or n <= 2 * coarse:
             return bool(self(poses).any())
         first = np.zeros(n, bool)
         first[(np.arange(1, coarse + 1) * n) // coarse - 1] = True
