@@ -205,6 +205,7 @@ class Estimators(NamedTuple):
     geometric: collision.GeometricConfig = collision.GeometricConfig()
     nce_geometric: object = None  # jitted collision.nce_geometric_collides
     geometric_alone: object = None  # jitted collision.geometric_collides (ablation)
+    test_goal_ball: float = 0.0  # m: the hybrid's test is off this near the goal (ablation)
 
 
 def goal_ball_collides(config: collision.NCEConfig, far_threshold: float, ball: float):
@@ -496,7 +497,11 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
         # the hybrid: the test first, the NCE only where it says free, and not at all for an
         # edge it blocks (planner.CascadeChecker; the same calls as the one jitted
         # collision.nce_geometric_collides, est.nce_geometric, at about half the NCE queries)
-        checkers["nce_geometric"] = planner.CascadeChecker(checkers["geometric"], nce)
+        test = checkers["geometric"]
+        if est.test_goal_ball > 0:  # the NCE alone decides near the goal
+            weight = planner.object_radius(case.scene)
+            test = planner.ExemptNearGoal(test, case.goal, est.test_goal_ball, weight)
+        checkers["nce_geometric"] = planner.CascadeChecker(test, nce)
     for name in set(methods) - {"mesh"}:  # compiled outside the planning clock
         checkers[name].warm_up()
     return checkers
@@ -728,6 +733,12 @@ def main(argv=None) -> dict:
         help="m (planner metric): within it the NCE's threshold, beyond it --nce-far-threshold",
     )
     parser.add_argument(
+        "--test-goal-ball", type=float, default=0.0, metavar="M",
+        help="nce_geometric: the observed-cloud test is off within M (planner metric) of the "
+        "goal, the NCE alone decides there (ablation; the test's false alarms on the last "
+        "millimetres of the approach)",
+    )  # fmt: skip
+    parser.add_argument(
         "--select-geometric",
         default=None,
         metavar="JSON",
@@ -816,7 +827,7 @@ def main(argv=None) -> dict:
         geo = dataclasses.replace(geo, symmetric=True)
     est = load_estimators(
         args.weights, args.nce_threshold, args.nce_far_threshold, args.nce_goal_ball, geo
-    )
+    )._replace(test_goal_ball=args.test_goal_ball)
     records = read_answers(args.pairs_from) if args.pairs_from else None
     cases = load_pairs(
         args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer"
@@ -862,6 +873,7 @@ def main(argv=None) -> dict:
         geometric_settings_from=args.geometric,
         nce_far_threshold=est.nce_far_threshold,
         nce_goal_ball_m=est.nce_goal_ball,
+        test_goal_ball_m=est.test_goal_ball,
         goal="first stable pose of each held-out pair"
         if args.goal == "stable"
         else f"the where-to-hang pipeline's all-stages answer ({args.pairs_from})",

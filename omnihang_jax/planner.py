@@ -15,8 +15,9 @@ to one ``checker(poses [B, 7]) -> colliding [B] bool``:
   paper's "ground truth" planner and the dense check of every returned path.
 
 State validity is the checker on one state; motion validation (:class:`BatchedMotionValidator`)
-interpolates the edge at the planner's resolution and checks ALL its states in ONE batched
-call. Settings (:class:`PlannerConfig`, the original code was never released, facts file):
+interpolates the edge at the planner's resolution and checks all its states in batched calls
+(an :class:`EstimatorChecker`: 8 evenly spaced states first, the others only if those are
+free; same answer, docs/paths.md "The planner's checker"). Settings (:class:`PlannerConfig`, the original code was never released, facts file):
 
 - start: the goal's orientation, in front of the support (+y, away from the wall) at the
   goal's x and height, clear of the support's box by the object's largest extent (its
@@ -63,6 +64,7 @@ __all__ = [
     "MeshChecker",
     "EstimatorChecker",
     "CascadeChecker",
+    "ExemptNearGoal",
     "AnalyticChecker",
     "BatchedMotionValidator",
     "default_bounds",
@@ -223,6 +225,40 @@ class AnalyticChecker:
             nearest = np.clip(p, lo, hi)
             hit |= np.linalg.norm(p - nearest, axis=1) <= self.radius
         return hit
+
+
+class ExemptNearGoal:
+    """``checker``, but every state within ``radius`` (the planner's metric: translation +
+    ``weight`` x angle) of ``goal`` is free. As the first checker of a
+    :class:`CascadeChecker` it switches that checker off near the goal, so the second decides
+    there alone (``eval_paths --test-goal-ball``)."""
+
+    def __init__(self, checker: Callable, goal: np.ndarray, radius: float, weight: float):
+        self.checker, self.goal = checker, np.asarray(goal, float)
+        self.radius, self.weight = radius, weight
+
+    def warm_up(self, largest: int = 144) -> None:
+        if hasattr(self.checker, "warm_up"):
+            self.checker.warm_up(largest)
+
+    def _far(self, poses: np.ndarray) -> np.ndarray:
+        return np.array([pose_distance(p, self.goal, self.weight) > self.radius for p in poses])
+
+    def __call__(self, poses: np.ndarray) -> np.ndarray:
+        poses = np.asarray(poses).reshape(-1, 7)
+        far = self._far(poses)
+        hit = np.zeros(len(poses), bool)
+        if far.any():
+            hit[far] = np.asarray(self.checker(poses[far]), bool)
+        return hit
+
+    def any_colliding(self, poses: np.ndarray) -> bool:
+        poses = np.asarray(poses).reshape(-1, 7)
+        far = poses[self._far(poses)]
+        if not len(far):
+            return False
+        any_fn = getattr(self.checker, "any_colliding", None)
+        return bool(any_fn(far)) if any_fn else bool(np.asarray(self.checker(far), bool).any())
 
 
 # ----------------------------------------------------------------------------------------------

@@ -293,3 +293,20 @@ def test_eval_paths_answer_goals_from_pipeline_records(tmp_path):
     assert s["nce"]["recall"] == round(100 / 3, 1)
     assert set(s["stable_goals"]) == {"nce"}
     assert s["stable_goals"]["nce"]["pairs"] == 2 and s["stable_goals"]["nce"]["recall"] == 50.0
+
+
+def test_exempt_near_goal_frees_only_the_goal_ball():
+    """ExemptNearGoal: within the radius (planner metric) of the goal every state is free,
+    beyond it the wrapped checker answers; in a cascade the second checker then decides
+    alone near the goal."""
+    everywhere = planner.AnalyticChecker([([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])])  # all inside
+    goal = np.array([0.0, 0, 0, 1, 0, 0, 0])
+    poses = np.tile(goal, (4, 1))
+    poses[:, 0] = [0.0, 0.004, 0.006, 0.5]
+    near = planner.ExemptNearGoal(everywhere, goal, radius=0.005, weight=0.05)
+    np.testing.assert_array_equal(near(poses), [False, False, True, True])
+    assert near.any_colliding(poses) and not near.any_colliding(poses[:2])
+    second = _Counting(planner.AnalyticChecker([([0.003, -1, -1], [0.0045, 1, 1])]))
+    cascade = planner.CascadeChecker(near, second)
+    np.testing.assert_array_equal(cascade(poses), [False, True, True, True])
+    assert second.batches == [2]  # only the two goal-ball states reached the second
