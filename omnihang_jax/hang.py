@@ -932,10 +932,12 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
         path, info, tried = None, None, []
         if weights is not None:
             cfg, params, collides = _nce(os.path.abspath(weights))
+            # one plan, not hundreds: powers of two (8 sizes to compile up to 128, not the
+            # evaluation's 21 multiples of 8), an edge's coarse states still first
             nce_checker = planner.EstimatorChecker(
-                collides, params, *nce_clouds(cfg, obj.points, sup.points)
+                collides, params, *nce_clouds(cfg, obj.points, sup.points), pow2=True
             )
-            nce_checker.warm_up()
+            nce_checker.warm_up(128)
             path, info = attempt(nce_checker, f"the neural collision estimator {weights}")
             tried.append(info)
         if path is None and scene is not None and checker != "nce":
