@@ -189,19 +189,16 @@ def planner_states(
                 print(json.dumps(rows[-1]), flush=True)
     summary = {}
     for method in ("nce", "nce_geometric"):
-        rate = {
-            label: float(
-                np.median([r["states_per_s"] for r in rows if (r["method"], r["checker"]) == (method, label)])
-            )
-            for label in ("s18", "s19")
-        }  # fmt: skip
-        rates: dict = {}
+        rates: dict = {}  # pair -> checker -> states per second
         for r in rows:
             if r["method"] == method:
                 rates.setdefault(r["pair"], {})[r["checker"]] = r["states_per_s"]
-        ratios = [v["s19"] / v["s18"] for v in rates.values() if len(v) == 2 and v["s18"] > 0]
+        both = [v for v in rates.values() if len(v) == 2 and v["s18"] > 0]
         summary[method] = dict(
-            median_states_per_s=rate, median_ratio_s19_over_s18=round(float(np.median(ratios)), 2)
+            median_states_per_s={k: float(np.median([v[k] for v in both])) for k in ("s18", "s19")},
+            median_ratio_s19_over_s18=round(
+                float(np.median([v["s19"] / v["s18"] for v in both])), 2
+            ),
         )
     return dict(pairs=len(cases), seconds_per_plan=seconds, summary=summary, rows=rows)
 

@@ -204,10 +204,7 @@ class CascadeChecker:
         if np.asarray(self.first(poses), bool).any():
             return True
         self.states_second += len(poses)
-        any_fn = getattr(self.second, "any_colliding", None)
-        if any_fn is not None:
-            return bool(any_fn(poses))
-        return bool(np.asarray(self.second(poses), bool).any())
+        return any_colliding(self.second, poses)
 
 
 class AnalyticChecker:
@@ -241,12 +238,9 @@ class ExemptNearGoal:
         if hasattr(self.checker, "warm_up"):
             self.checker.warm_up(largest)
 
-    def _far(self, poses: np.ndarray) -> np.ndarray:
-        return np.array([pose_distance(p, self.goal, self.weight) > self.radius for p in poses])
-
     def __call__(self, poses: np.ndarray) -> np.ndarray:
         poses = np.asarray(poses).reshape(-1, 7)
-        far = self._far(poses)
+        far = goal_distances(poses, self.goal, self.weight) > self.radius
         hit = np.zeros(len(poses), bool)
         if far.any():
             hit[far] = np.asarray(self.checker(poses[far]), bool)
@@ -254,11 +248,15 @@ class ExemptNearGoal:
 
     def any_colliding(self, poses: np.ndarray) -> bool:
         poses = np.asarray(poses).reshape(-1, 7)
-        far = poses[self._far(poses)]
-        if not len(far):
-            return False
-        any_fn = getattr(self.checker, "any_colliding", None)
-        return bool(any_fn(far)) if any_fn else bool(np.asarray(self.checker(far), bool).any())
+        far = poses[goal_distances(poses, self.goal, self.weight) > self.radius]
+        return bool(len(far)) and any_colliding(self.checker, far)
+
+
+def any_colliding(checker: Callable, poses: np.ndarray) -> bool:
+    """Is any of the states colliding? The checker's own ``any_colliding`` when it has one
+    (it may stop early), else one call."""
+    own = getattr(checker, "any_colliding", None)
+    return bool(own(poses)) if own is not None else bool(np.asarray(checker(poses), bool).any())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -287,6 +285,17 @@ def _angle(q0: np.ndarray, q1: np.ndarray) -> float:
 def pose_distance(a: np.ndarray, b: np.ndarray, rotation_weight: float) -> float:
     """The planner's metric: translation + ``rotation_weight`` x rotation angle."""
     return float(np.linalg.norm(a[:3] - b[:3])) + rotation_weight * _angle(a[3:], b[3:])
+
+
+def goal_distances(poses: np.ndarray, goal: np.ndarray, rotation_weight: float) -> np.ndarray:
+    """:func:`pose_distance` of every pose [B, 7] to ``goal`` [7]: [B]."""
+    poses = np.asarray(poses, float).reshape(-1, 7)
+    q, g = poses[:, 3:], np.asarray(goal[3:], float)
+    dot = np.abs(q @ g) / (np.linalg.norm(q, axis=1) * np.linalg.norm(g))
+    angle = 2.0 * np.arccos(np.minimum(1.0, dot))
+    return (
+        np.linalg.norm(poses[:, :3] - np.asarray(goal[:3], float), axis=1) + rotation_weight * angle
+    )
 
 
 def interpolate_segment(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
@@ -334,8 +343,7 @@ class _Counter:
 
     def valid(self, poses: np.ndarray) -> np.ndarray:
         """[B, 7] -> [B] bool, True = free."""
-        near = np.array([pose_distance(p, self.goal, self.weight) for p in poses])
-        near = near <= self.goal_radius
+        near = goal_distances(poses, self.goal, self.weight) <= self.goal_radius
         free = np.ones(len(poses), bool)
         ask = np.flatnonzero(~near)
         if len(ask):
@@ -347,16 +355,12 @@ class _Counter:
     def any_colliding(self, poses: np.ndarray) -> bool:
         """Is any of the states [B, 7] colliding (one edge)? The checker's own
         ``any_colliding`` when it has one (:class:`CascadeChecker` stops early)."""
-        near = np.array([pose_distance(p, self.goal, self.weight) for p in poses])
-        ask = poses[near > self.goal_radius]
+        ask = poses[goal_distances(poses, self.goal, self.weight) > self.goal_radius]
         if not len(ask):
             return False
         self.states += len(ask)
         self.calls += 1
-        any_fn = getattr(self.checker, "any_colliding", None)
-        if any_fn is not None:
-            return bool(any_fn(ask))
-        return bool(np.asarray(self.checker(ask), bool).any())
+        return any_colliding(self.checker, ask)
 
 
 class BatchedMotionValidator(ob.MotionValidator):

@@ -310,3 +310,12 @@ def test_exempt_near_goal_frees_only_the_goal_ball():
     cascade = planner.CascadeChecker(near, second)
     np.testing.assert_array_equal(cascade(poses), [False, True, True, True])
     assert second.batches == [2]  # only the two goal-ball states reached the second
+
+
+def test_goal_distances_equal_pose_distance():
+    rng = np.random.default_rng(2)
+    poses = np.concatenate([rng.normal(0, 0.1, (20, 3)), rng.normal(size=(20, 4))], 1)
+    goal = poses[3].copy()
+    want = [planner.pose_distance(p, goal, 0.07) for p in poses]
+    np.testing.assert_allclose(planner.goal_distances(poses, goal, 0.07), want, atol=1e-9)
+    assert planner.goal_distances(poses, goal, 0.07)[3] < 1e-6
