@@ -226,8 +226,10 @@ fi
 if [ "$CALL" = val ]; then
     # the validation-object pairs (derive if absent) through eval_stage3 with the committed
     # weights: records with every candidate's V and observed-cloud inside counts, for
-    # experiments.rerank_stage3 (the answer rule chosen on validation objects)
-    [ "$(ls "$C/ds/derived/train" 2>/dev/null | wc -l)" -ge 300 ] || derive_val 16
+    # experiments.rerank_stage3 (the answer rule chosen on validation objects). The derive
+    # runs every time (it skips pair files already there), so a warm machine's second
+    # VAL_PAIRS list (e.g. issue 12's ranker pairs, results/ranker_pairs_b.jsonl) is derived.
+    derive_val 16
     derived_only "$VALPAIRS" "$C/ds/derived/train" >"$C/val.jsonl"
     log "validation pairs to evaluate: $(wc -l <"$C/val.jsonl")"
     # VAL_WS="NAME=WEIGHTS ...": several Stage-1/2 weights in turn (e.g. the train call's
@@ -243,6 +245,8 @@ if [ "$CALL" = val ]; then
             tail -12 | tee -a "$OUT/$LOG"
     done
     gzip -f "$OUT"/*.pairs.jsonl 2>/dev/null
+    # a copy stays on the machine for a warm next call (e.g. train_ranker on the records)
+    mkdir -p "$C/records" && cp "$OUT"/*.pairs.jsonl.gz "$C/records/" 2>/dev/null
     log "done"
     exit 0
 fi
