@@ -61,6 +61,9 @@ LIST=(
     results/train_where_s17 results/validation_where_s17 results/hanging_success_stage12_orig_s17.pairs.jsonl.gz
     results/hanging_success_stage12_orig_clear4_s17.pairs.jsonl.gz results/hanging_success_stage1_network_orig_s17.pairs.jsonl.gz
     results/hanging_success_stage3_s17_orig.pairs.jsonl.gz
+    # (nineteenth session: the held-out records of keys 1 and 2, 19 MB; carry them by hand to
+    # a call that reranks them)
+    results/hanging_success_stage3_s19_seed1.pairs.jsonl.gz results/hanging_success_stage3_s19_seed2.pairs.jsonl.gz
 )
 case ${1:-} in
 out)
