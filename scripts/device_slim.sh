@@ -64,6 +64,12 @@ LIST=(
     # (nineteenth session: the held-out records of keys 1 and 2, 19 MB; carry them by hand to
     # a call that reranks them)
     results/hanging_success_stage3_s19_seed1.pairs.jsonl.gz results/hanging_success_stage3_s19_seed2.pairs.jsonl.gz
+    # (twentieth session: room for the ranker's carried tables, out/ranker_s20/; the collision
+    # weights and the planner's selection file are read by no device_full.sh / device_ranker.sh
+    # call: put them back by hand for an NCE call)
+    weights/collision_s18_contact weights/collision_s18_small results/validation_where_s16
+    results/paths_hybrid_s18_joint95_selection.json results/hanging_success_stage12_lift5_s16.pairs.jsonl.gz
+    tests/fixtures
 )
 case ${1:-} in
 out)

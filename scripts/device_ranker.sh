@@ -1,0 +1,97 @@
+#!/usr/bin/env bash
+# Issue 12 (twentieth session): the answer's ranker (experiments.train_ranker) on one GPU.
+#
+#   # records of the committed pipeline on training pairs (one fresh call each, ~425 s):
+#   VAL_PAIRS=results/ranker_pairs_a.jsonl VAL_NAME=rank_a END_S=585 bash scripts/device_full.sh val
+#   VAL_PAIRS=results/ranker_pairs_b.jsonl VAL_NAME=rank_b END_S=585 bash scripts/device_full.sh val
+#   # locally: python -m experiments.train_ranker slim REC.pairs.jsonl.gz out/ranker_s20/in/NAME.npz
+#   bash scripts/device_slim.sh out
+#   run(carry=[".whl_min", ".whl_train", "out/ranker_s20/in"], command="bash scripts/device_ranker.sh train")
+#   run(carry=[..., "out/ranker_s20/held"], command="bash scripts/device_ranker.sh score")  # same warm machine
+#   bash scripts/device_slim.sh in
+#
+# CALL
+#   train  the records of a warm machine's val calls ($C/records/*.pairs.jsonl.gz, made slim)
+#          and the carried slim tables (RANK_IN, default out/ranker_s20/in and /held: rank_*.npz training,
+#          val_*.npz validation objects, held_*.npz held-out runs); derives the training and
+#          validation pairs (full recipe), then the held-out pairs in the background; trains
+#          each of RANK_VARIANTS ("NAME=flags ...") side by side on the GPU for at most
+#          END_S; back in $OUT: ranker_NAME.tgz (value/, metrics, curves, summary).
+#   score  every variant's ranker on the validation and held-out tables: the answer rule's
+#          success with the run's V, the ranker alone and their mean log P(hang) ->
+#          $OUT/score_NAME.json (+ .npz of the scores).
+set -uo pipefail
+CALL=${1:?usage: device_ranker.sh train|score}
+C=/tmp/full
+END_S=${END_S:-580}
+LOG=ranker.log
+. scripts/device_preamble.sh
+R=$C/ranker
+mkdir -p "$R/in"
+# the carried tables (RANK_IN: folders; a warm machine keeps those of earlier calls)
+for d in ${RANK_IN:-out/ranker_s20/in out/ranker_s20/held}; do cp "$d"/*.npz "$R/in/" 2>/dev/null; done
+declare -A VARIANTS=()
+for spec in ${RANK_VARIANTS:-main=}; do VARIANTS[${spec%%=*}]=${spec#*=}; done
+pairs_of() {  # NPZ... -> the pairs jsonl derive_dataset reads (pair_index + file)
+    $PY - "$@" <<'EOF'
+import sys, json, numpy as np
+for p in sys.argv[1:]:
+    with np.load(p) as z:
+        for i, f in zip(z["pair_index"], z["files"]):
+            print(json.dumps({"pair_index": int(i), "file": str(f)}))
+EOF
+}
+derive() {  # SPLIT PAIRS WORKERS
+    timeout -k 5 $(($(left) - 30)) $PY -m experiments.derive_dataset --data "$C/ds" --split "$1" \
+        --workers "$3" --pairs-from "$2" --no-progress >>"$C/logs/derive_ranker_$1.log" 2>&1
+    log "derived $1: $(ls "$C/ds/derived/$1" 2>/dev/null | wc -l) pair files"
+}
+if [ "$CALL" = train ]; then
+    for rec in "$C"/records/val_rank_*.pairs.jsonl.gz; do
+        [ -e "$rec" ] || continue
+        name=$(basename "$rec" .pairs.jsonl.gz)
+        name=${name#val_}
+        [ -e "$R/in/$name.npz" ] || $PY -m experiments.train_ranker slim "$rec" "$R/in/$name.npz" >>"$C/logs/slim.log" 2>&1
+    done
+    log "tables: $(ls "$R/in" | tr '\n' ' ')"
+    pairs_of "$R"/in/rank_*.npz "$R"/in/val_*.npz >"$R/train_pairs.jsonl"
+    pairs_of "$R"/in/held_*.npz | sort -u >"$R/test_pairs.jsonl"
+    derive train "$R/train_pairs.jsonl" 16
+    (derive test "$R/test_pairs.jsonl" 10) &
+    DPID=$!
+    PIDS=
+    for name in "${!VARIANTS[@]}"; do
+        log "ranker $name: ${VARIANTS[$name]}"
+        XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 timeout -k 10 $(($(left) - 25)) $PY -m experiments.train_ranker train \
+            --records "$R"/in/rank_*.npz --data "$C/ds" --init "${INIT_VALUE:-weights/value_s16_hardneg}" \
+            --out "$R/$name" --val-records "$R"/in/val_*.npz --time-budget $(($(left) - 70)) \
+            ${VARIANTS[$name]} --no-progress >>"$C/logs/ranker_$name.log" 2>&1 &
+        PIDS="$PIDS $!"
+    done
+    for p in $PIDS; do wait "$p"; log "ranker run $p: exit $?"; done
+    for name in "${!VARIANTS[@]}"; do
+        log "$name: $(grep '^\[val\]' "$C/logs/ranker_$name.log" | tail -3 | tr '\n' ' ' | cut -c1-600)"
+        (cd "$R" && tar -czf "$OUT/ranker_$name.tgz" "$name/value" "$name/metrics.jsonl" \
+            "$name/val_metrics.jsonl" "$name/curves.png" "$name/summary.json" 2>/dev/null)
+        cp "$C/logs/ranker_$name.log" "$OUT/" 2>/dev/null
+    done
+    wait "$DPID"
+    log "done"
+    exit 0
+fi
+if [ "$CALL" = score ]; then
+    [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1794 ] || derive test "$R/test_pairs.jsonl" 16
+    for name in "${!VARIANTS[@]}"; do
+        [ -d "$R/$name/value" ] || { log "no ranker $name"; continue; }
+        for split in train test; do
+            files=$([ $split = train ] && ls "$R"/in/val_*.npz || ls "$R"/in/held_*.npz)
+            timeout $(($(left) - 10)) $PY -m experiments.train_ranker score --ranker "$R/$name/value" \
+                --records $files --data "$C/ds" --split $split --out "$OUT/score_${name}_$split.json" \
+                --no-progress 2>&1 | tail -4 | tee -a "$OUT/$LOG"
+        done
+    done
+    log "done"
+    exit 0
+fi
+echo "unknown call $CALL" >&2
+exit 2
