@@ -113,15 +113,16 @@ def main(argv=None) -> dict:
             print(json.dumps(rows[-1]))
     result = {
         "what": "Stages 1-3 in one jitted call; chosen: CEM from every Stage-1 and Stage-2 "
-        "proposal, the answer by selection.CHOSEN (stage3.ANSWER_PIPELINE) on the mean log V "
-        "of CEM's V and the ranking networks (stage3.RANK_VALUES); single: the same on CEM's "
-        "V alone; paper: CEM from every Stage-2 proposal, the highest V",
+        "proposal, the answer by selection.CHOSEN (stage3.ANSWER_PIPELINE) on the ranking "
+        "networks' mean log V (stage3.RANK_VALUES; with CEM's V when rank_with_value); single: "
+        "the same on CEM's V alone; paper: CEM from every Stage-2 proposal, the highest V",
         "answers": {
             a: {
                 "starts": list(configs[a].starts),
                 "select": dataclasses.asdict(configs[a].select),
                 "pool_starts": configs[a].pool_starts,
                 "rank_values": rank_dirs if configs[a].rank_values else [],
+                "rank_with_value": configs[a].rank_with_value,
                 "proposals": configs[a].num_proposals,
             }
             for a in answers

@@ -76,6 +76,12 @@ def main(argv=None) -> dict:
         "CEM's V alone",
     )  # fmt: skip
     parser.add_argument(
+        "--rank-with-value", action=argparse.BooleanOptionalAction,
+        default=stage3.RANK_WITH_CEM_VALUE,
+        help="the CEM's V ranks beside the --rank-value networks (mean log V over all); "
+        "--no-rank-with-value: they rank alone (default: stage3.RANK_WITH_CEM_VALUE)",
+    )  # fmt: skip
+    parser.add_argument(
         "--seed", type=int, default=0,
         help="the key of Stage 1's noise and CEM's samples (0: every committed run); other "
         "seeds measure the figure's spread",
@@ -114,13 +120,15 @@ def main(argv=None) -> dict:
         cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
         progress=not args.no_progress, stage2_clearance=args.stage2_clearance, select=select,
         pool_starts=args.pool_starts, rank_value_dirs=rank_values, seed=args.seed,
+        rank_with_value=args.rank_with_value,
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
                    cem_rounds=args.rounds, num_proposals=args.proposals, seed=args.seed,
                    stage2_clearance_m=args.stage2_clearance,
                    select=dataclasses.asdict(select),
-                   pool_starts=args.pool_starts, rank_values=rank_values)  # fmt: skip
+                   pool_starts=args.pool_starts, rank_values=rank_values,
+                   rank_with_value=args.rank_with_value)  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     refine.write_json(out, summary)

@@ -35,6 +35,7 @@ and with the mean log P(hang) of the ranker and the run's V), a resumable checkp
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -363,7 +364,8 @@ def main(argv=None) -> dict:
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--no-progress", action="store_true")
     sc = sub.add_parser("score", help="a ranker's scores on a run's records + the rule's table")
-    sc.add_argument("--ranker", required=True, help="value folder (train's OUT/value)")
+    sc.add_argument("--ranker", nargs="+", required=True,
+                    help="value folders (train's OUT/value), each as DIR or NAME=DIR")  # fmt: skip
     sc.add_argument("--records", nargs="+", required=True)
     sc.add_argument("--data", required=True)
     sc.add_argument("--split", default="test")
@@ -380,18 +382,29 @@ def main(argv=None) -> dict:
         if args.steps < 1 or args.pairs_per_batch < 1:
             parser.error("--steps and --pairs-per-batch must be >= 1")
         return train(args)
-    config, params = refine.load_value(args.ranker)
-    scorer = make_scorer(config)
-    result, scores = {"ranker": args.ranker, "runs": {}}, {}
-    for path in args.records:
+    rankers = {}
+    for d in args.ranker:  # NAME=DIR or DIR
+        name, _, folder = d.rpartition("=")
+        config, params = refine.load_value(folder)
+        rankers[name or folder] = (config, params, make_scorer(config))
+    configs = {json.dumps(dataclasses.asdict(c), sort_keys=True) for c, _, _ in rankers.values()}
+    if len(configs) != 1:
+        raise ValueError("--ranker: the rankers must share one ValueConfig (one bank of clouds)")
+    config = next(iter(rankers.values()))[0]
+    result = {"rankers": args.ranker, "runs": {}}
+    scores = {}
+    for path in args.records:  # each run's pair files are read once for all rankers
         table = load_table(path)
         bank = load_bank(table, args.data, args.split, config, not args.no_progress)
-        logp = score_table(scorer, params, bank, table, args.score_batch)
-        name = Path(path).name
-        scores[name] = logp
-        result["runs"][name] = {"pairs": len(table["files"]), **score_variants(table, logp)}
-        print(name, json.dumps({k: v["mean"] if isinstance(v, dict) else v
-                                for k, v in result["runs"][name].items() if k != "pairs"}))  # fmt: skip
+        run = Path(path).name
+        result["runs"][run] = {"pairs": len(table["files"])}
+        for name, (_, params, scorer) in rankers.items():
+            logp = score_table(scorer, params, bank, table, args.score_batch)
+            scores[f"{name}|{run}"] = logp
+            res = score_variants(table, logp)
+            result["runs"][run][name] = res
+            print(run, name, json.dumps({k: v["mean"] if isinstance(v, dict) else v
+                                         for k, v in res.items()}), flush=True)  # fmt: skip
     np.savez_compressed(Path(args.out).with_suffix(".npz"), **scores)
     refine.write_json(args.out, result)
     return result

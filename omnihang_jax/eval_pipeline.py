@@ -79,6 +79,7 @@ def evaluate_pipeline(
     select: selection.SelectConfig = selection.SelectConfig(),
     pool_starts: bool = False,
     rank_value_dirs: Sequence[str | os.PathLike] = (),
+    rank_with_value: bool = True,
 ) -> tuple[list[dict], dict]:
     """Run Stages 1-3 on every pair file and simulate every candidate. Returns (records,
     timings). ``stage2_clearance`` (m): replaces the model's ``Stage2Config.clearance`` (None:
@@ -94,7 +95,8 @@ def evaluate_pipeline(
     candidates are then ranked by the mean log V over the CEM's V and these
     (``stage3.make_ensemble_score``, as ``PipelineConfig.rank_values``), and each record also
     holds every candidate's V under each of them (``v_rank``); ``v`` stays the CEM's V and
-    ``all_stages_paper`` its highest V."""
+    ``all_stages_paper`` its highest V. ``rank_with_value=False``: the ``rank_value_dirs``
+    rank alone, without the CEM's V (``PipelineConfig.rank_with_value``)."""
     from omnihang_jax.predict import load_predictor, load_rank_values
     from sim import kernels
 
@@ -105,7 +107,7 @@ def evaluate_pipeline(
     refine_fn = jax.jit(stage3.make_refiner(value_config, cem))
     value_fn = jax.jit(stage3.make_value(value_config).value)
     rank_params = load_rank_values(rank_value_dirs, value_config)
-    ensemble_fn = jax.jit(stage3.make_ensemble_score(value_config))
+    ensemble_fn = jax.jit(stage3.make_ensemble_score(value_config, rank_with_value))
 
     @jax.jit
     def separate_fn(full, poses):  # [B, ...] clouds, [B, 7] -> [B, 7], one pair at a time

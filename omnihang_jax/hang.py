@@ -761,7 +761,8 @@ def _load_stage3(folder: str, rank_folders: tuple = ()) -> Stage3:
 
     def rank(obj: Body, sup: Body, poses):
         clouds, poses = clouds_of(obj, sup), np.asarray(poses, np.float32)
-        logs = [np.asarray(score_jit(p, clouds, poses)) for p in [params, *extra]]
+        nets = [params, *extra] if stage3.RANK_WITH_CEM_VALUE or not extra else extra
+        logs = [np.asarray(score_jit(p, clouds, poses)) for p in nets]
         return np.mean(logs, axis=0)
 
     def refine_fn(obj: Body, sup: Body, starts, seed: int):

@@ -433,6 +433,10 @@ class PipelineConfig:
     # the mean of log V over the CEM's V and these (a geometric-mean ensemble); CEM itself
     # searches on params["value"] alone. 0: the CEM's V ranks (the paper's)
     rank_values: int = 0
+    # ours (twentieth session): False: the R networks rank alone (the mean log V over them,
+    # without the CEM's V), e.g. a ranker trained on the pipeline's own refined candidates
+    # (experiments.train_ranker); only with rank_values > 0
+    rank_with_value: bool = True
 
 
 # The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
@@ -444,8 +448,13 @@ class PipelineConfig:
 # ranking alone, chosen among the subsets of {s13, s15}), held-out 75.7 -> 76.5 %
 # (docs/stage3.md, "Fifteenth session"; latency in results/bench_stage3_k16_gpu.json).
 # PipelineConfig() keeps the paper's: K = 5, Stage-2 starts, highest V.
+# Since the twentieth session the answer is ranked by RANK_VALUES alone (RANK_WITH_CEM_VALUE).
 ANSWER_PIPELINE = PipelineConfig(
-    num_proposals=16, starts=("stage2", "stage1"), select=selection.CHOSEN, pool_starts=True
+    num_proposals=16,
+    starts=("stage2", "stage1"),
+    select=selection.CHOSEN,
+    pool_starts=True,
+    rank_with_value=False,
 )
 # The V that CEM searches on in the default pipeline (fifteenth session): the fourteenth
 # session's fifth V (value_s15_hardneg) continued for 18 more hard-negative RL rounds on one warm
@@ -471,7 +480,17 @@ CEM_VALUE = "weights/value_s16_hardneg"
 # s13 + s15 77.6. So since then CEM's V ranks alone; value_s13_hardneg and value_s15_hardneg
 # stay committed as the candidates of the next choice. Used by predict.load_hang_pipeline,
 # eval_stage3 --rank-value and the hang command.
-RANK_VALUES: tuple[str, ...] = ()
+# Twentieth session: a ranker, value_s16_hardneg fine-tuned on the committed pipeline's own
+# refined candidates of 4,840 training pairs of training objects, labelled by the simulation,
+# with a listwise loss over the rule's clear candidates + BCE (experiments.train_ranker,
+# results/ranker_s20/). It ranks ALONE (RANK_WITH_CEM_VALUE = False), chosen on the 345
+# validation-object pairs among 4 training variants x {alone, mean log with CEM's V}: 78.84 ->
+# 83.61 % there; held-out from the records of the three keys 76.74 -> 79.37 % (docs/stage3.md,
+# "Twentieth session").
+RANK_VALUES: tuple[str, ...] = ("weights/value_s20_ranker",)
+# Whether the CEM's V ranks beside RANK_VALUES (PipelineConfig.rank_with_value of
+# ANSWER_PIPELINE; eval_stage3 --rank-with-value).
+RANK_WITH_CEM_VALUE = False
 
 
 class HangOutput(NamedTuple):
@@ -563,17 +582,20 @@ def make_smoothed_value(
     return smoothed
 
 
-def make_ensemble_score(value_config: ValueConfig) -> Callable:
+def make_ensemble_score(value_config: ValueConfig, with_first: bool = True) -> Callable:
     """``ensemble(scores [B, P], extra_params [R value params], clouds [B, ...] subsampled,
     poses [B, P, 7]) -> [B, P]``: the mean of log V over the first V (its final scores, as
     CEM returns them) and the R other value networks of the same config, on the same poses:
     a geometric-mean ensemble that ranks CEM's candidates (``PipelineConfig.rank_values``,
-    ``eval_pipeline.evaluate_pipeline(rank_value_dirs=)``). Pure, un-jitted."""
+    ``eval_pipeline.evaluate_pipeline(rank_value_dirs=)``). ``with_first=False``: the mean
+    over the R networks alone (``PipelineConfig.rank_with_value``). Pure, un-jitted."""
     value = make_value(value_config)
     per_pair = jax.vmap(lambda p, c, poses: value.score(p, c, poses), in_axes=(None, 0, 0))
 
     def ensemble(scores, extra_params, clouds: PairClouds, poses):
-        logs = [scores] + [per_pair(p, clouds, poses) for p in extra_params]
+        logs = [per_pair(p, clouds, poses) for p in extra_params]
+        if with_first or not logs:
+            logs = [scores] + logs
         return sum(logs) / len(logs)
 
     return ensemble
@@ -590,7 +612,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
 
     predict = make_predict(stage1_config, stage2_config)
     refine = make_refiner(value_config, config.cem)
-    rank = make_ensemble_score(value_config)
+    rank = make_ensemble_score(value_config, config.rank_with_value)
     rule = config.select
 
     def hang(params, key, clouds: PairClouds) -> HangOutput:

@@ -19,9 +19,12 @@
 #          END_S; back in $OUT: ranker_NAME.tgz (value/, metrics, curves, summary).
 #   score  every variant's ranker on the validation and held-out tables: the answer rule's
 #          success with the run's V, the ranker alone and their mean log P(hang) ->
-#          $OUT/score_NAME.json (+ .npz of the scores).
+#          $OUT/score_{train,test}.json (+ .npz of the scores; train = the validation objects).
+#   all    train, then score, in one call.
+# RANK_TRAIN_BUDGET: the second of the call by which training ends (default END_S - 70; with
+# `all`, leave the scoring ~25 s a variant).
 set -uo pipefail
-CALL=${1:?usage: device_ranker.sh train|score}
+CALL=${1:?usage: device_ranker.sh train|score|all}
 C=/tmp/full
 END_S=${END_S:-580}
 LOG=ranker.log
@@ -31,7 +34,9 @@ mkdir -p "$R/in"
 # the carried tables (RANK_IN: folders; a warm machine keeps those of earlier calls)
 for d in ${RANK_IN:-out/ranker_s20/in out/ranker_s20/held}; do cp "$d"/*.npz "$R/in/" 2>/dev/null; done
 declare -A VARIANTS=()
-for spec in ${RANK_VARIANTS:-main=}; do VARIANTS[${spec%%=*}]=${spec#*=}; done
+# RANK_VARIANTS="NAME=FLAGS ...": FLAGS with ',' between train_ranker flags, e.g.
+# "main=--steps=1000 bce=--steps=1000,--list-weight=0,--bce-weight=1"
+for spec in ${RANK_VARIANTS:-main=}; do v=${spec#*=}; VARIANTS[${spec%%=*}]=${v//,/ }; done
 pairs_of() {  # NPZ... -> the pairs jsonl derive_dataset reads (pair_index + file)
     $PY - "$@" <<'EOF'
 import sys, json, numpy as np
@@ -46,7 +51,7 @@ derive() {  # SPLIT PAIRS WORKERS
         --workers "$3" --pairs-from "$2" --no-progress >>"$C/logs/derive_ranker_$1.log" 2>&1
     log "derived $1: $(ls "$C/ds/derived/$1" 2>/dev/null | wc -l) pair files"
 }
-if [ "$CALL" = train ]; then
+if [ "$CALL" = train ] || [ "$CALL" = all ]; then
     for rec in "$C"/records/val_rank_*.pairs.jsonl.gz; do
         [ -e "$rec" ] || continue
         name=$(basename "$rec" .pairs.jsonl.gz)
@@ -62,9 +67,9 @@ if [ "$CALL" = train ]; then
     PIDS=
     for name in "${!VARIANTS[@]}"; do
         log "ranker $name: ${VARIANTS[$name]}"
-        XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 timeout -k 10 $(($(left) - 25)) $PY -m experiments.train_ranker train \
+        XLA_PYTHON_CLIENT_MEM_FRACTION=$(awk "BEGIN {print 0.9 / ${#VARIANTS[@]}}") timeout -k 10 $(($(left) - 25)) $PY -m experiments.train_ranker train \
             --records "$R"/in/rank_*.npz --data "$C/ds" --init "${INIT_VALUE:-weights/value_s16_hardneg}" \
-            --out "$R/$name" --val-records "$R"/in/val_*.npz --time-budget $(($(left) - 70)) \
+            --out "$R/$name" --val-records "$R"/in/val_*.npz --time-budget $((${RANK_TRAIN_BUDGET:-$((END_S - 70))} - $(date +%s) + T0)) \
             ${VARIANTS[$name]} --no-progress >>"$C/logs/ranker_$name.log" 2>&1 &
         PIDS="$PIDS $!"
     done
@@ -76,19 +81,20 @@ if [ "$CALL" = train ]; then
         cp "$C/logs/ranker_$name.log" "$OUT/" 2>/dev/null
     done
     wait "$DPID"
-    log "done"
-    exit 0
+    [ "$CALL" = all ] || { log "done"; exit 0; }
 fi
-if [ "$CALL" = score ]; then
+if [ "$CALL" = score ] || [ "$CALL" = all ]; then
+    [ -s "$R/test_pairs.jsonl" ] || pairs_of "$R"/in/held_*.npz | sort -u >"$R/test_pairs.jsonl"
     [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1794 ] || derive test "$R/test_pairs.jsonl" 16
+    RANKERS=
     for name in "${!VARIANTS[@]}"; do
-        [ -d "$R/$name/value" ] || { log "no ranker $name"; continue; }
-        for split in train test; do
-            files=$([ $split = train ] && ls "$R"/in/val_*.npz || ls "$R"/in/held_*.npz)
-            timeout $(($(left) - 10)) $PY -m experiments.train_ranker score --ranker "$R/$name/value" \
-                --records $files --data "$C/ds" --split $split --out "$OUT/score_${name}_$split.json" \
-                --no-progress 2>&1 | tail -4 | tee -a "$OUT/$LOG"
-        done
+        [ -d "$R/$name/value" ] && RANKERS="$RANKERS $name=$R/$name/value" || log "no ranker $name"
+    done
+    for split in train test; do
+        files=$([ $split = train ] && ls "$R"/in/val_*.npz || ls "$R"/in/held_*.npz)
+        timeout $(($(left) - 5)) $PY -m experiments.train_ranker score --ranker $RANKERS \
+            --records $files --data "$C/ds" --split $split --out "$OUT/score_$split.json" \
+            --no-progress 2>&1 | tail -20 | tee -a "$OUT/$LOG"
     done
     log "done"
     exit 0

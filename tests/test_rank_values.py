@@ -156,7 +156,8 @@ def test_load_rank_values_refuses_another_config(monkeypatch):
 
 def test_hang_command_ranks_by_the_mean_log_v(tmp_path):
     """The hang command's Stage 3 (omnihang_jax.hang.load_stage3) with a ranking network:
-    rank = the mean of the two networks' log V; without one, rank = V's own score; the
+    rank = the mean of the two networks' log V (stage3.RANK_WITH_CEM_VALUE) or the ranking
+    network's alone; without one, rank = V's own score; the
     default finds stage3.RANK_VALUES only beside the committed V they were chosen with."""
     from omnihang_jax import hang as H
 
@@ -177,7 +178,13 @@ def test_hang_command_ranks_by_the_mean_log_v(tmp_path):
     two = H.load_stage3(tmp_path / "v1", [tmp_path / "v2"])
     other = H.load_stage3(tmp_path / "v2", [])
     want = (one.score(obj, sup, poses) + other.score(obj, sup, poses)) / 2
-    np.testing.assert_allclose(two.rank(obj, sup, poses), want, rtol=1e-5, atol=1e-6)
+    with pytest.MonkeyPatch.context() as mp:  # the twelfth session's mean log V
+        mp.setattr(stage3, "RANK_WITH_CEM_VALUE", True)
+        np.testing.assert_allclose(two.rank(obj, sup, poses), want, rtol=1e-5, atol=1e-6)
+    with pytest.MonkeyPatch.context() as mp:  # the twentieth session's: the ranker alone
+        mp.setattr(stage3, "RANK_WITH_CEM_VALUE", False)
+        np.testing.assert_allclose(two.rank(obj, sup, poses), other.score(obj, sup, poses),
+                                   rtol=1e-5, atol=1e-6)  # fmt: skip
 
 
 def test_answer_failures_sorts_each_failed_answer_by_cause():
