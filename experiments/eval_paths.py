@@ -527,7 +527,7 @@ def evaluate_pair(case: PairCase, est: Estimators, config: planner.PlannerConfig
     rows, paths = [], {}
     for name in methods:
         check = checkers[name]
-        res = planner.plan(check, start, goal, bounds, weight, config)
+        res, retreat = planner.plan_with_retreat(check, start, goal, bounds, weight, config)
         row = dict(
             base,
             method=name,
@@ -539,6 +539,11 @@ def evaluate_pair(case: PairCase, est: Estimators, config: planner.PlannerConfig
             goal_called_colliding=bool(check(goal[None])[0]),
             returned=res.path is not None,
         )
+        if config.retreat_lengths:
+            row["retreat"] = None if retreat is None else dict(
+                direction=retreat.direction.round(3).tolist(), length_m=retreat.length,
+                search_s=round(retreat.seconds, 3), states=retreat.states_checked,
+            )  # fmt: skip
         if res.path is not None:
             free, deepest, n = planner.dense_check(mesh, res.path, config.dense_resolution, weight)
             # would a denser check by the same estimator have caught it? (estimator misses
@@ -739,6 +744,12 @@ def main(argv=None) -> dict:
         "millimetres of the approach)",
     )  # fmt: skip
     parser.add_argument(
+        "--retreat", default="", metavar="M,M,...",
+        help="lengths (m) of a straight retreat from the goal tried first (planner."
+        "plan_with_retreat: the first retreat the method's checker calls free, upward "
+        "directions first; RRT-Connect to its end, then straight in); empty: off",
+    )  # fmt: skip
+    parser.add_argument(
         "--select-geometric",
         default=None,
         metavar="JSON",
@@ -818,9 +829,16 @@ def main(argv=None) -> dict:
         parser.error("--goal answer needs --pairs-from (an eval_stage3 run's per-pair records)")
     if not args.resolution > 0:
         parser.error("--resolution must be > 0")
+    try:
+        retreat = tuple(float(x) for x in args.retreat.split(",") if x.strip())
+    except ValueError:
+        parser.error(f"--retreat {args.retreat!r}: comma-separated lengths in metres")
+    if any(not x > 0 for x in retreat):
+        parser.error("--retreat lengths must be > 0")
     config = planner.PlannerConfig(
-        time_limit=args.time_limit, goal_radius=args.goal_radius, resolution=args.resolution
-    )
+        time_limit=args.time_limit, goal_radius=args.goal_radius, resolution=args.resolution,
+        retreat_lengths=retreat,
+    )  # fmt: skip
     out = Path(args.out)
     (out / "scenes").mkdir(parents=True, exist_ok=True)
     if args.symmetric:
@@ -874,6 +892,7 @@ def main(argv=None) -> dict:
         nce_far_threshold=est.nce_far_threshold,
         nce_goal_ball_m=est.nce_goal_ball,
         test_goal_ball_m=est.test_goal_ball,
+        retreat_lengths_m=list(config.retreat_lengths),
         goal="first stable pose of each held-out pair"
         if args.goal == "stable"
         else f"the where-to-hang pipeline's all-stages answer ({args.pairs_from})",

@@ -85,6 +85,9 @@ class PlannerConfig:
     dense_resolution: float = 0.002  # m: the ground-truth check of a returned path
     penetration_tolerance: float = 1e-3  # m: deeper is colliding (dataset max_penetration)
     seed: int = 1  # OMPL's random seed (0 is not allowed; set once per process)
+    # ours (twentieth session): lengths (m) of a straight retreat from the goal tried before
+    # planning (plan_with_retreat); () = off, the plain plan
+    retreat_lengths: tuple[float, ...] = ()
 
 
 _SEEDED: list[int] = []  # the seed OMPL was given in this process (at most one)
@@ -430,6 +433,88 @@ def plan(
     if ss.haveExactSolutionPath():
         path = np.array([_state_pose(x) for x in ss.getSolutionPath().getStates()])
     return PlanResult(path, status.asString(), seconds, counter.states, counter.calls)
+
+
+# A hang is an insertion; its approach is the reverse of taking the object off. The retreat
+# directions (support frame, z up): the 26 of {-1, 0, 1}^3 minus zero, normalised, upward ones
+# first (a hung object usually comes off by lifting), then in a fixed order: deterministic.
+RETREAT_DIRECTIONS = (
+    np.array(
+        sorted(
+            (d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)),
+            key=lambda d: (-(d[2] - 1), sum(abs(x - 1) for x in d), d),
+        ),
+        float,
+    )
+    - 1.0
+)
+RETREAT_DIRECTIONS /= np.linalg.norm(RETREAT_DIRECTIONS, axis=1, keepdims=True)
+
+
+class Retreat(NamedTuple):
+    pregoal: np.ndarray  # [7] the goal moved back along ``direction`` by ``length``
+    direction: np.ndarray  # [3] unit, support frame
+    length: float  # m
+    states_checked: int
+    seconds: float
+
+
+def find_retreat(
+    checker: Callable[[np.ndarray], np.ndarray],
+    goal: np.ndarray,
+    lengths,
+    resolution: float,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    directions: np.ndarray = RETREAT_DIRECTIONS,
+) -> Retreat | None:
+    """The first straight, orientation-keeping retreat from ``goal`` that ``checker`` calls
+    free on every state at ``resolution`` (the goal itself excluded, as in :func:`plan`):
+    lengths in the given order (shortest first is sensible), for each the directions in
+    order; within ``bounds`` when given. None when every one is blocked."""
+    t0 = time.perf_counter()
+    goal = np.asarray(goal, float)
+    checked = 0
+    for length in lengths:
+        n = max(1, int(np.ceil(float(length) / resolution)))
+        for d in directions:
+            end = goal.copy()
+            end[:3] = goal[:3] + float(length) * d
+            if bounds is not None and not (
+                np.all(bounds[0] <= end[:3]) and np.all(end[:3] <= bounds[1])
+            ):
+                continue
+            states = interpolate_segment(goal, end, n)
+            checked += len(states)
+            if not any_colliding(checker, states):
+                return Retreat(end, np.asarray(d, float), float(length), checked,
+                               time.perf_counter() - t0)  # fmt: skip
+    return None
+
+
+def plan_with_retreat(
+    checker: Callable[[np.ndarray], np.ndarray],
+    start: np.ndarray,
+    goal: np.ndarray,
+    bounds: tuple[np.ndarray, np.ndarray],
+    rotation_weight: float,
+    config: PlannerConfig = PlannerConfig(),
+) -> tuple[PlanResult, Retreat | None]:
+    """RRT-Connect to a pre-goal, then straight in: :func:`find_retreat` (lengths
+    ``config.retreat_lengths``) and, when a retreat is free, :func:`plan` from ``start`` to its
+    pre-goal with what is left of the time limit, the path ending pre-goal -> goal. Without a
+    free retreat (or with ``retreat_lengths`` empty) the plain plan to the goal. The search's
+    time and states count in the result."""
+    lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
+    found = None
+    if config.retreat_lengths:
+        found = find_retreat(checker, goal, config.retreat_lengths, config.resolution, (lo, hi))
+    if found is None:
+        return plan(checker, start, goal, bounds, rotation_weight, config), None
+    left = dataclasses.replace(config, time_limit=max(config.time_limit - found.seconds, 0.01))
+    res = plan(checker, start, found.pregoal, bounds, rotation_weight, left)
+    path = None if res.path is None else np.concatenate([res.path, np.asarray(goal, float)[None]])
+    return PlanResult(path, res.status, res.planning_s + found.seconds,
+                      res.states_checked + found.states_checked, res.checker_calls), found  # fmt: skip
 
 
 def dense_check(

@@ -319,3 +319,60 @@ def test_goal_distances_equal_pose_distance():
     want = [planner.pose_distance(p, goal, 0.07) for p in poses]
     np.testing.assert_allclose(planner.goal_distances(poses, goal, 0.07), want, atol=1e-9)
     assert planner.goal_distances(poses, goal, 0.07)[3] < 1e-6
+
+
+def _slot():
+    """A goal at the bottom of a square vertical shaft 8 cm deep (walls 1.2 cm from the axis,
+    a floor) for a sphere of radius 1 cm: it fits with 2 mm to spare, so the only retreat is
+    straight up."""
+    w = 0.012
+    boxes = [
+        ([-0.2, -0.2, -0.2], [-w, 0.2, 0.08]),
+        ([w, -0.2, -0.2], [0.2, 0.2, 0.08]),
+        ([-0.2, -0.2, -0.2], [0.2, -w, 0.08]),
+        ([-0.2, w, -0.2], [0.2, 0.2, 0.08]),
+        ([-0.2, -0.2, -0.2], [0.2, 0.2, -0.015]),  # floor
+    ]
+    checker = planner.AnalyticChecker(boxes, radius=0.01)
+    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
+    return checker, goal
+
+
+def test_retreat_leaves_a_slot_along_its_open_direction_and_is_deterministic():
+    checker, goal = _slot()
+    # every direction but straight up is blocked within 2 cm
+    found = planner.find_retreat(checker, goal, (0.02, 0.06), 0.005)
+    assert found is not None
+    np.testing.assert_allclose(found.direction, [0, 0, 1])
+    assert found.length == 0.02 and found.states_checked >= 4
+    np.testing.assert_allclose(found.pregoal, [0, 0, 0.02, 1, 0, 0, 0])
+    seg = planner.interpolate_segment(goal, found.pregoal, 20)
+    assert not checker(seg).any()
+    again = planner.find_retreat(checker, goal, (0.02, 0.06), 0.005)
+    np.testing.assert_array_equal(again.pregoal, found.pregoal)
+    # a lid over the slot: no straight retreat of 2 cm is free, so none is returned
+    lid = planner.AnalyticChecker([*checker.boxes, ([-0.2, -0.2, 0.025], [0.2, 0.2, 0.2])], 0.01)
+    assert planner.find_retreat(lid, goal, (0.02,), 0.005) is None
+
+
+def test_plan_with_retreat_ends_straight_in_at_the_goal_or_falls_back():
+    checker, goal = _slot()
+    start = np.array([0.3, 0.0, 0.3, 1, 0, 0, 0])
+    bounds = (np.array([-0.4, -0.4, -0.1]), np.array([0.4, 0.4, 0.5]))
+    # 10 cm up clears the shaft; RRT-Connect alone would have to find its 4-mm-wide opening
+    cfg = planner.PlannerConfig(time_limit=10.0, retreat_lengths=(0.1,))
+    res, found = planner.plan_with_retreat(checker, start, goal, bounds, 0.05, cfg)
+    assert found is not None and res.path is not None
+    np.testing.assert_allclose(res.path[-1], goal)
+    np.testing.assert_allclose(res.path[-2], found.pregoal, atol=1e-9)
+    dense = planner.interpolate_path(res.path, 0.002, 0.05)
+    assert not checker(dense).any()
+    assert res.states_checked > found.states_checked and res.planning_s >= found.seconds
+    # retreat off: the plain plan, no retreat searched
+    plain, none = planner.plan_with_retreat(checker, start, goal, bounds, 0.05, FAST)
+    assert none is None and plain.status in ("Exact solution", "Approximate solution", "Timeout")
+    # no free retreat (a lid over the shaft): the plain plan
+    lid = planner.AnalyticChecker([*checker.boxes, ([-0.2, -0.2, 0.03], [0.2, 0.2, 0.04])], 0.01)
+    quick = planner.PlannerConfig(time_limit=0.5, retreat_lengths=(0.1,))
+    _, blocked = planner.plan_with_retreat(lid, start, goal, bounds, 0.05, quick)
+    assert blocked is None
