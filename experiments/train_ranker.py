@@ -207,20 +207,18 @@ def train(args) -> dict:
     progress = not args.no_progress
     table = concat_tables([load_table(p) for p in args.records])
     n_pairs = len(table["files"])
-    keep = np.flatnonzero(table["stable"].any(1) if args.mixed_only else np.ones(n_pairs, bool))
     bank = load_bank(table, args.data, args.split, config, progress)
     val = load_table(args.val_records) if args.val_records else None
     val_bank = load_bank(val, args.data, args.val_split, config, progress) if val else None
     clear = table["counts"] <= selection.CHOSEN.max_points
-    print(f"{len(table['files'])} training pairs ({len(keep)} used), "
+    print(f"{n_pairs} training pairs, "
           f"{table['poses'].shape[1]} candidates each; validation pairs "
           f"{0 if val is None else len(val['files'])}", flush=True)  # fmt: skip
 
-    schedule = optax.warmup_cosine_decay_schedule(
-        0.0, args.lr, args.warmup, max(args.steps, args.warmup + 1), end_value=args.lr * 0.05
-    )
-    tx = optax.chain(optax.clip_by_global_norm(config.grad_clip),
-                     optax.adamw(schedule, weight_decay=config.weight_decay))  # fmt: skip
+    # V's own optimiser (clipping, AdamW, warm-up + cosine) with this run's lr and warm-up
+    run_config = dataclasses.replace(config, learning_rate=args.lr, warmup_steps=args.warmup)
+    schedule = refine.make_schedule(run_config, args.steps)
+    tx = refine.make_optimizer(run_config, args.steps)
     net = stage3.make_value(config)
     bank_dev = jax.tree.map(jnp.asarray, bank.clouds)
     poses_dev = jnp.asarray(table["poses"])
@@ -272,7 +270,7 @@ def train(args) -> dict:
     t0, t_budget = time.time(), args.time_budget
     i = start
     for i in range(start, args.steps):
-        slots = jnp.asarray(rng.choice(keep, args.pairs_per_batch, replace=False))
+        slots = jnp.asarray(rng.choice(n_pairs, args.pairs_per_batch, replace=False))
         params, opt_state, m = step(params, opt_state, slots, jax.random.fold_in(key, i))
         if (i + 1) % args.log_every == 0:
             row = {"step": i + 1, "lr": float(schedule(i)), **{k: float(v) for k, v in m.items()},
@@ -291,10 +289,10 @@ def train(args) -> dict:
     done = i + 1
     refine.save_value(out / "value", config, params, note=(
         f"ranker: {args.init} fine-tuned {done} steps on the refined candidates of "
-        f"{len(table['files'])} training pairs (experiments.train_ranker)"))  # fmt: skip
+        f"{n_pairs} training pairs (experiments.train_ranker)"))  # fmt: skip
     plot_curves(out)
     summary = {"steps": done, "seconds": time.time() - t0, "args": vars(args),
-               "training_pairs": int(len(table["files"])),
+               "training_pairs": n_pairs,
                "validation": [json.loads(line) for line in open(val_path)] if val else []}  # fmt: skip
     refine.write_json(out / "summary.json", summary)
     return summary
@@ -355,8 +353,6 @@ def main(argv=None) -> dict:
     tr.add_argument("--warmup", type=int, default=100)
     tr.add_argument("--list-weight", type=float, default=1.0)
     tr.add_argument("--bce-weight", type=float, default=0.5)
-    tr.add_argument("--mixed-only", action="store_true",
-                    help="train only on pairs with a hanging candidate")  # fmt: skip
     tr.add_argument("--eval-every", type=int, default=250)
     tr.add_argument("--log-every", type=int, default=25)
     tr.add_argument("--score-batch", type=int, default=32)

@@ -394,11 +394,16 @@ class ValueTrainState:
     opt_state: Any
 
 
-def make_optimizer(config: ValueConfig, total_steps: int) -> optax.GradientTransformation:
-    schedule = optax.warmup_cosine_decay_schedule(
+def make_schedule(config: ValueConfig, total_steps: int) -> optax.Schedule:
+    """Warm-up to ``config.learning_rate``, then cosine to 5 % of it over ``total_steps``."""
+    return optax.warmup_cosine_decay_schedule(
         0.0, config.learning_rate, config.warmup_steps, max(total_steps, config.warmup_steps + 1),
         end_value=config.learning_rate * 0.05,
     )  # fmt: skip
+
+
+def make_optimizer(config: ValueConfig, total_steps: int) -> optax.GradientTransformation:
+    schedule = make_schedule(config, total_steps)
     return optax.chain(
         optax.clip_by_global_norm(config.grad_clip),
         optax.adamw(schedule, weight_decay=config.weight_decay),

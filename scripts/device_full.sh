@@ -269,7 +269,7 @@ if [ "$CALL" = valeval ]; then
         --weights "${WHERE_W:-weights/where_small_paper}" --value "$V_CEM" \
         --pairs-from "$C/val.jsonl" --workers 15 --batch 16 --out "$OUT/val_choose.json" \
         --label "validation objects, ranking candidates $RANKS ${VAL_ARGS:-}" \
-        $(for r in $RANKS; do echo --rank-value "$r"; done) ${VAL_ARGS:-} --no-progress 2>&1 |
+        $(for r in $RANKS; do echo --rank-value "$r"; done) --rank-with-value ${VAL_ARGS:-} --no-progress 2>&1 |
         tail -6 | tee -a "$OUT/$LOG"
     $PY -m experiments.ensemble_stage3 --from-records --select-on "$OUT/val_choose.pairs.jsonl" \
         --value "$V_CEM" $(for r in $RANKS; do echo --extra-value "$r"; done) \
@@ -288,7 +288,8 @@ if [ "$CALL" = valeval ]; then
         fi
         log "validation $BEST > $HELD_IF_ABOVE: the held-out run"
     fi
-    EVAL_ARGS="${EVAL_ARGS:-} $(for r in $CHOSEN; do echo --rank-value "$r"; done)"
+    # (ensemble_stage3 chose the set by the mean log V with CEM's V: evaluated the same way)
+    EVAL_ARGS="${EVAL_ARGS:-} $(for r in $CHOSEN; do echo --rank-value "$r"; done) --rank-with-value"
     NO_NEWV=1
 fi
 
