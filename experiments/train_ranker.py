@@ -1,5 +1,9 @@
 """A ranker for Stage 3's answer: V fine-tuned on the pipeline's own refined candidates.
 
+    # 0. a list of training pairs of training objects (stable poses, none in earlier lists):
+    python -m experiments.train_ranker pairs --per-category 220 --seed 2 \\
+        --exclude results/ranker_pairs_a.jsonl results/ranker_pairs_b.jsonl \\
+        --out results/ranker_pairs_c.jsonl
     # 1. records of the committed pipeline on TRAINING pairs of training objects (GPU):
     VAL_PAIRS=results/ranker_pairs_a.jsonl VAL_NAME=rank_a bash scripts/device_full.sh val
     # 2. the records made compact (the pool's poses, outcomes, V, inside counts):
@@ -57,7 +61,45 @@ SLIM_FIELDS = ("poses", "stable", "v", "counts")
 
 
 # ----------------------------------------------------------------------------------------------
-# Records
+# Pair lists and records
+
+
+def training_pairs(
+    data: str, per_category: int, seed: int, exclude=(), val_fraction: float = 0.1
+) -> list[dict]:
+    """Training-split pairs of TRAINING objects (never a validation object, ``data.
+    validation_objects``) with at least one stable pose in the dataset, none of ``exclude``
+    (pair indices), ``per_category`` drawn at random a category (fewer where fewer remain),
+    sorted by pair index: one line each for ``device_full.sh val`` (``VAL_PAIRS``)."""
+    from omnihang_jax.data import validation_objects
+
+    with open(os.path.join(data, "recipe.json")) as f:
+        pairs = json.load(f)["pairs"]
+    n_stable = np.zeros(len(pairs), np.int64)
+    shards = sorted(Path(data, "shards").glob("shard_*.npz"))
+    if not shards:
+        raise FileNotFoundError(f"no dataset shards in {data}/shards (generate the dataset)")
+    for shard in shards:
+        with np.load(shard) as z:
+            n_stable[z["pair_index"]] = np.diff(z["stable_offsets"])
+    objects = sorted({p[0] for p in pairs if p[2] == "train"})
+    val = validation_objects(objects, val_fraction)
+    excluded = set(int(i) for i in exclude)
+    by_category: dict[str, list[int]] = {}
+    for i, (obj, _, split) in enumerate(pairs):
+        if split == "train" and obj not in val and n_stable[i] > 0 and i not in excluded:
+            by_category.setdefault(obj.rsplit("_", 1)[0], []).append(i)
+    rng = np.random.default_rng(seed)
+    picked = []
+    for category in sorted(by_category):
+        pool = by_category[category]
+        picked += [int(i) for i in rng.choice(pool, min(per_category, len(pool)), replace=False)]
+    rows = []
+    for i in sorted(picked):
+        obj, support, _ = pairs[i]
+        rows.append({"pair_index": i, "object": obj, "support": support,
+                     "category": obj.rsplit("_", 1)[0], "file": f"{i:05d}_{obj}__{support}.npz"})  # fmt: skip
+    return rows
 
 
 def slim_records(rows: list[dict], config: selection.SelectConfig = selection.CHOSEN) -> dict:
@@ -336,6 +378,13 @@ def main(argv=None) -> dict:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     sub = parser.add_subparsers(dest="command", required=True)
+    pa = sub.add_parser("pairs", help="a list of training pairs of training objects (jsonl)")
+    pa.add_argument("--data", default="datasets/paper", help="dataset (recipe.json, shards/)")
+    pa.add_argument("--per-category", type=int, default=220)
+    pa.add_argument("--seed", type=int, default=0)
+    pa.add_argument("--exclude", nargs="*", default=[], help="earlier lists (jsonl)")
+    pa.add_argument("--val-fraction", type=float, default=0.1)
+    pa.add_argument("--out", required=True)
     sl = sub.add_parser("slim", help="records -> compact .npz of the answer pool")
     sl.add_argument("records")
     sl.add_argument("out")
@@ -370,6 +419,13 @@ def main(argv=None) -> dict:
     sc.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
 
+    if args.command == "pairs":
+        exclude = [json.loads(line)["pair_index"] for f in args.exclude for line in open(f)]
+        rows = training_pairs(args.data, args.per_category, args.seed, exclude, args.val_fraction)
+        with open(args.out, "w") as f:
+            f.writelines(json.dumps(r) + "\n" for r in rows)
+        print(f"{len(rows)} pairs ({len(exclude)} excluded) -> {args.out}")
+        return {"pairs": len(rows), "out": args.out}
     if args.command == "slim":
         table = slim_records(read_records(args.records))
         np.savez_compressed(args.out, **table)
