@@ -70,6 +70,10 @@ LIST=(
     weights/collision_s18_contact weights/collision_s18_small results/validation_where_s16
     results/paths_hybrid_s18_joint95_selection.json results/hanging_success_stage12_lift5_s16.pairs.jsonl.gz
     tests/fixtures
+    # (twenty-first session: the twentieth session's held-out records with the ranker, 21 MB,
+    # read by no device call; their slim tables travel in out/ranker_s20/held)
+    results/hanging_success_stage3_s20_ranker.pairs.jsonl.gz
+    results/hanging_success_stage3_s20_ranker_seed1.pairs.jsonl.gz
 )
 case ${1:-} in
 out)
