@@ -65,8 +65,9 @@ def main(argv=None) -> dict:
     vcfg, vparams = refine.load_value(args.value)
     rank_dirs = list(stage3.RANK_VALUES if args.rank_value is None else args.rank_value)
     stage1_config, stage1_params = pred.stage1_spec  # a Stage-1 mix ("A+B") too
+    rank_config, rank_params = load_rank_values(rank_dirs, vcfg)
     params = {"stage1": stage1_params, "stage2": pred.stage2_params, "value": vparams,
-              "rank_values": load_rank_values(rank_dirs, vcfg)}  # fmt: skip
+              "rank_values": rank_params}  # fmt: skip
     configs, hangs = {}, {}
     for a in answers:
         base = stage3.PipelineConfig() if a == "paper" else stage3.ANSWER_PIPELINE
@@ -74,7 +75,9 @@ def main(argv=None) -> dict:
         k = args.proposals or base.num_proposals
         configs[a] = dataclasses.replace(base, num_proposals=k, rank_values=ranks)
         hangs[a] = jax.jit(
-            stage3.make_hang_pipeline(stage1_config, pred.stage2_config, vcfg, configs[a])
+            stage3.make_hang_pipeline(
+                stage1_config, pred.stage2_config, vcfg, configs[a], rank_config
+            )
         )
     rows = []
     for batch in (int(b) for b in args.batches.split(",")):

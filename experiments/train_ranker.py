@@ -246,6 +246,9 @@ def train(args) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     config, init_params = refine.load_value(args.init)
+    # the state's near points (stage3.near_points): same encoder and head, so V's weights start it
+    config = dataclasses.replace(config, support_near=args.support_near,
+                                 object_near=args.object_near, near_pool=args.near_pool)  # fmt: skip
     progress = not args.no_progress
     table = concat_tables([load_table(p) for p in args.records])
     n_pairs = len(table["files"])
@@ -407,6 +410,11 @@ def main(argv=None) -> dict:
     tr.add_argument("--score-batch", type=int, default=32)
     tr.add_argument("--time-budget", type=float, default=0.0, help="s (0: none)")
     tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--support-near", type=int, default=0,
+                    help="of the state's support points, this many nearest the object "
+                         "(ValueConfig.support_near; 0: evenly spaced only)")  # fmt: skip
+    tr.add_argument("--object-near", type=int, default=0, help="ValueConfig.object_near")
+    tr.add_argument("--near-pool", type=int, default=2048, help="ValueConfig.near_pool")
     tr.add_argument("--no-progress", action="store_true")
     sc = sub.add_parser("score", help="a ranker's scores on a run's records + the rule's table")
     sc.add_argument("--ranker", nargs="+", required=True,

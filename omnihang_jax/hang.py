@@ -747,22 +747,25 @@ def _load_stage3(folder: str, rank_folders: tuple = ()) -> Stage3:
     from omnihang_jax import predict, refine, stage3
 
     config, params = refine.load_value(folder)
-    extra = predict.load_rank_values(rank_folders, config)
+    rank_config, extra = predict.load_rank_values(rank_folders, config)
     value = stage3.make_value(config)
     score_jit = jax.jit(value.score)
+    rank_score_jit = jax.jit(stage3.make_value(rank_config).score)
     refine_jit = jax.jit(stage3.make_refiner(config, stage3.CEMConfig()))
 
-    def clouds_of(obj: Body, sup: Body):
+    def clouds_of(obj: Body, sup: Body, of=config):
         full = stage3.PairClouds(obj.points, obj.normals, sup.points, sup.normals)
-        return stage3.subsample_clouds(full, config)
+        return stage3.subsample_clouds(full, of)
 
     def score(obj: Body, sup: Body, poses):
         return np.asarray(score_jit(params, clouds_of(obj, sup), np.asarray(poses, np.float32)))
 
     def rank(obj: Body, sup: Body, poses):
-        clouds, poses = clouds_of(obj, sup), np.asarray(poses, np.float32)
-        nets = [params, *extra] if stage3.RANK_WITH_CEM_VALUE or not extra else extra
-        logs = [np.asarray(score_jit(p, clouds, poses)) for p in nets]
+        poses = np.asarray(poses, np.float32)
+        logs = [np.asarray(rank_score_jit(p, clouds_of(obj, sup, rank_config), poses))
+                for p in extra]  # fmt: skip
+        if stage3.RANK_WITH_CEM_VALUE or not extra:
+            logs.insert(0, np.asarray(score_jit(params, clouds_of(obj, sup), poses)))
         return np.mean(logs, axis=0)
 
     def refine_fn(obj: Body, sup: Body, starts, seed: int):

@@ -257,11 +257,13 @@ def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.P
     config = config or stage3.ANSWER_PIPELINE
     if rank_value_folders is None:
         rank_value_folders = stage3.RANK_VALUES if config.select == selection.CHOSEN else ()
-    extra = load_rank_values(rank_value_folders, value_config)
+    rank_config, extra = load_rank_values(rank_value_folders, value_config)
     config = dataclasses.replace(config, rank_values=len(extra))
     stage1_config, stage1_params = where.stage1_spec
     hang = jax.jit(
-        stage3.make_hang_pipeline(stage1_config, where.stage2_config, value_config, config)
+        stage3.make_hang_pipeline(
+            stage1_config, where.stage2_config, value_config, config, rank_config
+        )
     )
     params = {"stage1": stage1_params, "stage2": where.stage2_params, "value": value_params}
     if extra:
@@ -269,18 +271,21 @@ def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.P
     return hang, params
 
 
-def load_rank_values(folders, value_config) -> list:
-    """The params of value folders that rank beside the CEM's V; each must have its config
-    (the ensemble evaluates them on the same subsampled clouds)."""
+def load_rank_values(folders, value_config) -> tuple:
+    """``(rank_config, [params])`` of the value folders that rank the refined candidates
+    (beside the CEM's V or alone). They must share one config (the ensemble scores them on one
+    subsample of the clouds); it may differ from the CEM's V (e.g. near points,
+    ``ValueConfig.support_near``). No folders: ``(value_config, [])``."""
     from omnihang_jax import refine
 
-    out = []
+    rank_config, out = None, []
     for folder in folders or ():
         config, params = refine.load_value(folder)
-        if config != value_config:
+        if rank_config is not None and config != rank_config:
             raise ValueError(
-                f"{folder}: its value network's config differs from the CEM's V; an ensemble "
-                "member must share it (same subsampled clouds and encoder)"
+                f"{folder}: its value network's config differs from the other ranking "
+                "networks'; they must share one (one subsample of the clouds and encoder)"
             )
+        rank_config = config
         out.append(params)
-    return out
+    return (value_config if rank_config is None else rank_config), out

@@ -88,7 +88,8 @@ class PairBank:
             meta.append(m)
             stable.append(sp)
         if not parts:
-            n, m = config.num_object_points, config.num_support_points
+            n = len(stage3.subsample_index(1, config, "object"))
+            m = len(stage3.subsample_index(1, config, "support"))
             clouds = PairClouds(*(np.zeros((0, k, 3), np.float32) for k in (n, n, m, m)))
             return cls(clouds, [], [])
         clouds = PairClouds(*(np.stack(x) for x in zip(*parts, strict=True)))
@@ -142,8 +143,8 @@ def _read_pair_light(path, config: ValueConfig):
         meta = {k: f[k].item() for k in META_KEYS}
     meta["pair_index"] = int(meta["pair_index"])
     meta["file"] = os.fspath(path)
-    io = (np.arange(config.num_object_points) * len(op)) // config.num_object_points
-    js = (np.arange(config.num_support_points) * len(sp)) // config.num_support_points
+    io = stage3.subsample_index(len(op), config, "object")
+    js = stage3.subsample_index(len(sp), config, "support")
     clouds = PairClouds(*(np.asarray(x, np.float32) for x in (op[io], on[io], sp[js], sn[js])))
     return clouds, meta, poses if mask is None else poses[mask]
 

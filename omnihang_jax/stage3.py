@@ -51,6 +51,8 @@ __all__ = [
     "PairClouds",
     "stack_clouds",
     "subsample_clouds",
+    "subsample_index",
+    "near_points",
     "posed_state",
     "ValueNet",
     "ValueNetwork",
@@ -92,6 +94,13 @@ class ValueConfig:
     feature_scale: float = 0.01  # m: distances are divided by 1 cm (hangs fail at 3 mm)...
     feature_clip: float = 3.0  # ...and clipped to +-3 cm: beyond that only "far" matters
     centre_on_object: bool = True  # ours: clouds relative to the candidate's position
+    # ours (twenty-first session, the answer's ranker): of the num_*_points, this many are the
+    # points nearest the other cloud at the candidate pose, taken from ``near_pool`` evenly
+    # spaced points of the observed cloud (the rest stay evenly spaced over the whole cloud):
+    # the contact region at up to 8x the density (0: the plain subsample; ``near_points``)
+    support_near: int = 0
+    object_near: int = 0
+    near_pool: int = 2048
     # training
     learning_rate: float = 3e-4  # peak of warm-up + cosine (the facts' stages use 1e-4-5e-4)
     warmup_steps: int = 500
@@ -143,12 +152,28 @@ def _subsample_index(n: int, k: int) -> jnp.ndarray:
     return (jnp.arange(k) * n) // k
 
 
+def subsample_index(n: int, config: ValueConfig, which: str) -> np.ndarray:
+    """Indices into an ``n``-point observed cloud (``which``: "object" or "support") that
+    :func:`subsample_clouds` keeps: ``num_*_points - *_near`` evenly spaced points, then, with
+    ``*_near`` > 0, the ``near_pool`` evenly spaced points :func:`posed_state` picks the near
+    points from."""
+    total = config.num_object_points if which == "object" else config.num_support_points
+    near = config.object_near if which == "object" else config.support_near
+    if not 0 <= near < total:
+        raise ValueError(f"ValueConfig.{which}_near = {near}: must be in [0, {total})")
+    index = (np.arange(total - near) * n) // (total - near)
+    if near:
+        index = np.concatenate([index, (np.arange(config.near_pool) * n) // config.near_pool])
+    return index
+
+
 def subsample_clouds(clouds: PairClouds, config: ValueConfig) -> PairClouds:
     """Take ``num_object_points`` / ``num_support_points`` evenly spaced points (any leading
-    axes; a cloud smaller than that repeats points)."""
+    axes; a cloud smaller than that repeats points); with ``object_near`` / ``support_near``
+    the pool of :func:`subsample_index` follows them (``posed_state`` picks from it)."""
     n, m = clouds.object_points.shape[-2], clouds.support_points.shape[-2]
-    io = _subsample_index(n, config.num_object_points)
-    js = _subsample_index(m, config.num_support_points)
+    io = jnp.asarray(subsample_index(n, config, "object"))
+    js = jnp.asarray(subsample_index(m, config, "support"))
     return PairClouds(
         clouds.object_points[..., io, :],
         clouds.object_normals[..., io, :],
@@ -162,6 +187,31 @@ def _so3(pose7: jax.Array) -> jaxlie.SO3:
     return jaxlie.SO3(wxyz=wxyz / jnp.linalg.norm(wxyz, axis=-1, keepdims=True))
 
 
+def near_points(clouds: PairClouds, pose7: jax.Array, config: ValueConfig) -> PairClouds:
+    """One pair (unbatched, subsampled by :func:`subsample_clouds`) at one pose -> exactly
+    ``num_object_points`` / ``num_support_points`` points: the evenly spaced ones, then the
+    ``support_near`` pool points of the support nearest the (posed) object's evenly spaced
+    points, and the ``object_near`` pool points of the object nearest the support's. Object
+    points stay in the object frame. Without near points: ``clouds`` unchanged."""
+    if not (config.object_near or config.support_near):
+        return clouds
+    go = config.num_object_points - config.object_near
+    gs = config.num_support_points - config.support_near
+    rot, t = _so3(pose7).as_matrix(), pose7[:3]
+    op, on, sp, sn = clouds
+    if config.support_near:
+        d2 = squared_distance(sp[gs:, None], (op[:go] @ rot.T + t)[None])  # [pool, go]
+        _, j = jax.lax.top_k(-jnp.min(d2, axis=1), config.support_near)
+        sp = jnp.concatenate([sp[:gs], sp[gs:][j]])
+        sn = jnp.concatenate([sn[:gs], sn[gs:][j]])
+    if config.object_near:
+        d2 = squared_distance((op[go:] @ rot.T + t)[:, None], sp[None, :gs])  # [pool, gs]
+        _, i = jax.lax.top_k(-jnp.min(d2, axis=1), config.object_near)
+        op = jnp.concatenate([op[:go], op[go:][i]])
+        on = jnp.concatenate([on[:go], on[go:][i]])
+    return PairClouds(op, on, sp, sn)
+
+
 def posed_state(
     clouds: PairClouds, pose7: jax.Array, config: ValueConfig
 ) -> tuple[jax.Array, jax.Array]:
@@ -169,7 +219,9 @@ def posed_state(
 
     Returns (points [N+M, 3], features [N+M, C]): object points first (flag 1), then support
     points (flag 0); C = 3 with contact features (flag, signed, unsigned distance), else 1.
+    With ``object_near`` / ``support_near`` the points are first picked by :func:`near_points`.
     """
+    clouds = near_points(clouds, pose7, config)
     rot = _so3(pose7).as_matrix()
     t = pose7[:3]
     obj = clouds.object_points @ rot.T + t
@@ -583,9 +635,10 @@ def make_smoothed_value(
 
 
 def make_ensemble_score(value_config: ValueConfig, with_first: bool = True) -> Callable:
-    """``ensemble(scores [B, P], extra_params [R value params], clouds [B, ...] subsampled,
-    poses [B, P, 7]) -> [B, P]``: the mean of log V over the first V (its final scores, as
-    CEM returns them) and the R other value networks of the same config, on the same poses:
+    """``ensemble(scores [B, P], extra_params [R value params], clouds [B, ...] subsampled
+    with ``value_config``, poses [B, P, 7]) -> [B, P]``: the mean of log V over the first V
+    (its final scores, as CEM returns them) and the R other value networks, all of config
+    ``value_config`` (the ranking networks'; it may differ from the CEM's V), on the same poses:
     a geometric-mean ensemble that ranks CEM's candidates (``PipelineConfig.rank_values``,
     ``eval_pipeline.evaluate_pipeline(rank_value_dirs=)``). ``with_first=False``: the mean
     over the R networks alone (``PipelineConfig.rank_with_value``). Pure, un-jitted."""
@@ -602,17 +655,21 @@ def make_ensemble_score(value_config: ValueConfig, with_first: bool = True) -> C
 
 
 def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
-                       config: PipelineConfig = PipelineConfig()) -> Callable:  # fmt: skip
+                       config: PipelineConfig = PipelineConfig(),
+                       rank_config: ValueConfig | None = None) -> Callable:  # fmt: skip
     """``hang(params, key, clouds: PairClouds [B, ...]) -> HangOutput``; params =
-    ``{"stage1", "stage2", "value"}``. Pure and un-jitted: ``jax.jit(hang)`` runs Stages 1, 2
-    and CEM on V in one XLA program, batched over pairs. The observed support normals
-    (``clouds.support_normals``) reach Stage 2 for its clearance (``Stage2Config.clearance``;
-    0 leaves them unused)."""
+    ``{"stage1", "stage2", "value"}`` (+ ``"rank_values"``). Pure and un-jitted:
+    ``jax.jit(hang)`` runs Stages 1, 2 and CEM on V in one XLA program, batched over pairs.
+    The observed support normals (``clouds.support_normals``) reach Stage 2 for its clearance
+    (``Stage2Config.clearance``; 0 leaves them unused). ``rank_config``: the ranking
+    networks' config (default ``value_config``; e.g. with near points), whose own subsample
+    of the clouds they score."""
     from omnihang_jax.predict import make_predict
 
     predict = make_predict(stage1_config, stage2_config)
     refine = make_refiner(value_config, config.cem)
-    rank = make_ensemble_score(value_config, config.rank_with_value)
+    rank_config = value_config if rank_config is None else rank_config
+    rank = make_ensemble_score(rank_config, config.rank_with_value)
     rule = config.select
 
     def hang(params, key, clouds: PairClouds) -> HangOutput:
@@ -622,6 +679,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
             k1, config.num_proposals, support_normals=clouds.support_normals,
         )  # fmt: skip
         small = subsample_clouds(clouds, value_config)
+        rank_small = small if rank_config == value_config else subsample_clouds(clouds, rank_config)
         starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
         refined, scores, initial, best, keys_of = {}, {}, {}, {}, {}
         for i, name in enumerate(config.starts):
@@ -632,7 +690,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
                 if len(extra) != config.rank_values:
                     raise ValueError(f"params['rank_values'] holds {len(extra)} value "
                                      f"networks, PipelineConfig.rank_values {config.rank_values}")  # fmt: skip
-                final = rank(res.scores, extra, small, res.poses)
+                final = rank(res.scores, extra, rank_small, res.poses)
             refined[name], scores[name] = res.poses, final
             initial[name], best[name] = res.initial_scores, jnp.argmax(final, axis=1)
             keys_of[name] = final

@@ -145,13 +145,18 @@ def test_evaluation_ranks_by_the_ensemble_and_records_each_v(monkeypatch, tmp_pa
     assert ensemble_stage3.pipeline_sets(2) == [(), (1,), (2,), (1, 2)]
 
 
-def test_load_rank_values_refuses_another_config(monkeypatch):
+def test_load_rank_values_shares_one_config(monkeypatch):
+    """The ranking networks share one config, which may differ from the CEM's V (their own
+    subsample of the clouds); none: the CEM's V's config."""
+    near = dataclasses.replace(stage3.VALUE_TINY, support_near=16, near_pool=128)
     monkeypatch.setattr(
-        refine, "load_value", lambda f: (dataclasses.replace(stage3.VALUE_TINY, batch_size=3), V2)
+        refine, "load_value", lambda f: (near if f != "Y" else stage3.VALUE_TINY, V2)
     )
+    config, nets = predict.load_rank_values(["X", "X"], stage3.VALUE_TINY)
+    assert config == near and len(nets) == 2 and nets[0] is V2
     with pytest.raises(ValueError, match="config differs"):
-        predict.load_rank_values(["X"], stage3.VALUE_TINY)
-    assert predict.load_rank_values([], stage3.VALUE_TINY) == []
+        predict.load_rank_values(["X", "Y"], stage3.VALUE_TINY)
+    assert predict.load_rank_values([], stage3.VALUE_TINY) == (stage3.VALUE_TINY, [])
 
 
 def test_hang_command_ranks_by_the_mean_log_v(tmp_path):
