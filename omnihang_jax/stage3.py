@@ -101,6 +101,7 @@ class ValueConfig:
     support_near: int = 0
     object_near: int = 0
     near_pool: int = 2048
+    near_anchors: int = 64  # "nearest": to this many evenly spaced points of the other cloud
     # training
     learning_rate: float = 3e-4  # peak of warm-up + cosine (the facts' stages use 1e-4-5e-4)
     warmup_steps: int = 500
@@ -190,22 +191,26 @@ def _so3(pose7: jax.Array) -> jaxlie.SO3:
 def near_points(clouds: PairClouds, pose7: jax.Array, config: ValueConfig) -> PairClouds:
     """One pair (unbatched, subsampled by :func:`subsample_clouds`) at one pose -> exactly
     ``num_object_points`` / ``num_support_points`` points: the evenly spaced ones, then the
-    ``support_near`` pool points of the support nearest the (posed) object's evenly spaced
-    points, and the ``object_near`` pool points of the object nearest the support's. Object
-    points stay in the object frame. Without near points: ``clouds`` unchanged."""
+    ``support_near`` pool points of the support nearest the (posed) object, and the
+    ``object_near`` pool points of the object nearest the support ("nearest": to
+    ``near_anchors`` evenly spaced points of the other cloud's evenly spaced part, which keeps
+    the distance map small). Object points stay in the object frame. Without near points:
+    ``clouds`` unchanged."""
     if not (config.object_near or config.support_near):
         return clouds
     go = config.num_object_points - config.object_near
     gs = config.num_support_points - config.support_near
     rot, t = _so3(pose7).as_matrix(), pose7[:3]
     op, on, sp, sn = clouds
+    ao = _subsample_index(go, min(config.near_anchors, go))
+    as_ = _subsample_index(gs, min(config.near_anchors, gs))
     if config.support_near:
-        d2 = squared_distance(sp[gs:, None], (op[:go] @ rot.T + t)[None])  # [pool, go]
+        d2 = squared_distance(sp[gs:, None], (op[ao] @ rot.T + t)[None])  # [pool, anchors]
         _, j = jax.lax.top_k(-jnp.min(d2, axis=1), config.support_near)
         sp = jnp.concatenate([sp[:gs], sp[gs:][j]])
         sn = jnp.concatenate([sn[:gs], sn[gs:][j]])
     if config.object_near:
-        d2 = squared_distance((op[go:] @ rot.T + t)[:, None], sp[None, :gs])  # [pool, gs]
+        d2 = squared_distance((op[go:] @ rot.T + t)[:, None], sp[as_][None])  # [pool, anchors]
         _, i = jax.lax.top_k(-jnp.min(d2, axis=1), config.object_near)
         op = jnp.concatenate([op[:go], op[go:][i]])
         on = jnp.concatenate([on[:go], on[go:][i]])
