@@ -65,7 +65,7 @@ def main(argv=None) -> dict:
     vcfg, vparams = refine.load_value(args.value)
     rank_dirs = list(stage3.RANK_VALUES if args.rank_value is None else args.rank_value)
     stage1_config, stage1_params = pred.stage1_spec  # a Stage-1 mix ("A+B") too
-    rank_config, rank_params = load_rank_values(rank_dirs, vcfg)
+    rank_configs, rank_params = load_rank_values(rank_dirs)
     params = {"stage1": stage1_params, "stage2": pred.stage2_params, "value": vparams,
               "rank_values": rank_params}  # fmt: skip
     configs, hangs = {}, {}
@@ -76,7 +76,7 @@ def main(argv=None) -> dict:
         configs[a] = dataclasses.replace(base, num_proposals=k, rank_values=ranks)
         hangs[a] = jax.jit(
             stage3.make_hang_pipeline(
-                stage1_config, pred.stage2_config, vcfg, configs[a], rank_config
+                stage1_config, pred.stage2_config, vcfg, configs[a], rank_configs
             )
         )
     rows = []

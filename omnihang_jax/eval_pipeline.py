@@ -106,9 +106,9 @@ def evaluate_pipeline(
     value_config, value_params = refine.load_value(value_dir)
     refine_fn = jax.jit(stage3.make_refiner(value_config, cem))
     value_fn = jax.jit(stage3.make_value(value_config).value)
-    rank_config, rank_params = load_rank_values(rank_value_dirs, value_config)
-    ensemble_fn = jax.jit(stage3.make_ensemble_score(rank_config, rank_with_value))
-    rank_value_fn = jax.jit(stage3.make_value(rank_config).value)
+    rank_configs, rank_params = load_rank_values(rank_value_dirs)
+    ensemble_fn = jax.jit(stage3.make_ensemble_score(rank_configs, rank_with_value))
+    rank_value_fns = [jax.jit(stage3.make_value(c).value) for c in rank_configs]
 
     @jax.jit
     def separate_fn(full, poses):  # [B, ...] clouds, [B, 7] -> [B, 7], one pair at a time
@@ -158,14 +158,13 @@ def evaluate_pipeline(
                        jnp.asarray(pred.stage1_poses))  # fmt: skip
         # the answers: the rule over the refined candidates' final V and inside counts
         fullj = jax.tree.map(jnp.asarray, full)
-        rank_small = stage3.subsample_clouds(fullj, rank_config)  # the ranking networks' own
         cand = jnp.concatenate([jnp.asarray(pred.stage1_poses), jnp.asarray(pred.stage2_poses),
                                 r1.poses, r2.poses], axis=1)  # [B, 4K, 7]  # fmt: skip
         counts = counts_fn(fullj, cand)  # [B, G, 4K]
         f1, f2 = r1.scores, r2.scores  # the final scores that rank: the CEM's V or the ensemble
         if rank_params:
-            f1 = ensemble_fn(r1.scores, rank_params, rank_small, r1.poses)
-            f2 = ensemble_fn(r2.scores, rank_params, rank_small, r2.poses)
+            f1 = ensemble_fn(r1.scores, rank_params, fullj, r1.poses)
+            f2 = ensemble_fn(r2.scores, rank_params, fullj, r2.poses)
         best1 = selection.select(f1, counts[:, g_select, 2 * k : 3 * k], select)
         best2 = selection.select(f2, counts[:, g_select, 3 * k :], select)
         if pool_starts:  # the answer among all 2K refined candidates (stage3.ANSWER_PIPELINE)
@@ -182,9 +181,12 @@ def evaluate_pipeline(
         allp = jnp.concatenate([cand, separated[:, None]], axis=1)  # [B, 4K+1, 7]
         tiled = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0), small)
         v_all = value_fn(value_params, tiled, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1)
-        tiled_rank = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0), rank_small)
-        v_rank = [np.asarray(rank_value_fn(p, tiled_rank, allp.reshape(-1, 7))
-                             .reshape(batch, 4 * k + 1)) for p in rank_params]  # fmt: skip
+        v_rank = []  # each ranking network on its own subsample of the clouds
+        for fn, c, p in zip(rank_value_fns, rank_configs, rank_params, strict=True):
+            tiled_rank = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0),
+                                      stage3.subsample_clouds(fullj, c))  # fmt: skip
+            v_rank.append(np.asarray(fn(p, tiled_rank, allp.reshape(-1, 7))
+                                     .reshape(batch, 4 * k + 1)))  # fmt: skip
         jax.block_until_ready(v_all)
         t_net += time.time() - tn
         allp, v_all, counts = np.asarray(allp), np.asarray(v_all), np.asarray(counts)

@@ -747,10 +747,10 @@ def _load_stage3(folder: str, rank_folders: tuple = ()) -> Stage3:
     from omnihang_jax import predict, refine, stage3
 
     config, params = refine.load_value(folder)
-    rank_config, extra = predict.load_rank_values(rank_folders, config)
+    rank_configs, extra = predict.load_rank_values(rank_folders)
     value = stage3.make_value(config)
     score_jit = jax.jit(value.score)
-    rank_score_jit = jax.jit(stage3.make_value(rank_config).score)
+    rank_jits = [jax.jit(stage3.make_value(c).score) for c in rank_configs]
     refine_jit = jax.jit(stage3.make_refiner(config, stage3.CEMConfig()))
 
     def clouds_of(obj: Body, sup: Body, of=config):
@@ -762,8 +762,8 @@ def _load_stage3(folder: str, rank_folders: tuple = ()) -> Stage3:
 
     def rank(obj: Body, sup: Body, poses):
         poses = np.asarray(poses, np.float32)
-        logs = [np.asarray(rank_score_jit(p, clouds_of(obj, sup, rank_config), poses))
-                for p in extra]  # fmt: skip
+        logs = [np.asarray(fn(p, clouds_of(obj, sup, c), poses))
+                for fn, c, p in zip(rank_jits, rank_configs, extra, strict=True)]  # fmt: skip
         if stage3.RANK_WITH_CEM_VALUE or not extra:
             logs.insert(0, np.asarray(score_jit(params, clouds_of(obj, sup), poses)))
         return np.mean(logs, axis=0)

@@ -257,12 +257,12 @@ def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.P
     config = config or stage3.ANSWER_PIPELINE
     if rank_value_folders is None:
         rank_value_folders = stage3.RANK_VALUES if config.select == selection.CHOSEN else ()
-    rank_config, extra = load_rank_values(rank_value_folders, value_config)
+    rank_configs, extra = load_rank_values(rank_value_folders)
     config = dataclasses.replace(config, rank_values=len(extra))
     stage1_config, stage1_params = where.stage1_spec
     hang = jax.jit(
         stage3.make_hang_pipeline(
-            stage1_config, where.stage2_config, value_config, config, rank_config
+            stage1_config, where.stage2_config, value_config, config, rank_configs
         )
     )
     params = {"stage1": stage1_params, "stage2": where.stage2_params, "value": value_params}
@@ -271,21 +271,11 @@ def load_hang_pipeline(where_folder: str | os.PathLike, value_folder: str | os.P
     return hang, params
 
 
-def load_rank_values(folders, value_config) -> tuple:
-    """``(rank_config, [params])`` of the value folders that rank the refined candidates
-    (beside the CEM's V or alone). They must share one config (the ensemble scores them on one
-    subsample of the clouds); it may differ from the CEM's V (e.g. near points,
-    ``ValueConfig.support_near``). No folders: ``(value_config, [])``."""
+def load_rank_values(folders) -> tuple:
+    """``(configs, params)``: the config and params of each value folder that ranks the
+    refined candidates (beside the CEM's V or alone); each scores its own subsample of the
+    clouds, so configs may differ (e.g. near points, ``ValueConfig.support_near``)."""
     from omnihang_jax import refine
 
-    rank_config, out = None, []
-    for folder in folders or ():
-        config, params = refine.load_value(folder)
-        if rank_config is not None and config != rank_config:
-            raise ValueError(
-                f"{folder}: its value network's config differs from the other ranking "
-                "networks'; they must share one (one subsample of the clouds and encoder)"
-            )
-        rank_config = config
-        out.append(params)
-    return (value_config if rank_config is None else rank_config), out
+    loaded = [refine.load_value(folder) for folder in folders or ()]
+    return tuple(c for c, _ in loaded), [p for _, p in loaded]

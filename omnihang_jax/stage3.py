@@ -639,19 +639,30 @@ def make_smoothed_value(
     return smoothed
 
 
-def make_ensemble_score(value_config: ValueConfig, with_first: bool = True) -> Callable:
-    """``ensemble(scores [B, P], extra_params [R value params], clouds [B, ...] subsampled
-    with ``value_config``, poses [B, P, 7]) -> [B, P]``: the mean of log V over the first V
-    (its final scores, as CEM returns them) and the R other value networks, all of config
-    ``value_config`` (the ranking networks'; it may differ from the CEM's V), on the same poses:
-    a geometric-mean ensemble that ranks CEM's candidates (``PipelineConfig.rank_values``,
+def make_ensemble_score(rank_configs, with_first: bool = True) -> Callable:
+    """``ensemble(scores [B, P], extra_params [R value params], clouds [B, ...] the observed
+    clouds, poses [B, P, 7]) -> [B, P]``: the mean of log V over the first V (its final
+    scores, as CEM returns them) and the R other value networks on the same poses, network i of
+    config ``rank_configs[i]`` scoring its own subsample of the clouds (configs may differ from
+    each other and from the CEM's V, e.g. near points; one ``ValueConfig``: all R share it): a
+    geometric-mean ensemble that ranks CEM's candidates (``PipelineConfig.rank_values``,
     ``eval_pipeline.evaluate_pipeline(rank_value_dirs=)``). ``with_first=False``: the mean
     over the R networks alone (``PipelineConfig.rank_with_value``). Pure, un-jitted."""
-    value = make_value(value_config)
-    per_pair = jax.vmap(lambda p, c, poses: value.score(p, c, poses), in_axes=(None, 0, 0))
+
+    def per_pair(config):
+        value = make_value(config)
+        return jax.vmap(lambda p, c, poses: value.score(p, c, poses), in_axes=(None, 0, 0))
 
     def ensemble(scores, extra_params, clouds: PairClouds, poses):
-        logs = [per_pair(p, clouds, poses) for p in extra_params]
+        configs = (
+            (rank_configs,) * len(extra_params)
+            if isinstance(rank_configs, ValueConfig)
+            else tuple(rank_configs)
+        )
+        if len(configs) != len(extra_params):
+            raise ValueError(f"{len(extra_params)} ranking networks, {len(configs)} configs")
+        logs = [per_pair(c)(p, subsample_clouds(clouds, c), poses)
+                for c, p in zip(configs, extra_params, strict=True)]  # fmt: skip
         if with_first or not logs:
             logs = [scores] + logs
         return sum(logs) / len(logs)
@@ -661,20 +672,21 @@ def make_ensemble_score(value_config: ValueConfig, with_first: bool = True) -> C
 
 def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
                        config: PipelineConfig = PipelineConfig(),
-                       rank_config: ValueConfig | None = None) -> Callable:  # fmt: skip
+                       rank_configs=None) -> Callable:  # fmt: skip
     """``hang(params, key, clouds: PairClouds [B, ...]) -> HangOutput``; params =
     ``{"stage1", "stage2", "value"}`` (+ ``"rank_values"``). Pure and un-jitted:
     ``jax.jit(hang)`` runs Stages 1, 2 and CEM on V in one XLA program, batched over pairs.
     The observed support normals (``clouds.support_normals``) reach Stage 2 for its clearance
-    (``Stage2Config.clearance``; 0 leaves them unused). ``rank_config``: the ranking
-    networks' config (default ``value_config``; e.g. with near points), whose own subsample
-    of the clouds they score."""
+    (``Stage2Config.clearance``; 0 leaves them unused). ``rank_configs``: the ranking
+    networks' configs, one each or one for all (default ``value_config``; e.g. with near
+    points), each scoring its own subsample of the clouds (``make_ensemble_score``)."""
     from omnihang_jax.predict import make_predict
 
     predict = make_predict(stage1_config, stage2_config)
     refine = make_refiner(value_config, config.cem)
-    rank_config = value_config if rank_config is None else rank_config
-    rank = make_ensemble_score(rank_config, config.rank_with_value)
+    rank = make_ensemble_score(
+        value_config if rank_configs is None else rank_configs, config.rank_with_value
+    )
     rule = config.select
 
     def hang(params, key, clouds: PairClouds) -> HangOutput:
@@ -684,7 +696,6 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
             k1, config.num_proposals, support_normals=clouds.support_normals,
         )  # fmt: skip
         small = subsample_clouds(clouds, value_config)
-        rank_small = small if rank_config == value_config else subsample_clouds(clouds, rank_config)
         starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
         refined, scores, initial, best, keys_of = {}, {}, {}, {}, {}
         for i, name in enumerate(config.starts):
@@ -695,7 +706,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
                 if len(extra) != config.rank_values:
                     raise ValueError(f"params['rank_values'] holds {len(extra)} value "
                                      f"networks, PipelineConfig.rank_values {config.rank_values}")  # fmt: skip
-                final = rank(res.scores, extra, rank_small, res.poses)
+                final = rank(res.scores, extra, clouds, res.poses)
             refined[name], scores[name] = res.poses, final
             initial[name], best[name] = res.initial_scores, jnp.argmax(final, axis=1)
             keys_of[name] = final

@@ -145,18 +145,16 @@ def test_evaluation_ranks_by_the_ensemble_and_records_each_v(monkeypatch, tmp_pa
     assert ensemble_stage3.pipeline_sets(2) == [(), (1,), (2,), (1, 2)]
 
 
-def test_load_rank_values_shares_one_config(monkeypatch):
-    """The ranking networks share one config, which may differ from the CEM's V (their own
-    subsample of the clouds); none: the CEM's V's config."""
+def test_load_rank_values_keeps_each_config(monkeypatch):
+    """Each ranking network keeps its own config (its own subsample of the clouds); none:
+    empty."""
     near = dataclasses.replace(stage3.VALUE_TINY, support_near=16, near_pool=128)
     monkeypatch.setattr(
-        refine, "load_value", lambda f: (near if f != "Y" else stage3.VALUE_TINY, V2)
+        refine, "load_value", lambda f: (near if f == "X" else stage3.VALUE_TINY, V2)
     )
-    config, nets = predict.load_rank_values(["X", "X"], stage3.VALUE_TINY)
-    assert config == near and len(nets) == 2 and nets[0] is V2
-    with pytest.raises(ValueError, match="config differs"):
-        predict.load_rank_values(["X", "Y"], stage3.VALUE_TINY)
-    assert predict.load_rank_values([], stage3.VALUE_TINY) == (stage3.VALUE_TINY, [])
+    configs, nets = predict.load_rank_values(["X", "Y"])
+    assert configs == (near, stage3.VALUE_TINY) and len(nets) == 2 and nets[0] is V2
+    assert predict.load_rank_values([]) == ((), [])
 
 
 def test_hang_command_ranks_by_the_mean_log_v(tmp_path):
@@ -216,9 +214,12 @@ def test_answer_failures_sorts_each_failed_answer_by_cause():
 
 
 def test_committed_cem_value_loads_beside_the_ranking_networks():
-    """stage3.CEM_VALUE and every stage3.RANK_VALUES folder are committed, load, and share one
-    ValueConfig (the pipeline stacks the ranking networks' params beside CEM's V)."""
+    """stage3.CEM_VALUE and every stage3.RANK_VALUES folder are committed and load; each
+    ranking network shares the CEM's V's encoder and head (fine-tuned from it), differing at
+    most in how the state picks its points (near points: its own subsample of the clouds)."""
     config, _ = refine.load_value(stage3.CEM_VALUE)
-    for folder in stage3.RANK_VALUES:
-        assert refine.load_value(folder)[0] == config, folder
+    configs, _ = predict.load_rank_values(stage3.RANK_VALUES)
+    for folder, c in zip(stage3.RANK_VALUES, configs, strict=True):
+        plain = dataclasses.replace(c, support_near=0, object_near=0)
+        assert plain == config, folder
     assert stage3.CEM_VALUE not in stage3.RANK_VALUES

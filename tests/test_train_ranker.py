@@ -219,29 +219,36 @@ def test_pipeline_ranks_by_the_ranker_alone(params):  # noqa: F811
 
 
 def test_pipeline_ranks_with_a_near_point_ranker(params):  # noqa: F811
-    """A ranking network with near points (its own config, ``make_hang_pipeline(...,
-    rank_config)``) scores the refined candidates on its own subsample of the clouds; CEM is
-    unchanged."""
+    """Ranking networks of different configs (``make_hang_pipeline(..., rank_configs)``): a
+    plain one and one with near points, each on its own subsample of the clouds; the final
+    scores are the mean of their log V; CEM is unchanged."""
     clouds = _plane_pairs()
     near = dataclasses.replace(stage3.VALUE_TINY, support_near=16, object_near=8, near_pool=128)
     v2 = stage3.make_value(stage3.VALUE_TINY).init(jax.random.key(7))
-    cfg = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=1,
+    v3 = stage3.make_value(stage3.VALUE_TINY).init(jax.random.key(8))
+    cfg = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=2,
                               rank_with_value=False)  # fmt: skip
     plain = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg))
     ranked = jax.jit(
-        stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg, near)
+        stage3.make_hang_pipeline(
+            STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg, (stage3.VALUE_TINY, near)
+        )
     )
     key = jax.random.key(3)
-    out_p = plain({**params, "rank_values": [v2]}, key, clouds)
-    out_n = ranked({**params, "rank_values": [v2]}, key, clouds)
-    small = stage3.subsample_clouds(jax.tree.map(np.asarray, clouds), near)
+    out_p = plain({**params, "rank_values": [v2, v3]}, key, clouds)
+    out_n = ranked({**params, "rank_values": [v2, v3]}, key, clouds)
+    full = jax.tree.map(np.asarray, clouds)
+    small = stage3.subsample_clouds(full, near)
+    small3 = stage3.subsample_clouds(full, stage3.VALUE_TINY)
     value = stage3.make_value(near)
+    value3 = stage3.make_value(stage3.VALUE_TINY)
     for name in cfg.starts:
         np.testing.assert_array_equal(np.asarray(out_p.refined[name]),
                                       np.asarray(out_n.refined[name]))  # fmt: skip
         poses = np.asarray(out_n.refined[name])
         want = np.stack([
-            np.asarray(value.score(v2, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
+            0.5 * np.asarray(value3.score(v2, jax.tree.map(lambda x, i=i: x[i], small3), poses[i]))
+            + 0.5 * np.asarray(value.score(v3, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
             for i in range(len(poses))
         ])  # fmt: skip
         np.testing.assert_allclose(np.asarray(out_n.scores[name]), want, rtol=1e-5, atol=1e-5)
