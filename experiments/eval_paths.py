@@ -750,6 +750,11 @@ def main(argv=None) -> dict:
         "directions first; RRT-Connect to its end, then straight in); empty: off",
     )  # fmt: skip
     parser.add_argument(
+        "--retreat-after", type=float, default=0.0, metavar="S",
+        help="with --retreat: the plain plan first for S seconds, the retreat only when it "
+        "finds no path (PlannerConfig.retreat_after; 0: the retreat first)",
+    )  # fmt: skip
+    parser.add_argument(
         "--select-geometric",
         default=None,
         metavar="JSON",
@@ -835,9 +840,11 @@ def main(argv=None) -> dict:
         parser.error(f"--retreat {args.retreat!r}: comma-separated lengths in metres")
     if any(not x > 0 for x in retreat):
         parser.error("--retreat lengths must be > 0")
+    if not 0 <= args.retreat_after < args.time_limit:
+        parser.error("--retreat-after must be in [0, --time-limit)")
     config = planner.PlannerConfig(
         time_limit=args.time_limit, goal_radius=args.goal_radius, resolution=args.resolution,
-        retreat_lengths=retreat,
+        retreat_lengths=retreat, retreat_after=args.retreat_after,
     )  # fmt: skip
     out = Path(args.out)
     (out / "scenes").mkdir(parents=True, exist_ok=True)

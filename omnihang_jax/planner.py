@@ -88,6 +88,10 @@ class PlannerConfig:
     # ours (twentieth session): lengths (m) of a straight retreat from the goal tried before
     # planning (plan_with_retreat); () = off, the plain plan
     retreat_lengths: tuple[float, ...] = ()
+    # ours (twenty-first session): > 0 makes the retreat a fallback: the plain plan runs for
+    # this many seconds first, and only when it finds no path is the retreat searched and
+    # planned to with what is left of time_limit (0: the retreat first, as above)
+    retreat_after: float = 0.0
 
 
 _SEEDED: list[int] = []  # the seed OMPL was given in this process (at most one)
@@ -503,18 +507,35 @@ def plan_with_retreat(
     ``config.retreat_lengths``) and, when a retreat is free, :func:`plan` from ``start`` to its
     pre-goal with what is left of the time limit, the path ending pre-goal -> goal. Without a
     free retreat (or with ``retreat_lengths`` empty) the plain plan to the goal. The search's
-    time and states count in the result."""
+    time and states count in the result. ``config.retreat_after`` > 0: the plain plan first,
+    for that many seconds; the retreat only when it returns no path, with the time left (the
+    first plan's time and states count too)."""
     lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
+    spent_s, spent_states, spent_calls = 0.0, 0, 0
+    if config.retreat_lengths and 0 < config.retreat_after < config.time_limit:
+        first = plan(checker, start, goal, bounds, rotation_weight,
+                     dataclasses.replace(config, time_limit=config.retreat_after))  # fmt: skip
+        if first.path is not None:
+            return first, None
+        spent_s, spent_states, spent_calls = (
+            first.planning_s,
+            first.states_checked,
+            first.checker_calls,
+        )
+        config = dataclasses.replace(config, time_limit=config.time_limit - first.planning_s)
     found = None
     if config.retreat_lengths:
         found = find_retreat(checker, goal, config.retreat_lengths, config.resolution, (lo, hi))
     if found is None:
-        return plan(checker, start, goal, bounds, rotation_weight, config), None
+        res = plan(checker, start, goal, bounds, rotation_weight, config)
+        return PlanResult(res.path, res.status, res.planning_s + spent_s,
+                          res.states_checked + spent_states, res.checker_calls + spent_calls), None  # fmt: skip
     left = dataclasses.replace(config, time_limit=max(config.time_limit - found.seconds, 0.01))
     res = plan(checker, start, found.pregoal, bounds, rotation_weight, left)
     path = None if res.path is None else np.concatenate([res.path, np.asarray(goal, float)[None]])
-    return PlanResult(path, res.status, res.planning_s + found.seconds,
-                      res.states_checked + found.states_checked, res.checker_calls), found  # fmt: skip
+    return PlanResult(path, res.status, res.planning_s + found.seconds + spent_s,
+                      res.states_checked + found.states_checked + spent_states,
+                      res.checker_calls + spent_calls), found  # fmt: skip
 
 
 def dense_check(

@@ -376,3 +376,23 @@ def test_plan_with_retreat_ends_straight_in_at_the_goal_or_falls_back():
     quick = planner.PlannerConfig(time_limit=0.5, retreat_lengths=(0.1,))
     _, blocked = planner.plan_with_retreat(lid, start, goal, bounds, 0.05, quick)
     assert blocked is None
+
+
+def test_retreat_as_a_fallback_only_after_the_plain_plan_fails():
+    """PlannerConfig.retreat_after: the plain plan first; its path is kept when it finds one
+    (no retreat searched), else the retreat with the time left, every plan's time counted."""
+    checker, goal = _slot()
+    start = np.array([0.3, 0.0, 0.3, 1, 0, 0, 0])
+    bounds = (np.array([-0.4, -0.4, -0.1]), np.array([0.4, 0.4, 0.5]))
+    # a plain plan of 1e-4 s finds nothing: the retreat takes over and ends straight in
+    cfg = planner.PlannerConfig(time_limit=10.0, retreat_lengths=(0.1,), retreat_after=1e-4)
+    res, found = planner.plan_with_retreat(checker, start, goal, bounds, 0.05, cfg)
+    assert found is not None and res.path is not None
+    np.testing.assert_allclose(res.path[-2], found.pregoal, atol=1e-9)
+    assert not checker(planner.interpolate_path(res.path, 0.002, 0.05)).any()
+    assert res.planning_s >= found.seconds
+    # an open space: the plain plan succeeds within its share, no retreat is searched
+    free = planner.AnalyticChecker([], 0.01)
+    easy = planner.PlannerConfig(time_limit=10.0, retreat_lengths=(0.1,), retreat_after=5.0)
+    res, none = planner.plan_with_retreat(free, start, goal, bounds, 0.05, easy)
+    assert none is None and res.path is not None
