@@ -147,9 +147,9 @@ def test_load_hang_pipeline_takes_stage2_overrides(monkeypatch):
     monkeypatch.setattr(refine, "load_value", _fake_load_value)
     make = stage3.make_hang_pipeline
 
-    def spy(stage1_config, stage2_config, value_config, config):
+    def spy(stage1_config, stage2_config, value_config, config, rank_configs=None):
         built.append((stage2_config.clearance, config))
-        return make(stage1_config, stage2_config, value_config, config)
+        return make(stage1_config, stage2_config, value_config, config, rank_configs)
 
     monkeypatch.setattr(stage3, "make_hang_pipeline", spy)
     for clearance in (None, C):
