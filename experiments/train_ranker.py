@@ -372,6 +372,39 @@ def plot_curves(out: Path) -> None:
     plt.close(fig)
 
 
+def choose_sets(score_files, select_on: str, records) -> dict:
+    """Every non-empty set of the rankers in ``score_files`` (``score``'s .npz: arrays keyed
+    ``NAME|RUN``), each ranking by the mean log P(hang) of its networks alone: the rule's
+    success on the ``select_on`` table and on each of ``records``; sorted by the first (ties:
+    the smaller set); ``chosen`` is the first."""
+    import itertools
+
+    logp = {}
+    for f in score_files:
+        with np.load(f) as z:
+            logp.update({k: z[k] for k in z.files})
+    tables = {Path(p).name: load_table(p) for p in [select_on, *records]}
+    names = sorted({k.split("|")[0] for k in logp})
+    missing = [f"{n}|{r}" for n in names for r in tables if f"{n}|{r}" not in logp]
+    if missing:
+        raise ValueError(f"no scores for {missing[:4]}...: score every ranker on every table")
+
+    def success(combo, run):
+        return rule_success(tables[run], np.mean([logp[f"{n}|{run}"] for n in combo], 0))
+
+    first, others = Path(select_on).name, [Path(p).name for p in records]
+    rows = []
+    for r in range(1, len(names) + 1):
+        for combo in itertools.combinations(names, r):
+            runs = [success(combo, run) for run in others]
+            rows.append({"set": list(combo), "select_on": success(combo, first)["mean"],
+                         "runs": [x["mean"] for x in runs],
+                         "runs_mean": float(np.mean([x["mean"] for x in runs])),
+                         "per_category_first_run": runs[0]["per_category"] if runs else {}})  # fmt: skip
+    rows.sort(key=lambda x: (-x["select_on"], len(x["set"])))
+    return {"select_on": first, "runs": others, "chosen": rows[0], "sets": rows}
+
+
 # ----------------------------------------------------------------------------------------------
 # CLI
 
@@ -425,6 +458,11 @@ def main(argv=None) -> dict:
     sc.add_argument("--out", required=True, help="JSON (scores beside it as .npz)")
     sc.add_argument("--score-batch", type=int, default=32)
     sc.add_argument("--no-progress", action="store_true")
+    se = sub.add_parser("sets", help="every set of scored rankers, chosen on one run's table")
+    se.add_argument("--scores", nargs="+", required=True, help="score's .npz files")
+    se.add_argument("--select-on", required=True, help="the table the set is chosen on")
+    se.add_argument("--records", nargs="+", required=True, help="tables reported beside it")
+    se.add_argument("--out", required=True, help="JSON")
     args = parser.parse_args(argv)
 
     if args.command == "pairs":
@@ -434,6 +472,13 @@ def main(argv=None) -> dict:
             f.writelines(json.dumps(r) + "\n" for r in rows)
         print(f"{len(rows)} pairs ({len(exclude)} excluded) -> {args.out}")
         return {"pairs": len(rows), "out": args.out}
+    if args.command == "sets":
+        result = choose_sets(args.scores, args.select_on, args.records)
+        refine.write_json(args.out, result)
+        best = result["chosen"]
+        print(f"chosen {'+'.join(best['set'])}: {args.select_on} {best['select_on']:.2f}, "
+              f"others {[round(x, 2) for x in best['runs']]}")  # fmt: skip
+        return result
     if args.command == "slim":
         table = slim_records(read_records(args.records))
         np.savez_compressed(args.out, **table)
@@ -447,19 +492,16 @@ def main(argv=None) -> dict:
         name, _, folder = d.rpartition("=")
         config, params = refine.load_value(folder)
         rankers[name or folder] = (config, params, make_scorer(config))
-    configs = {json.dumps(dataclasses.asdict(c), sort_keys=True) for c, _, _ in rankers.values()}
-    if len(configs) != 1:
-        raise ValueError("--ranker: the rankers must share one ValueConfig (one bank of clouds)")
-    config = next(iter(rankers.values()))[0]
     result = {"rankers": args.ranker, "runs": {}}
     scores = {}
-    for path in args.records:  # each run's pair files are read once for all rankers
+    for path in args.records:  # each run's pair files are read once per ranker config
         table = load_table(path)
-        bank = load_bank(table, args.data, args.split, config, not args.no_progress)
+        banks = {c: load_bank(table, args.data, args.split, c, not args.no_progress)
+                 for c in {c for c, _, _ in rankers.values()}}  # fmt: skip
         run = Path(path).name
         result["runs"][run] = {"pairs": len(table["files"])}
-        for name, (_, params, scorer) in rankers.items():
-            logp = score_table(scorer, params, bank, table, args.score_batch)
+        for name, (config, params, scorer) in rankers.items():
+            logp = score_table(scorer, params, banks[config], table, args.score_batch)
             scores[f"{name}|{run}"] = logp
             res = score_variants(table, logp)
             result["runs"][run][name] = res

@@ -108,7 +108,8 @@ def evaluate_pipeline(
     value_fn = jax.jit(stage3.make_value(value_config).value)
     rank_configs, rank_params = load_rank_values(rank_value_dirs)
     ensemble_fn = jax.jit(stage3.make_ensemble_score(rank_configs, rank_with_value))
-    rank_value_fns = [jax.jit(stage3.make_value(c).value) for c in rank_configs]
+    jits = {c: jax.jit(stage3.make_value(c).value) for c in set(rank_configs)}  # one per config
+    rank_value_fns = [jits[c] for c in rank_configs]
 
     @jax.jit
     def separate_fn(full, poses):  # [B, ...] clouds, [B, 7] -> [B, 7], one pair at a time

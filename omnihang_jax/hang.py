@@ -750,7 +750,8 @@ def _load_stage3(folder: str, rank_folders: tuple = ()) -> Stage3:
     rank_configs, extra = predict.load_rank_values(rank_folders)
     value = stage3.make_value(config)
     score_jit = jax.jit(value.score)
-    rank_jits = [jax.jit(stage3.make_value(c).score) for c in rank_configs]
+    jits = {c: jax.jit(stage3.make_value(c).score) for c in set(rank_configs)}  # one per config
+    rank_jits = [jits[c] for c in rank_configs]
     refine_jit = jax.jit(stage3.make_refiner(config, stage3.CEMConfig()))
 
     def clouds_of(obj: Body, sup: Body, of=config):

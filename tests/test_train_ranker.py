@@ -253,3 +253,28 @@ def test_pipeline_ranks_with_a_near_point_ranker(params):  # noqa: F811
         ])  # fmt: skip
         np.testing.assert_allclose(np.asarray(out_n.scores[name]), want, rtol=1e-5, atol=1e-5)
         assert not np.allclose(np.asarray(out_n.scores[name]), np.asarray(out_p.scores[name]))
+
+
+def test_choose_sets_picks_the_set_best_on_the_selection_table(tmp_path):
+    """``train_ranker sets``: every set of scored rankers, ranked by the rule's success on the
+    selection table; a ranker that always prefers the hanging candidate wins alone."""
+    n = 6
+    table = {"poses": np.zeros((n, 2, 7), np.float32), "stable": np.tile([False, True], (n, 1)),
+             "v": np.zeros((n, 2), np.float32), "counts": np.zeros((n, 2), np.int16),
+             "files": np.array([f"{i:05d}_mug_0000__rack_0000.npz" for i in range(n)]),
+             "category": np.array(["mug"] * n), "pair_index": np.arange(n), "k": np.asarray(1)}  # fmt: skip
+    for name in ("val.npz", "held.npz", "x.npz"):
+        np.savez(tmp_path / name, **table)
+    good, bad = np.tile([-2.0, -0.1], (n, 1)), np.tile([-0.1, -5.0], (n, 1))
+    np.savez(tmp_path / "s.npz", **{f"good|{r}": good for r in ("val.npz", "held.npz")},
+             **{f"bad|{r}": bad for r in ("val.npz", "held.npz")})  # fmt: skip
+    res = train_ranker.choose_sets(
+        [tmp_path / "s.npz"], tmp_path / "val.npz", [tmp_path / "held.npz"]
+    )
+    assert res["chosen"]["set"] == ["good"] and res["chosen"]["select_on"] == 100.0
+    assert res["chosen"]["runs"] == [100.0]
+    # {bad} and {bad, good} both pick the falling candidate: a tie, the smaller set first
+    assert [r["set"] for r in res["sets"]][1:] == [["bad"], ["bad", "good"]]
+    assert res["sets"][1]["select_on"] == res["sets"][2]["select_on"] == 0.0
+    with pytest.raises(ValueError, match="no scores"):
+        train_ranker.choose_sets([tmp_path / "s.npz"], tmp_path / "val.npz", [tmp_path / "x.npz"])
