@@ -544,7 +544,18 @@ CEM_VALUE = "weights/value_s16_hardneg"
 # validation-object pairs among 4 training variants x {alone, mean log with CEM's V}: 78.84 ->
 # 83.61 % there; held-out from the records of the three keys 76.74 -> 79.37 % (docs/stage3.md,
 # "Twentieth session").
-RANK_VALUES: tuple[str, ...] = ("weights/value_s20_ranker",)
+# Twenty-second session: three rankers, the mean log V of the twentieth session's ranker, the
+# twenty-first session's big1 (the same recipe on twice the pairs, lists a-d) and its near-point
+# ranker (ValueConfig.support_near = object_near = 256: half of each cloud's state points are
+# those nearest the other cloud at the candidate pose). Chosen on the 345 validation-object
+# pairs among every set of the scored rankers (results/ranker_s21/sets.json): 83.61 -> 84.42 %;
+# held-out from the three keys' records 79.37 -> 81.07 % (docs/stage3.md, "Twenty-first
+# session"; end to end: "Twenty-second session").
+RANK_VALUES: tuple[str, ...] = (
+    "weights/value_s20_ranker",
+    "weights/value_s21_big1",
+    "weights/value_s21_near",
+)
 # Whether the CEM's V ranks beside RANK_VALUES (PipelineConfig.rank_with_value of
 # ANSWER_PIPELINE; eval_stage3 --rank-with-value).
 RANK_WITH_CEM_VALUE = False
@@ -661,11 +672,24 @@ def make_ensemble_score(rank_configs, with_first: bool = True) -> Callable:
         )
         if len(configs) != len(extra_params):
             raise ValueError(f"{len(extra_params)} ranking networks, {len(configs)} configs")
-        logs = [per_pair(c)(p, subsample_clouds(clouds, c), poses)
-                for c, p in zip(configs, extra_params, strict=True)]  # fmt: skip
+        # networks of one config run as one network over stacked parameters (jax.vmap over
+        # the network axis): one pass a config, not one a network (fewer kernels at batch 1)
+        groups: dict = {}
+        for c, p in zip(configs, extra_params, strict=True):
+            groups.setdefault(c, []).append(p)
+        logs, count = [], 0
+        for c, ps in groups.items():
+            sub, score = subsample_clouds(clouds, c), per_pair(c)
+            if len(ps) == 1:
+                logs.append(score(ps[0], sub, poses))
+            else:
+                stacked = jax.tree.map(lambda *x: jnp.stack(x), *ps)
+                each = jax.vmap(score, in_axes=(0, None, None))(stacked, sub, poses)
+                logs.append(jnp.sum(each, axis=0))
+            count += len(ps)
         if with_first or not logs:
-            logs = [scores] + logs
-        return sum(logs) / len(logs)
+            logs, count = [scores] + logs, count + 1
+        return sum(logs) / count
 
     return ensemble
 
@@ -700,20 +724,28 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
         refined, scores, initial, best, keys_of = {}, {}, {}, {}, {}
         for i, name in enumerate(config.starts):
             res = refine(params["value"], jax.random.fold_in(k3, i), small, starts[name])
-            final = res.scores
-            if config.rank_values:  # static: the ensemble's mean log V ranks the candidates
-                extra = params["rank_values"]
-                if len(extra) != config.rank_values:
-                    raise ValueError(f"params['rank_values'] holds {len(extra)} value "
-                                     f"networks, PipelineConfig.rank_values {config.rank_values}")  # fmt: skip
-                final = rank(res.scores, extra, clouds, res.poses)
-            refined[name], scores[name] = res.poses, final
-            initial[name], best[name] = res.initial_scores, jnp.argmax(final, axis=1)
+            refined[name], scores[name], initial[name] = res.poses, res.scores, res.initial_scores
+        if config.rank_values:  # static: the ensemble's mean log V ranks the candidates
+            extra = params["rank_values"]
+            if len(extra) != config.rank_values:
+                raise ValueError(f"params['rank_values'] holds {len(extra)} value "
+                                 f"networks, PipelineConfig.rank_values {config.rank_values}")  # fmt: skip
+            # every start's candidates in one pass of each network ([B, S*K])
+            width = [refined[n].shape[1] for n in config.starts]
+            ranked = rank(
+                jnp.concatenate([scores[n] for n in config.starts], axis=1), extra, clouds,
+                jnp.concatenate([refined[n] for n in config.starts], axis=1),
+            )  # fmt: skip
+            parts = jnp.split(ranked, list(np.cumsum(width)[:-1]), axis=1)
+            scores = dict(zip(config.starts, parts, strict=True))
+        for name in config.starts:
+            final = scores[name]
+            best[name] = jnp.argmax(final, axis=1)
             keys_of[name] = final
             if rule.rule != "value":  # static: the paper's rule traces today's function
                 counts = jax.vmap(selection.inside_counts, in_axes=(0, 0, 0, 0, None, None))(
                     clouds.object_points, clouds.support_points, clouds.support_normals,
-                    res.poses, rule.depth, rule.radius,
+                    refined[name], rule.depth, rule.radius,
                 )  # fmt: skip
                 keys_of[name] = selection.select_key(final, counts, rule)
                 best[name] = jnp.argmax(keys_of[name], axis=1)

@@ -202,6 +202,15 @@ fi
 if [ "$CALL" = bench ]; then
     # issue 12's latency: the answer pipeline and the paper's, side by side (bench_stage3)
     # BENCH_ARGS: more bench_stage3 flags, e.g. "--batches 1,256 --answers chosen,single"
+    # BENCH_BASE=DIR: first the same bench (BENCH_BASE_ARGS) with an earlier commit's package,
+    # side by side on this machine, e.g. before the call:
+    #   mkdir -p _bench_base && git archive HEAD omnihang_jax experiments | tar -x -C _bench_base
+    if [ -n "${BENCH_BASE:-}" ]; then
+        for d in weights sim datasets results; do ln -sfn "$PWD/$d" "$BENCH_BASE/$d"; done
+        (cd "$BENCH_BASE" && PYTHONPATH=/tmp/site:$PWD timeout $(($(left) - 5)) $PY -m experiments.bench_stage3 \
+            --out "$OUT/bench_stage3_base.json" ${BENCH_BASE_ARGS:-${BENCH_ARGS:-}} 2>&1 | tail -8 |
+            sed 's/^/[base] /' | tee -a "$OUT/$LOG")
+    fi
     timeout $(($(left) - 5)) $PY -m experiments.bench_stage3 --batches 1,16,256 \
         --out "$OUT/bench_stage3.json" ${BENCH_ARGS:-} 2>&1 | tail -8 | tee -a "$OUT/$LOG"
     log "done"

@@ -5,7 +5,7 @@
 #   VAL_PAIRS=results/ranker_pairs_a.jsonl VAL_NAME=rank_a END_S=585 bash scripts/device_full.sh val
 #   VAL_PAIRS=results/ranker_pairs_b.jsonl VAL_NAME=rank_b END_S=585 bash scripts/device_full.sh val
 #   # locally: python -m experiments.train_ranker slim REC.pairs.jsonl.gz out/ranker_s20/in/NAME.npz
-#   bash scripts/device_slim.sh out
+#   MORE=1 RANKER=1 bash scripts/device_slim.sh out
 #   run(carry=[".whl_min", ".whl_train", "out/ranker_s20/in"], command="bash scripts/device_ranker.sh train")
 #   run(carry=[..., "out/ranker_s20/held"], command="bash scripts/device_ranker.sh score")  # same warm machine
 #   bash scripts/device_slim.sh in
@@ -16,7 +16,8 @@
 #          val_*.npz validation objects, held_*.npz held-out runs); derives the training and
 #          validation pairs (full recipe), then the held-out pairs in the background; trains
 #          each of RANK_VARIANTS ("NAME=flags ...") side by side on the GPU for at most
-#          END_S; back in $OUT: ranker_NAME.tgz (value/, metrics, curves, summary).
+#          END_S; back in $OUT: ranker_NAME.tgz (value/, metrics, curves, summary, log; one
+#          file a variant, as the device returns at most 8 files a call).
 #   score  every variant's ranker on the validation and held-out tables: the answer rule's
 #          success with the run's V, the ranker alone and their mean log P(hang) ->
 #          $OUT/score_{train,test}.json (+ .npz of the scores; train = the validation objects).
@@ -77,8 +78,8 @@ if [ "$CALL" = train ] || [ "$CALL" = all ]; then
     for name in "${!VARIANTS[@]}"; do
         log "$name: $(grep '^\[val\]' "$C/logs/ranker_$name.log" | tail -3 | tr '\n' ' ' | cut -c1-600)"
         (cd "$R" && tar -czf "$OUT/ranker_$name.tgz" "$name/value" "$name/metrics.jsonl" \
-            "$name/val_metrics.jsonl" "$name/curves.png" "$name/summary.json" 2>/dev/null)
-        cp "$C/logs/ranker_$name.log" "$OUT/" 2>/dev/null
+            "$name/val_metrics.jsonl" "$name/curves.png" "$name/summary.json" \
+            -C "$C/logs" "ranker_$name.log" 2>/dev/null)
     done
     wait "$DPID"
     [ "$CALL" = all ] || { log "done"; exit 0; }

@@ -74,7 +74,26 @@ LIST=(
     # read by no device call; their slim tables travel in out/ranker_s20/held)
     results/hanging_success_stage3_s20_ranker.pairs.jsonl.gz
     results/hanging_success_stage3_s20_ranker_seed1.pairs.jsonl.gz
+    # (twenty-second session: the three rankers' held-out records, 13 MB, read by no device call)
+    results/hanging_success_stage3_s22_rankset.pairs.jsonl.gz
 )
+# MORE=1 (twenty-second session): with three rankers (13.5 MB) the eval call's tree is ~59 MiB;
+# these are read by no device_full.sh eval / bench call either (the ranker's scores and pair
+# lists, the planner's records, tests and docs)
+if [ -n "${MORE:-}" ]; then
+    # (tests/ and docs/ go whole: drop the entries inside them, or `mv tests` would nest)
+    KEEP=()
+    for p in "${LIST[@]}"; do case $p in tests/* | docs/*) ;; *) KEEP+=("$p") ;; esac; done
+    LIST=("${KEEP[@]}")
+    LIST+=(results/ranker_s21 results/ranker_s20 results/ranker_pairs_a.jsonl results/ranker_pairs_b.jsonl
+        results/ranker_pairs_c.jsonl results/ranker_pairs_d.jsonl results/stage3_train
+        results/train_where_session7 results/cross_engine_ablation.json tests docs)
+    for f in results/paths*.json results/paths*.jsonl results/*_selection.json results/rerank_stage3_*.json \
+        results/cross_engine*.json results/*judges* results/validation_pairs_all.jsonl \
+        results/dataset_card.json results/stage3_train_chain; do LIST+=("$f"); done
+fi
+# RANKER=1 (device_ranker.sh calls): the pipeline's weights but CEM's V (the ranker's init)
+[ -n "${RANKER:-}" ] && LIST+=(weights/where_small_paper weights/value_s20_ranker weights/value_s21_big1 weights/value_s21_near)
 case ${1:-} in
 out)
     mkdir -p "$ASIDE"

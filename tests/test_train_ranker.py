@@ -278,3 +278,41 @@ def test_choose_sets_picks_the_set_best_on_the_selection_table(tmp_path):
     assert res["sets"][1]["select_on"] == res["sets"][2]["select_on"] == 0.0
     with pytest.raises(ValueError, match="no scores"):
         train_ranker.choose_sets([tmp_path / "s.npz"], tmp_path / "val.npz", [tmp_path / "x.npz"])
+
+
+def test_ensemble_stacks_networks_of_one_config():
+    """Three ranking networks, two of one config (run as one network over stacked parameters)
+    and one with near points: the ensemble is the plain mean of each network's log V, scored
+    one by one on its own subsample; with_first adds the first V's scores to the mean."""
+    clouds = _plane_pairs()
+    near = dataclasses.replace(stage3.VALUE_TINY, support_near=16, object_near=8, near_pool=128)
+    nets = [stage3.make_value(c).init(jax.random.key(k))
+            for c, k in ((stage3.VALUE_TINY, 7), (near, 9), (stage3.VALUE_TINY, 8))]  # fmt: skip
+    configs = (stage3.VALUE_TINY, near, stage3.VALUE_TINY)
+    full = jax.tree.map(np.asarray, clouds)
+    poses = np.asarray(_plane_pairs_poses(full))
+    first = np.random.default_rng(0).normal(size=poses.shape[:2]).astype(np.float32)
+    alone = jax.jit(stage3.make_ensemble_score(configs, with_first=False))
+    got = np.asarray(alone(first, nets, clouds, poses))
+    each = []
+    for c, p in zip(configs, nets, strict=True):
+        small, value = stage3.subsample_clouds(full, c), stage3.make_value(c)
+        each.append(np.stack([
+            np.asarray(value.score(p, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
+            for i in range(len(poses))
+        ]))  # fmt: skip
+    np.testing.assert_allclose(got, np.mean(each, axis=0), rtol=1e-5, atol=1e-5)
+    assert not np.allclose(each[0], each[2])  # the two stacked networks differ
+    with_v = jax.jit(stage3.make_ensemble_score(configs, with_first=True))
+    np.testing.assert_allclose(np.asarray(with_v(first, nets, clouds, poses)),
+                               (first + np.sum(each, axis=0)) / 4, rtol=1e-5, atol=1e-5)  # fmt: skip
+
+
+def _plane_pairs_poses(full):
+    """Six poses a pair, near the support (object above the support's points)."""
+    b = full.object_points.shape[0]
+    rng = np.random.default_rng(1)
+    xyz = rng.normal(scale=0.02, size=(b, 6, 3))
+    quat = rng.normal(size=(b, 6, 4))
+    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
+    return np.concatenate([xyz, quat], axis=-1).astype(np.float32)
