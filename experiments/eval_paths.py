@@ -206,6 +206,10 @@ class Estimators(NamedTuple):
     nce_geometric: object = None  # jitted collision.nce_geometric_collides
     geometric_alone: object = None  # jitted collision.geometric_collides (ablation)
     test_goal_ball: float = 0.0  # m: the hybrid's test is off this near the goal (ablation)
+    # m: with far_ball > 0, the hybrid (and the NCE) first require this clearance between the
+    # observed clouds beyond far_ball of the goal (planner.ClearanceFarFromGoal)
+    far_clearance: float = 0.0
+    far_ball: float = 0.0
 
 
 def goal_ball_collides(config: collision.NCEConfig, far_threshold: float, ball: float):
@@ -444,6 +448,9 @@ def select_geometric(
     return out
 
 
+FAR_CLEARANCE_POINTS = 512  # object points of planner.ClearanceFarFromGoal (--far-clearance)
+
+
 def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METHODS) -> dict:
     """The checkers of one pair. The HCEs' support normals do not depend on the pose:
     predicted once per pair (``collision.hce_collides`` computes the same per call); nor does
@@ -502,6 +509,15 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
             weight = planner.object_radius(case.scene)
             test = planner.ExemptNearGoal(test, case.goal, est.test_goal_ball, weight)
         checkers["nce_geometric"] = planner.CascadeChecker(test, nce)
+    if est.far_ball > 0 and est.far_clearance > 0:  # the clearance first, far from the goal
+        clear = planner.ClearanceFarFromGoal(
+            sub(case.object_points, FAR_CLEARANCE_POINTS, SUBSET_SEED_OBJECT),
+            case.support_points, case.goal, est.far_ball, est.far_clearance,
+            planner.object_radius(case.scene),
+        )  # fmt: skip
+        for name in ("nce", "nce_geometric"):
+            if name in checkers:
+                checkers[name] = planner.CascadeChecker(clear, checkers[name])
     for name in set(methods) - {"mesh"}:  # compiled outside the planning clock
         checkers[name].warm_up()
     return checkers
@@ -744,6 +760,18 @@ def main(argv=None) -> dict:
         "millimetres of the approach)",
     )  # fmt: skip
     parser.add_argument(
+        "--far-clearance", type=float, default=0.0, metavar="M",
+        help="nce and nce_geometric: farther than --far-ball from the goal, a state is "
+        "colliding when the observed object cloud comes within M of the observed support "
+        "cloud (planner.ClearanceFarFromGoal; the unobserved side of a support lies behind "
+        "what is seen); 0: off",
+    )  # fmt: skip
+    parser.add_argument(
+        "--far-ball", type=float, default=0.10, metavar="R",
+        help="m (planner metric): with --far-clearance, the clearance is required only "
+        "farther than R from the goal",
+    )  # fmt: skip
+    parser.add_argument(
         "--retreat", default="", metavar="M,M,...",
         help="lengths (m) of a straight retreat from the goal tried first (planner."
         "plan_with_retreat: the first retreat the method's checker calls free, upward "
@@ -852,7 +880,11 @@ def main(argv=None) -> dict:
         geo = dataclasses.replace(geo, symmetric=True)
     est = load_estimators(
         args.weights, args.nce_threshold, args.nce_far_threshold, args.nce_goal_ball, geo
-    )._replace(test_goal_ball=args.test_goal_ball)
+    )._replace(
+        test_goal_ball=args.test_goal_ball,
+        far_clearance=args.far_clearance,
+        far_ball=args.far_ball if args.far_clearance > 0 else 0.0,
+    )
     records = read_answers(args.pairs_from) if args.pairs_from else None
     cases = load_pairs(
         args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer"
@@ -899,6 +931,8 @@ def main(argv=None) -> dict:
         nce_far_threshold=est.nce_far_threshold,
         nce_goal_ball_m=est.nce_goal_ball,
         test_goal_ball_m=est.test_goal_ball,
+        far_clearance_m=est.far_clearance,
+        far_ball_m=est.far_ball,
         retreat_lengths_m=list(config.retreat_lengths),
         goal="first stable pose of each held-out pair"
         if args.goal == "stable"

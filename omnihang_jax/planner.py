@@ -65,6 +65,7 @@ __all__ = [
     "EstimatorChecker",
     "CascadeChecker",
     "ExemptNearGoal",
+    "ClearanceFarFromGoal",
     "AnalyticChecker",
     "BatchedMotionValidator",
     "default_bounds",
@@ -257,6 +258,49 @@ class ExemptNearGoal:
         poses = np.asarray(poses).reshape(-1, 7)
         far = poses[goal_distances(poses, self.goal, self.weight) > self.radius]
         return bool(len(far)) and any_colliding(self.checker, far)
+
+
+def _rotation_matrices(quaternions: np.ndarray) -> np.ndarray:
+    """Unit quaternions [B, 4] (wxyz) -> rotation matrices [B, 3, 3]."""
+    q = np.asarray(quaternions, float)
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=1)  # fmt: skip
+
+
+class ClearanceFarFromGoal:
+    """Colliding where a state farther than ``radius`` from ``goal`` (the planner's metric)
+    brings the observed object cloud within ``margin`` of the observed support cloud.
+
+    Why (twenty-second session, ``scripts/probe_path_collisions.py``): the hybrid's colliding
+    paths penetrate the meshes where the observed clouds are still 1-25 mm apart (the object
+    meets the support's unobserved side), and 10 of 15 do so more than 4.5 cm from the goal,
+    where a hang needs no contact at all. Near the goal (within ``radius``) it says free, and
+    the checkers after it in a :class:`CascadeChecker` decide alone. A k-d tree of the support
+    cloud on the host (scipy), queried with ``margin`` as the upper bound."""
+
+    def __init__(self, object_points, support_points, goal, radius: float, margin: float,
+                 weight: float):  # fmt: skip
+        from scipy.spatial import cKDTree
+
+        self.object_points = np.asarray(object_points, float)
+        self.tree = cKDTree(np.asarray(support_points, float))
+        self.goal, self.radius = np.asarray(goal, float), radius
+        self.margin, self.weight = margin, weight
+
+    def __call__(self, poses: np.ndarray) -> np.ndarray:
+        poses = np.asarray(poses, float).reshape(-1, 7)
+        hit = np.zeros(len(poses), bool)
+        far = np.flatnonzero(goal_distances(poses, self.goal, self.weight) > self.radius)
+        if len(far):
+            rot = _rotation_matrices(poses[far, 3:])
+            world = np.einsum("bij,nj->bni", rot, self.object_points) + poses[far, None, :3]
+            dist, _ = self.tree.query(world.reshape(-1, 3), k=1, distance_upper_bound=self.margin)
+            hit[far] = np.isfinite(dist.reshape(len(far), -1)).any(axis=1)
+        return hit
 
 
 def any_colliding(checker: Callable, poses: np.ndarray) -> bool:

@@ -396,3 +396,29 @@ def test_retreat_as_a_fallback_only_after_the_plain_plan_fails():
     easy = planner.PlannerConfig(time_limit=10.0, retreat_lengths=(0.1,), retreat_after=5.0)
     res, none = planner.plan_with_retreat(free, start, goal, bounds, 0.05, easy)
     assert none is None and res.path is not None
+
+
+def test_clearance_far_from_goal_blocks_close_states_only_away_from_the_goal():
+    """A 3-point object above a floor of support points (z = 0): a state farther than the
+    ball from the goal collides when a point comes within the margin of the floor, and only
+    then; within the ball every state is free (the checkers after it decide); the rotation is
+    applied (a tilted object reaches down); in a cascade it blocks what it flags."""
+    xs = np.linspace(-0.2, 0.2, 41)
+    floor = np.stack(np.meshgrid(xs, xs, [0.0]), -1).reshape(-1, 3)
+    obj = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [-0.05, 0.0, 0.0]])
+    goal = np.array([0.0, 0.0, 0.001, 1.0, 0.0, 0.0, 0.0])
+    check = planner.ClearanceFarFromGoal(obj, floor, goal, radius=0.05, margin=0.005, weight=0.1)
+    ident = [1.0, 0.0, 0.0, 0.0]
+    poses = np.array([
+        [0.0, 0.0, 0.001] + ident,  # the goal: free (inside the ball)
+        [0.03, 0.0, 0.002] + ident,  # 3 cm away, touching: inside the ball -> free
+        [0.10, 0.0, 0.003] + ident,  # 10 cm away, 3 mm above the floor -> colliding
+        [0.10, 0.0, 0.008] + ident,  # 10 cm away, 8 mm above -> free
+        # 10 cm away, 8 mm up, tilted 6.9 degrees about y: an end point dips to ~2 mm
+        [0.10, 0.0, 0.008, np.cos(0.06), 0.0, np.sin(0.06), 0.0],
+    ])  # fmt: skip
+    np.testing.assert_array_equal(check(poses), [False, False, True, False, True])
+    nothing = planner.AnalyticChecker([])
+    cascade = planner.CascadeChecker(check, nothing)
+    np.testing.assert_array_equal(cascade(poses), check(poses))
+    assert cascade.any_colliding(poses[2:3]) and not cascade.any_colliding(poses[:2])
