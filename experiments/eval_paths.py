@@ -868,6 +868,8 @@ def main(argv=None) -> dict:
         parser.error(f"--retreat {args.retreat!r}: comma-separated lengths in metres")
     if any(not x > 0 for x in retreat):
         parser.error("--retreat lengths must be > 0")
+    if args.far_clearance < 0 or (args.far_clearance > 0 and not args.far_ball > 0):
+        parser.error("--far-clearance must be >= 0, and with it --far-ball > 0")
     if not 0 <= args.retreat_after < args.time_limit:
         parser.error("--retreat-after must be in [0, --time-limit)")
     config = planner.PlannerConfig(

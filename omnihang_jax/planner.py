@@ -66,6 +66,7 @@ __all__ = [
     "CascadeChecker",
     "ExemptNearGoal",
     "ClearanceFarFromGoal",
+    "posed_points",
     "AnalyticChecker",
     "BatchedMotionValidator",
     "default_bounds",
@@ -260,15 +261,20 @@ class ExemptNearGoal:
         return bool(len(far)) and any_colliding(self.checker, far)
 
 
-def _rotation_matrices(quaternions: np.ndarray) -> np.ndarray:
-    """Unit quaternions [B, 4] (wxyz) -> rotation matrices [B, 3, 3]."""
-    q = np.asarray(quaternions, float)
-    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
-    return np.stack([
+def posed_points(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """NumPy twin of ``collision.transform_points`` for host-side checkers: poses [B, 7]
+    (xyz + wxyz), points [N, 3] (object frame) -> [B, N, 3] (support frame). The planner calls
+    its checkers ~1,000 times a plan with varying batch sizes: eager JAX ops or a jit per size
+    would cost more than the arithmetic."""
+    poses = np.asarray(poses, float).reshape(-1, 7)
+    q = poses[:, 3:] / np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+    w, x, y, z = q.T
+    rot = np.stack([
         np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
         np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
         np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
     ], axis=1)  # fmt: skip
+    return np.einsum("bij,nj->bni", rot, np.asarray(points, float)) + poses[:, None, :3]
 
 
 class ClearanceFarFromGoal:
@@ -296,8 +302,7 @@ class ClearanceFarFromGoal:
         hit = np.zeros(len(poses), bool)
         far = np.flatnonzero(goal_distances(poses, self.goal, self.weight) > self.radius)
         if len(far):
-            rot = _rotation_matrices(poses[far, 3:])
-            world = np.einsum("bij,nj->bni", rot, self.object_points) + poses[far, None, :3]
+            world = posed_points(poses[far], self.object_points)
             dist, _ = self.tree.query(world.reshape(-1, 3), k=1, distance_upper_bound=self.margin)
             hit[far] = np.isfinite(dist.reshape(len(far), -1)).any(axis=1)
         return hit

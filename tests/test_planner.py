@@ -422,3 +422,16 @@ def test_clearance_far_from_goal_blocks_close_states_only_away_from_the_goal():
     cascade = planner.CascadeChecker(check, nothing)
     np.testing.assert_array_equal(cascade(poses), check(poses))
     assert cascade.any_colliding(poses[2:3]) and not cascade.any_colliding(poses[:2])
+
+
+def test_posed_points_matches_the_jax_transform():
+    """planner.posed_points (NumPy, host checkers) = collision.transform_points (JAX)."""
+    from omnihang_jax import collision
+
+    rng = np.random.default_rng(0)
+    poses = np.concatenate([rng.normal(size=(5, 3)), rng.normal(size=(5, 4))], axis=1)
+    points = rng.normal(size=(7, 3))
+    want = np.asarray(
+        collision.transform_points(poses.astype(np.float32), points.astype(np.float32))
+    )
+    np.testing.assert_allclose(planner.posed_points(poses, points), want, rtol=1e-4, atol=1e-5)
