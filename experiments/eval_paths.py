@@ -360,6 +360,7 @@ def select_geometric(
         NEAR_JITTER,
         NEAR_LIFT,
         NEAR_STABLE,
+        NEAR_TRANSIT,
         load_collision_data,
         nce_score_fn,
         score_poses,
@@ -386,7 +387,8 @@ def select_geometric(
     nce_calls = {t: (prob > t) | fixed for t in thresholds}
     counts = _geometric_grid(val, val.near_pair, val.near_poses, geo, depths, radii, symmetric)
     stable = val.near_kind == NEAR_STABLE
-    moved = ~stable
+    transit = val.near_kind == NEAR_TRANSIT  # reported, not in the rule (near version 2)
+    moved = ~stable & ~transit
     label = val.near_labels
 
     def metrics(called):
@@ -401,6 +403,12 @@ def select_geometric(
                     "recall" if k == "jitter" else "specificity"
                 ]
             ) for k, v in kinds.items()},
+            **({} if not transit.any() else {
+                "transit_recall": collision.binary_metrics(called[transit], label[transit])[
+                    "recall"],
+                "transit_free_precision": collision.binary_metrics(
+                    called[transit], label[transit])["free_precision"],
+            }),
         )  # fmt: skip
 
     table, best = [], None

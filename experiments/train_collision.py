@@ -81,8 +81,9 @@ def _derive_one(job: tuple[dict, str]) -> str:
         with np.load(path) as f:
             fields = {k: f[k] for k in f.files}
         fields |= near_contact_labels(
-            build_scene(obj, sup), fields["stable_poses"], fields["collision_poses"], seed
-        )
+            build_scene(obj, sup), fields["stable_poses"], fields["collision_poses"], seed,
+            clouds=fields,
+        )  # fmt: skip
         atomic.savez(path, **fields)
         return path
     full = Path(w["data_dir"], dataset_bridge.DERIVED_DIRNAME, split)
@@ -117,7 +118,7 @@ def _derive_one(job: tuple[dict, str]) -> str:
         collision_labels=np.asarray(record["collision_label"], bool)[kept],
         stable_poses=stable,
         **pair_geometry(obj, sup),
-        **near_contact_labels(scene, stable, poses, seed),
+        **near_contact_labels(scene, stable, poses, seed, clouds=clouds),
         pair_index=np.int64(index),
         object_name=np.str_(obj_name),
         support_name=np.str_(sup_name),
@@ -129,12 +130,94 @@ def _derive_one(job: tuple[dict, str]) -> str:
 
 
 # Near-contact poses (see near_contact_poses), labelled by the planner's own ground truth.
-NEAR_VERSION = 1
-NEAR_STABLE, NEAR_JITTER, NEAR_APPROACH, NEAR_LIFT = 0, 1, 2, 3
+# Version 2 (twenty-third session) adds the transit poses; versions 1 and 2 draw the same
+# stable / jitter / approach / lift poses (the transit ones come last from the same stream).
+NEAR_VERSION = 2
+NEAR_STABLE, NEAR_JITTER, NEAR_APPROACH, NEAR_LIFT, NEAR_TRANSIT = 0, 1, 2, 3, 4
 NEAR_COUNTS = {NEAR_JITTER: 160, NEAR_APPROACH: 60, NEAR_LIFT: 40}  # per pair (+ stable poses)
+TRANSIT_COUNT = 96  # per pair, when the observed clouds are given (near_contact_poses)
+TRANSIT_GAP = 0.03  # m: a transit pose's observed clouds come at least this close
+TRANSIT_DEEP = 0.01  # m: colliding transit poses deeper than this are not kept
+TRANSIT_POINTS = 256  # object points of the gap test (evenly strided)
+NEAR_KINDS = {"jitter": NEAR_JITTER, "approach": NEAR_APPROACH, "lift": NEAR_LIFT,
+              "transit": NEAR_TRANSIT}  # fmt: skip
 
 
-def near_contact_poses(scene, stable: np.ndarray, rng: np.random.Generator):
+def cloud_gap(object_points, support_points, poses: np.ndarray, upper: float = np.inf):
+    """[K] the smallest distance (m) between the object's observed cloud moved by each pose
+    ([K, 7]) and the support's observed cloud: what the planner's clouds see of a pose.
+    Distances beyond ``upper`` come back as inf (a much faster search)."""
+    from scipy.spatial import cKDTree
+
+    from omnihang_jax.planner import posed_points
+
+    obj = np.asarray(object_points, float)
+    obj = obj[np.linspace(0, len(obj) - 1, min(TRANSIT_POINTS, len(obj))).astype(int)]
+    poses = np.asarray(poses, float).reshape(-1, 7)
+    if len(poses) == 0:
+        return np.zeros(0, np.float32)
+    moved = posed_points(poses, obj)  # [K, n, 3]
+    tree = cKDTree(np.asarray(support_points, float))
+    d, _ = tree.query(moved.reshape(-1, 3), distance_upper_bound=upper)
+    return d.reshape(len(poses), -1).min(axis=1).astype(np.float32)
+
+
+def transit_poses(scene, stable: np.ndarray, clouds, rng: np.random.Generator, n: int, mesh=None):
+    """``n`` poses [n, 7] of the kind RRT-Connect's edges pass by the support on the way in,
+    at the boundary between free and colliding:
+
+    - positions uniform in the planner's bounds (``collision.default_bounds``), orientations
+      half uniform and half a stable pose's turned by up to pi about a random axis (the trees
+      grow from the start, in the goal's orientation, through uniformly sampled rotations);
+    - kept only where the observed clouds come within ``TRANSIT_GAP`` (:func:`cloud_gap`):
+      the open space is free by geometry and covered by the far poses;
+    - labelled on the full meshes (``mesh``, a ``collision.MeshChecker``), and the colliding
+      ones deeper than ``TRANSIT_DEEP`` dropped: half of the ``n`` are free, half collide by
+      at most 1 cm (the other side fills a short one).
+
+    Measured (docs/paths.md): 10 of the hybrid's 15 colliding paths collide more than 4.5 cm
+    from the goal, 1.5-7 mm deep, where the observed clouds are still 1-25 mm apart; among
+    uniform transit poses 60-90 % collide, most of them centimetres deep, which the contact
+    NCE already calls colliding (recall 0.97): the shallow ones are where it errs (0.86).
+    Fewer than ``n`` when the rejection runs out of rounds."""
+    from scipy.spatial.transform import Rotation
+
+    from omnihang_jax.collision import default_bounds
+
+    mesh = collision.MeshChecker(scene) if mesh is None else mesh
+    lo, hi = default_bounds(scene)
+    # a cheap first cut: the object cloud's bounding sphere (about its origin) must come
+    # within TRANSIT_GAP of the support cloud's box
+    reach = float(np.linalg.norm(clouds["object_points"], axis=1).max()) + TRANSIT_GAP
+    box_lo, box_hi = clouds["support_points"].min(0), clouds["support_points"].max(0)
+    free, shallow = [], []
+    for _ in range(12):
+        m = 16 * n
+        goal = stable[rng.integers(len(stable), size=m)]
+        pos = rng.uniform(lo, hi, (m, 3))
+        axis = rng.normal(size=(m, 3))
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        turn = Rotation.from_rotvec(axis * rng.uniform(0.0, np.pi, m)[:, None])
+        quat = (turn * Rotation.from_quat(goal[:, [4, 5, 6, 3]])).as_quat()[:, [3, 0, 1, 2]]
+        uniform = rng.normal(size=(m, 4))
+        uniform /= np.linalg.norm(uniform, axis=1, keepdims=True)
+        quat = np.where((rng.random(m) < 0.5)[:, None], uniform, quat)
+        quat *= np.where(quat[:, :1] < 0, -1.0, 1.0)  # w >= 0, as the other kinds
+        poses = np.concatenate([pos, quat], axis=1)
+        poses = poses[np.linalg.norm(pos - np.clip(pos, box_lo, box_hi), axis=1) < reach]
+        gap = cloud_gap(clouds["object_points"], clouds["support_points"], poses, TRANSIT_GAP)
+        poses = poses[gap < TRANSIT_GAP]
+        pen = mesh.penetration(poses)
+        free.append(poses[pen <= mesh.tolerance])
+        shallow.append(poses[(pen > mesh.tolerance) & (pen <= TRANSIT_DEEP)])
+        if min(sum(map(len, free)), sum(map(len, shallow))) >= n // 2:
+            break
+    free, shallow = np.concatenate(free), np.concatenate(shallow)
+    n_shallow = min(len(shallow), max(n // 2, n - len(free)))
+    return np.concatenate([free[: n - n_shallow], shallow[:n_shallow]])
+
+
+def near_contact_poses(scene, stable: np.ndarray, rng: np.random.Generator, clouds=None, mesh=None):
     """Poses around the pair's hanging poses, where the planner's last edges run: (poses
     [K, 7], kind [K] int8).
 
@@ -147,7 +230,9 @@ def near_contact_poses(scene, stable: np.ndarray, rng: np.random.Generator):
       (``collision.start_pose``, in front of the support) to a stable pose, t^2-distributed
       towards the goal: far free poses along the approach, and where the straight approach
       runs into the support;
-    - ``NEAR_LIFT``: a stable pose raised 0.5-20 mm (log-uniform): the clearance above it.
+    - ``NEAR_LIFT``: a stable pose raised 0.5-20 mm (log-uniform): the clearance above it;
+    - ``NEAR_TRANSIT`` (only with ``clouds``, the pair's observed ``object_points`` /
+      ``support_points``): :func:`transit_poses`, where the planner's paths pass the support.
     """
     from scipy.spatial.transform import Rotation
 
@@ -184,24 +269,35 @@ def near_contact_poses(scene, stable: np.ndarray, rng: np.random.Generator):
     lift = base(n)
     lift[:, 2] += log_uniform(5e-4, 0.02, n)
 
-    poses = np.concatenate([stable, jitter, approach, lift])
+    parts = [stable, jitter, approach, lift]
     kinds = [NEAR_STABLE, NEAR_JITTER, NEAR_APPROACH, NEAR_LIFT]
-    counts = [len(stable), len(jitter), len(approach), len(lift)]
+    if clouds is not None and TRANSIT_COUNT:
+        parts.append(transit_poses(scene, stable, clouds, rng, TRANSIT_COUNT, mesh))
+        kinds.append(NEAR_TRANSIT)
+    poses = np.concatenate(parts)
+    counts = [len(p) for p in parts]
     return poses.astype(np.float32), np.repeat(np.array(kinds, np.int8), counts)
 
 
-def near_contact_labels(scene, stable, dataset_poses, seed: int) -> dict:
+def near_contact_labels(scene, stable, dataset_poses, seed: int, clouds=None) -> dict:
     """The fields a pair file gets for planner-facing training: ``near_poses`` /
-    ``near_kind`` (:func:`near_contact_poses`, seeded by the pair), ``near_penetration``
-    (deepest object-support penetration on the full meshes, m: the planner's ground truth,
-    ``collision.MeshChecker``; colliding above 1 mm) and ``collision_penetration`` (the same
-    for the dataset's labelled poses, whose own labels call any penetration colliding)."""
+    ``near_kind`` (:func:`near_contact_poses`, seeded by the pair; the transit poses only
+    with ``clouds``), ``near_penetration`` (deepest object-support penetration on the full
+    meshes, m: the planner's ground truth, ``collision.MeshChecker``; colliding above 1 mm),
+    ``near_gap`` (:func:`cloud_gap`, m; NaN without ``clouds``) and ``collision_penetration``
+    (the same for the dataset's labelled poses, whose own labels call any penetration
+    colliding)."""
     mesh = collision.MeshChecker(scene)
-    poses, kind = near_contact_poses(scene, stable, np.random.default_rng([seed, 13]))
+    poses, kind = near_contact_poses(scene, stable, np.random.default_rng([seed, 13]), clouds, mesh)
+    if clouds is None:
+        gap = np.full(len(poses), np.nan, np.float32)
+    else:
+        gap = cloud_gap(clouds["object_points"], clouds["support_points"], poses)
     return dict(
         near_poses=poses,
         near_kind=kind,
         near_penetration=mesh.penetration(poses).astype(np.float32),
+        near_gap=gap,
         collision_penetration=mesh.penetration(dataset_poses).astype(np.float32),
         near_version=np.int64(NEAR_VERSION),
     )
@@ -349,12 +445,14 @@ class CollisionData:
     far_poses: np.ndarray | None = None  # [F, 7] far_free_poses, stable poses, near poses
     far_labels: np.ndarray | None = None  # [F] bool (True = colliding; near poses only)
     far_near: np.ndarray | None = None  # [F] bool: the row is a near-contact pose (--near-share)
+    far_transit: np.ndarray | None = None  # [F] bool: ... and a transit pose (--transit-share)
     # near-contact poses of the pairs (near_contact_poses; files derived with them), labelled
     # by the planner's ground truth (penetration > NEAR_TOLERANCE on the full meshes)
     near_pair: np.ndarray | None = None  # [K] int32
     near_poses: np.ndarray | None = None  # [K, 7]
-    near_kind: np.ndarray | None = None  # [K] int8 (NEAR_STABLE ... NEAR_LIFT)
+    near_kind: np.ndarray | None = None  # [K] int8 (NEAR_STABLE ... NEAR_TRANSIT)
     near_labels: np.ndarray | None = None  # [K] bool
+    near_gap: np.ndarray | None = None  # [K] observed clouds' gap (m; cloud_gap), NaN: unknown
 
 
 def _geometry_of(f, meta: dict, cache: dict) -> dict:
@@ -382,12 +480,14 @@ def load_collision_data(
     stable_free: bool = False,
     near_train: bool = False,
     planner_labels: bool = False,
+    transit_train: bool = True,
 ) -> CollisionData:
     """Clouds and labels of the pair files; ``far_per_pair`` far free poses per pair
     (:func:`far_free_poses`), with ``stable_free`` the pair's stable poses as free labels and
     with ``near_train`` its near-contact poses (not the stable ones) with their mesh labels,
     for training (see ``main``'s ``--stable-free`` / ``--near``). The near-contact poses are
-    always loaded (``near_*``, for the metrics) when the files have them.
+    always loaded (``near_*``, for the metrics) when the files have them; ``transit_train``
+    False keeps the transit poses (``NEAR_TRANSIT``) out of training (a control run).
 
     ``planner_labels``: the dataset's labelled poses are labelled by the planner's ground
     truth instead (deepest mesh penetration ``collision_penetration`` > NEAR_TOLERANCE, where
@@ -398,8 +498,8 @@ def load_collision_data(
         raise ValueError("no pair files to load")
     rng = np.random.default_rng(seed)
     cache: dict = {} if recipe_library is None else {"library": recipe_library}
-    far_pair, far_poses, far_labels, far_near = [], [], [], []
-    near: dict[str, list] = {"pair": [], "poses": [], "kind": [], "labels": []}
+    far_pair, far_poses, far_labels, far_near, far_transit = [], [], [], [], []
+    near: dict[str, list] = {"pair": [], "poses": [], "kind": [], "labels": [], "gap": []}
     keys = ("object_points", "object_normals", "support_points", "support_normals")
     clouds: dict[str, list] = {k: [] for k in keys}
     pair, poses, labels, meta = [], [], [], []
@@ -434,12 +534,14 @@ def load_collision_data(
             far_pair.append(np.full(far_per_pair, i, np.int32))
             far_labels.append(np.zeros(far_per_pair, bool))
             far_near.append(np.zeros(far_per_pair, bool))
+            far_transit.append(np.zeros(far_per_pair, bool))
         if stable_free:
             stable = f["stable_poses"].astype(np.float32)
             far_poses.append(stable)
             far_pair.append(np.full(len(stable), i, np.int32))
             far_labels.append(np.zeros(len(stable), bool))
             far_near.append(np.zeros(len(stable), bool))
+            far_transit.append(np.zeros(len(stable), bool))
         if "near_poses" in f.files:
             kind = f["near_kind"]
             label = f["near_penetration"] > NEAR_TOLERANCE
@@ -447,12 +549,17 @@ def load_collision_data(
             near["poses"].append(f["near_poses"].astype(np.float32))
             near["kind"].append(kind)
             near["labels"].append(label)
+            gap = f["near_gap"] if "near_gap" in f.files else np.full(len(kind), np.nan)
+            near["gap"].append(gap.astype(np.float32))
             if near_train:
                 moved = kind != NEAR_STABLE
+                if not transit_train:
+                    moved &= kind != NEAR_TRANSIT
                 far_poses.append(f["near_poses"][moved].astype(np.float32))
                 far_pair.append(np.full(int(moved.sum()), i, np.int32))
                 far_labels.append(label[moved])
                 far_near.append(np.ones(int(moved.sum()), bool))
+                far_transit.append(kind[moved] == NEAR_TRANSIT)
     return CollisionData(
         *(np.stack(clouds[k]) for k in keys),
         pair=np.concatenate(pair),
@@ -463,6 +570,7 @@ def load_collision_data(
         far_poses=np.concatenate(far_poses) if far_poses else None,
         far_labels=np.concatenate(far_labels) if far_labels else None,
         far_near=np.concatenate(far_near) if far_near else None,
+        far_transit=np.concatenate(far_transit) if far_transit else None,
         **{f"near_{k}": np.concatenate(v) if v else None for k, v in near.items()},
     )
 
@@ -490,6 +598,7 @@ def train_nce(
     stop_at: float | None = None,
     near_share: float = 0.0,
     schedule: str = "constant",
+    transit_share: float = 0.0,
     val: CollisionData | None = None,
     val_every: int = 0,
     val_labels: int = 8192,
@@ -500,7 +609,8 @@ def train_nce(
 
     ``near_share``: this fraction of every batch is drawn from the near-contact training poses
     (``CollisionData.far_near``; the rest uniformly from all rows), so that the millimetres
-    around the goals, where the planner's last edges run, get more of the training.
+    around the goals, where the planner's last edges run, get more of the training;
+    ``transit_share``: this fraction more from the transit poses alone (``far_transit``).
     ``schedule``: "constant" (the paper's Adam at ``learning_rate``) or "cosine" (a linear
     warm-up over the first 3 % of the time budget, then cosine decay to 5 % of the rate at
     its end: the budget, not a step count, is what a device call fixes).
@@ -517,10 +627,12 @@ def train_nce(
     obj_clouds = jnp.asarray(data.object_points)
     sup_clouds = jnp.asarray(data.support_points)
     pair, poses, labels = data.pair, data.poses, data.labels
-    near_rows = np.zeros(0, np.int64)
+    near_rows = transit_rows = np.zeros(0, np.int64)
     if data.far_poses is not None:  # far / stable (free) and near-contact poses
         if data.far_near is not None:
             near_rows = len(pair) + np.flatnonzero(data.far_near)
+        if data.far_transit is not None:
+            transit_rows = len(pair) + np.flatnonzero(data.far_transit)
         pair = np.concatenate([pair, data.far_pair])
         poses = np.concatenate([poses, data.far_poses])
         labels = np.concatenate([labels, data.far_labels])
@@ -528,16 +640,26 @@ def train_nce(
     if near_share > 0 and not n_near:
         print("warning: --near-share without near-contact training poses: uniform batches")
     near_rows = jnp.asarray(near_rows if n_near else np.zeros(1, np.int64))
+    n_transit = int(round(transit_share * batch)) if len(transit_rows) else 0
+    if transit_share > 0 and not n_transit:
+        print("warning: --transit-share without transit training poses: none drawn")
+    if n_near + n_transit > batch:
+        raise ValueError(f"near share + transit share > 1 ({n_near} + {n_transit} > {batch})")
+    transit_rows = jnp.asarray(transit_rows if n_transit else np.zeros(1, np.int64))
     pair, poses = jnp.asarray(pair), jnp.asarray(poses)
     labels = jnp.asarray(labels, jnp.float32)
 
     @jax.jit
     def step(params, opt_state, key):
         k_pick, k_near, k_obj, k_sup = jax.random.split(key, 4)
-        pick = jax.random.randint(k_pick, (batch - n_near,), 0, labels.shape[0])
+        k_transit = jax.random.fold_in(k_near, 1)  # the earlier draws stay as they were
+        pick = jax.random.randint(k_pick, (batch - n_near - n_transit,), 0, labels.shape[0])
         if n_near:
             near = near_rows[jax.random.randint(k_near, (n_near,), 0, near_rows.shape[0])]
             pick = jnp.concatenate([pick, near])
+        if n_transit:
+            draw = jax.random.randint(k_transit, (n_transit,), 0, transit_rows.shape[0])
+            pick = jnp.concatenate([pick, transit_rows[draw]])
         p = pair[pick]
         obj = _sample_points(k_obj, obj_clouds[p], config.object_input)
         sup = _sample_points(k_sup, sup_clouds[p], config.support_input)
@@ -563,7 +685,12 @@ def train_nce(
         step, params, opt_state, key, steps, time_budget, batch, "nce", progress, stop_at,
         lr_at=lr_at, evaluate=evaluate, eval_every=val_every,
     )  # fmt: skip
-    log |= dict(near_share=n_near / batch, schedule=schedule, peak_lr=learning_rate)
+    log |= dict(
+        near_share=n_near / batch,
+        transit_share=n_transit / batch,
+        schedule=schedule,
+        peak_lr=learning_rate,
+    )
     return params, log
 
 
@@ -578,25 +705,37 @@ def warmup_cosine(frac: float, peak: float, warmup: float = 0.03, final: float =
 
 
 def validation_rows(val: CollisionData, max_labels: int, seed: int = 0):
-    """A fixed validation set: (pair [V], poses [V, 7], labels [V] bool, near [V] bool), at
-    most ``max_labels`` rows, half near-contact poses (planner labels) where the files have
-    them, the rest dataset poses."""
+    """A fixed validation set: (pair [V], poses [V, 7], labels [V] bool, near [V] bool,
+    transit [V] bool), at most ``max_labels`` rows, half near-contact poses (planner labels)
+    where the files have them, the rest dataset poses; files of near version 2 add up to
+    ``max_labels / 4`` transit poses (not counted in ``near``, so that the near rows are
+    drawn as before)."""
     rng = np.random.default_rng([seed, 7])
-    n_near = 0 if val.near_poses is None else min(len(val.near_poses), max_labels // 2)
-    near = np.sort(rng.choice(len(val.near_poses), n_near, False)) if n_near else []
+    kinds = np.zeros(0, np.int8) if val.near_kind is None else val.near_kind
+    pool = np.flatnonzero(kinds != NEAR_TRANSIT)
+    n_near = min(len(pool), max_labels // 2)
+    near = np.sort(pool[rng.choice(len(pool), n_near, False)]) if n_near else np.zeros(0, int)
     n_data = min(len(val.labels), max_labels - n_near)
     rows = np.sort(rng.choice(len(val.labels), n_data, False))
-    pair = np.concatenate([val.pair[rows], val.near_pair[near] if n_near else []])
-    poses = np.concatenate([val.poses[rows], val.near_poses[near] if n_near else np.zeros((0, 7))])
-    labels = np.concatenate([val.labels[rows], val.near_labels[near] if n_near else []])
-    is_near = np.concatenate([np.zeros(n_data, bool), np.ones(n_near, bool)])
-    return pair.astype(np.int32), poses.astype(np.float32), labels.astype(bool), is_near
+    transit_pool = np.flatnonzero(kinds == NEAR_TRANSIT)
+    n_transit = min(len(transit_pool), max_labels // 4)
+    transit = np.sort(rng.choice(transit_pool, n_transit, False)) if n_transit else near[:0]
+    extra = np.concatenate([near, transit]).astype(int)
+    has = val.near_poses is not None
+    pair = np.concatenate([val.pair[rows], val.near_pair[extra] if has else []])
+    poses = np.concatenate([val.poses[rows], val.near_poses[extra] if has else np.zeros((0, 7))])
+    labels = np.concatenate([val.labels[rows], val.near_labels[extra] if has else []])
+    is_near = np.concatenate(
+        [np.zeros(n_data, bool), np.ones(n_near, bool), np.zeros(n_transit, bool)]
+    )
+    is_transit = np.concatenate([np.zeros(n_data + n_near, bool), np.ones(n_transit, bool)])
+    return pair.astype(np.int32), poses.astype(np.float32), labels.astype(bool), is_near, is_transit
 
 
 def _validation_fn(nets, config, val: CollisionData, max_labels: int, seed: int):
     """evaluate(params) -> dict of the validation loss / accuracy (all rows and near-contact
     rows) on :func:`validation_rows`, with the planner's fixed cloud subsets."""
-    pair, poses, labels, is_near = validation_rows(val, max_labels, seed)
+    pair, poses, labels, is_near, is_transit = validation_rows(val, max_labels, seed)
     obj, sup = zip(
         *(
             planner_clouds(o, s, config.object_input, config.support_input)
@@ -629,6 +768,11 @@ def _validation_fn(nets, config, val: CollisionData, max_labels: int, seed: int)
             out |= dict(
                 val_near_loss=float(loss[is_near].mean()),
                 val_near_accuracy=float(right[is_near].mean()),
+            )
+        if is_transit.any():
+            out |= dict(
+                val_transit_loss=float(loss[is_transit].mean()),
+                val_transit_accuracy=float(right[is_transit].mean()),
             )
         return out
 
@@ -756,8 +900,8 @@ def _loop(
 def write_curves(out: Path, log: dict) -> None:
     """Append this call's NCE log to ``OUT/nce_history.jsonl`` (one line per training call:
     a resumed job keeps every call's curve) and draw all calls, steps counted on, into
-    ``OUT/nce_curves.png``: training loss and, where measured, validation loss (all rows and
-    near-contact rows)."""
+    ``OUT/nce_curves.png``: training loss and, where measured, validation loss (all rows,
+    near-contact rows and transit rows)."""
     with open(out / "nce_history.jsonl", "a") as f:
         f.write(json.dumps(log) + "\n")
     calls = [json.loads(line) for line in open(out / "nce_history.jsonl") if line.strip()]
@@ -767,7 +911,7 @@ def write_curves(out: Path, log: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    offset = 0
+    offset, transit_drawn = 0, False
     for i, call in enumerate(calls):
         hist = np.asarray(call.get("history") or np.zeros((0, 3)), float).reshape(-1, 3)
         ax.plot(offset + hist[:, 0], hist[:, 1], "C0", lw=1, label="train" if i == 0 else None)
@@ -779,6 +923,10 @@ def write_curves(out: Path, log: dict) -> None:
             if "val_near_loss" in val[0]:
                 ax.plot(steps, [r["val_near_loss"] for r in val], "C2s--", ms=3,
                         label="validation, near contact" if i == 0 else None)  # fmt: skip
+            if "val_transit_loss" in val[0]:
+                ax.plot(steps, [r["val_transit_loss"] for r in val], "C3^:", ms=3,
+                        label=None if transit_drawn else "validation, transit")  # fmt: skip
+                transit_drawn = True
         if i:
             ax.axvline(offset, color="0.7", lw=0.8)
         offset += int(call.get("steps", 0))
@@ -841,19 +989,29 @@ def near_metrics(scores: np.ndarray, data: CollisionData, threshold: float) -> d
     colliding cannot be reached), and accuracy / precision / recall (positive = colliding
     deeper than 1 mm on the full meshes) of the moved near-contact poses, all of them and per
     kind (jitter: a few mm into or next to the support; approach: the straight line from the
-    start; lift: above the hanging pose)."""
+    start; lift: above the hanging pose; transit: where the planner's paths pass the support,
+    files of NEAR_VERSION 2). ``near`` leaves the transit poses out (the same rows as before
+    version 2); ``transit_apart``: the transit poses whose observed clouds are more than
+    ``APART`` apart, where a test on the clouds alone sees no contact."""
     called = scores > threshold
     stable = data.near_kind == NEAR_STABLE
+    moved = ~stable & (data.near_kind != NEAR_TRANSIT)
     out = dict(
         threshold=float(threshold),
         goal_pass=float(np.mean(~called[stable])) if stable.any() else float("nan"),
         stable_poses=int(stable.sum()),
-        near=collision.binary_metrics(called[~stable], data.near_labels[~stable]),
+        near=collision.binary_metrics(called[moved], data.near_labels[moved]),
     )
-    for name, kind in (("jitter", NEAR_JITTER), ("approach", NEAR_APPROACH), ("lift", NEAR_LIFT)):
+    for name, kind in NEAR_KINDS.items():
         rows = data.near_kind == kind
         out[name] = collision.binary_metrics(called[rows], data.near_labels[rows])
+    if data.near_gap is not None:
+        rows = (data.near_kind == NEAR_TRANSIT) & (data.near_gap > APART)
+        out["transit_apart"] = collision.binary_metrics(called[rows], data.near_labels[rows])
     return out
+
+
+APART = 0.003  # m: observed clouds farther apart than this (near_metrics' transit_apart)
 
 
 def goal_pass_threshold(
@@ -958,7 +1116,11 @@ def _brief(result: dict) -> dict:
                 jitter_specificity=round(v["jitter"]["specificity"], 3),
                 lift_specificity=round(v["lift"]["specificity"], 3),
                 approach_specificity=round(v["approach"]["specificity"], 3),
+                transit_recall=round(v["transit"]["recall"], 3),
+                transit_free_precision=round(v["transit"]["free_precision"], 3),
             )
+            if "transit_apart" in v:
+                out[k]["transit_apart_recall"] = round(v["transit_apart"]["recall"], 3)
     return out
 
 
@@ -1011,6 +1173,13 @@ def main(argv=None) -> dict:
         help="NCE: fraction of each batch drawn from the near-contact training poses (--near 1)",
     )
     parser.add_argument(
+        "--transit-share",
+        type=float,
+        default=0.0,
+        help="NCE: fraction of each batch drawn from the transit poses alone (on top of "
+        "--near-share; files of near version 2, --transit 1)",
+    )
+    parser.add_argument(
         "--planner-labels",
         type=int,
         default=0,
@@ -1043,6 +1212,14 @@ def main(argv=None) -> dict:
         help="1: train on the pairs' near-contact poses with their mesh labels too "
         "(near_contact_poses: hard negatives a few mm into the support, clearances, the "
         "approach); 0: off (they are still scored on held-out pairs)",
+    )
+    parser.add_argument(
+        "--transit",
+        type=int,
+        default=1,
+        help="with --near 1: 1 trains on the transit poses too (NEAR_TRANSIT, files of near "
+        "version 2: where the planner's paths pass the support); 0: a control without them "
+        "(still scored on held-out pairs)",
     )
     parser.add_argument(
         "--val-every",
@@ -1158,6 +1335,7 @@ def main(argv=None) -> dict:
         stable_free=bool(args.stable_free),
         near_train=bool(args.near),
         planner_labels=bool(args.planner_labels),
+        transit_train=bool(args.transit),
     )
     test = load_collision_data(test_files)
     # the validation curve measures the training objective: the same labels as training
@@ -1210,6 +1388,7 @@ def main(argv=None) -> dict:
         progress=progress,
         stop_at=args.deadline - after if args.deadline else None,
         near_share=args.near_share, schedule=args.lr_schedule,
+        transit_share=args.transit_share,
         val=val if args.val_curve_every > 0 else None, val_every=args.val_curve_every,
     )  # fmt: skip
     collision.save_estimator(out / "nce", nce_cfg, nce_params, train=nce_log, evaluated=False)
@@ -1251,6 +1430,8 @@ def main(argv=None) -> dict:
         nce=nce_log,
         nce_threshold=nce_cfg.threshold,
         near_training=bool(args.near),
+        transit_training=bool(args.near and args.transit),
+        transit_share=args.transit_share,
         near_share=args.near_share,
         planner_labels=bool(args.planner_labels),
         lr=args.lr,

@@ -20,6 +20,14 @@ C=/tmp/chain
 END_S=${END_S:-580}
 LOG=nce.log
 . scripts/device_preamble.sh
+# SEED_FROM=weights/<folder> (twenty-third session): both slots start from that NCE (its nce/
+# and nce_history.jsonl copied in) on a fresh machine: a fine-tune, resumed like a later call
+if [ -n "${SEED_FROM:-}" ] && [ ! -f "$C/nce/run/nce/config.json" ]; then
+    for d in run run_crop; do
+        mkdir -p "$C/nce/$d" && cp -r "$SEED_FROM/nce" "$SEED_FROM/nce_history.jsonl" "$C/nce/$d/"
+    done
+    log "both slots seeded from $SEED_FROM"
+fi
 NEW="--planner-labels 1 --near-share 0.3 --lr-schedule cosine --val-curve-every 2000"
 [ -f "$C/nce/run/nce/config.json" ] && NEW="$NEW --lr ${NCE_LR2:-5e-4}"
 log "derived so far: $(ls $C/nce/derived/train 2>/dev/null | wc -l) training pairs"

@@ -92,6 +92,15 @@ if [ -n "${MORE:-}" ]; then
         results/cross_engine*.json results/*judges* results/validation_pairs_all.jsonl \
         results/dataset_card.json results/stage3_train_chain; do LIST+=("$f"); done
 fi
+# NCE=1 (twenty-third session; device_nce.sh calls seeded from the contact NCE): the contact
+# NCE's weights stay, the pipeline's weights go aside (no NCE call reads them)
+if [ -n "${NCE:-}" ]; then
+    KEEP=()
+    for p in "${LIST[@]}"; do [ "$p" = weights/collision_s18_contact ] || KEEP+=("$p"); done
+    LIST=("${KEEP[@]}")
+    LIST+=(weights/where_small_paper weights/value_s20_ranker weights/value_s21_big1 weights/value_s21_near
+        weights/value_s16_hardneg)
+fi
 # RANKER=1 (device_ranker.sh calls): the pipeline's weights but CEM's V (the ranker's init)
 [ -n "${RANKER:-}" ] && LIST+=(weights/where_small_paper weights/value_s20_ranker weights/value_s21_big1 weights/value_s21_near)
 case ${1:-} in

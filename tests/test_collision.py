@@ -209,6 +209,91 @@ def test_near_contact_poses_and_their_mesh_labels():
     assert 0 < (fields["near_penetration"] > 1e-3).mean() < 1  # both kinds among them
 
 
+def test_transit_poses_are_near_the_support_at_the_boundary_and_leave_the_rest_unchanged():
+    from experiments.train_collision import (
+        NEAR_TRANSIT,
+        TRANSIT_DEEP,
+        TRANSIT_GAP,
+        cloud_gap,
+        near_contact_labels,
+        near_contact_poses,
+    )
+    from omnihang_jax import planner
+    from sim import camera
+    from sim.assets import objects, supports  # noqa: F401  (registers the generators)
+    from sim.assets.base import build_object, build_support
+    from sim.scene import build_scene
+
+    obj, sup = build_object("mug", 1), build_support("pegboard_hook", 1)
+    scene = build_scene(obj, sup)
+    rng = np.random.default_rng(0)
+    cfg = camera.CameraConfig(width=160, height=120, n_points=512)
+    obj_eye, sup_eye = camera.default_eyes(scene, rng, cfg)
+    clouds = dict(
+        object_points=camera.partial_cloud(scene, "object", obj_eye, rng, cfg).points,
+        support_points=camera.partial_cloud(scene, "support", sup_eye, rng, cfg).points,
+    )
+    lo, hi = np.asarray(scene.support_bounds, float)
+    stable = np.array([[*(0.5 * (lo + hi)), 1, 0, 0, 0]], float)
+    plain, plain_kind = near_contact_poses(scene, stable, np.random.default_rng(3))
+    poses, kind = near_contact_poses(scene, stable, np.random.default_rng(3), clouds)
+    # the earlier kinds are drawn as before; the transit poses come after them
+    np.testing.assert_array_equal(poses[: len(plain)], plain)
+    np.testing.assert_array_equal(kind[: len(plain)], plain_kind)
+    transit = poses[kind == NEAR_TRANSIT]
+    assert 10 <= len(transit) and np.all(kind[len(plain) :] == NEAR_TRANSIT)
+    np.testing.assert_allclose(np.linalg.norm(transit[:, 3:], axis=1), 1.0, atol=1e-5)
+    b_lo, b_hi = planner.default_bounds(scene)
+    assert np.all((transit[:, :3] >= b_lo - 1e-6) & (transit[:, :3] <= b_hi + 1e-6))
+    # near the support as the clouds see it, and at the boundary on the full meshes: free, or
+    # colliding by at most TRANSIT_DEEP (the deep ones, easy for the NCE, are dropped)
+    oc, sc = clouds["object_points"], clouds["support_points"]
+    assert np.all(cloud_gap(oc, sc, transit) < TRANSIT_GAP)
+    pen = planner.MeshChecker(scene).penetration(transit)
+    assert pen.max() <= TRANSIT_DEEP + 1e-9
+    assert 0.2 < (pen > 1e-3).mean() < 0.8  # both sides of the boundary
+    # the gap test against brute force
+    strided = oc[np.linspace(0, len(oc) - 1, 256).astype(int)]
+    moved = planner.posed_points(transit[:5].astype(float), strided)
+    brute = np.linalg.norm(moved[:, :, None] - sc[None, None], axis=-1).min(axis=(1, 2))
+    np.testing.assert_allclose(cloud_gap(oc, sc, transit[:5]), brute, rtol=1e-5, atol=1e-7)
+    fields = near_contact_labels(scene, stable, stable, seed=0, clouds=clouds)
+    assert np.isfinite(fields["near_gap"]).all() and fields["near_version"] == 2
+    assert np.isnan(near_contact_labels(scene, stable, stable, seed=0)["near_gap"]).all()
+
+
+def test_nce_transit_share_draws_transit_rows_and_their_curve_falls():
+    """--transit-share: that fraction of every batch comes from the transit rows alone; the
+    validation curve reports them apart (val_transit_*), and their loss falls when trained
+    on; near + transit shares above the batch are refused."""
+    import dataclasses as dc
+
+    from experiments.train_collision import NEAR_TRANSIT, train_nce
+
+    rng = np.random.default_rng(6)
+    train, val, near = _rod_task(rng, 600), _rod_task(rng, 300), _rod_task(rng, 200)
+    train = dc.replace(
+        train, far_pair=near.pair, far_poses=near.poses, far_labels=near.labels,
+        far_near=np.ones(200, bool), far_transit=np.ones(200, bool),
+    )  # fmt: skip
+    val = dc.replace(
+        val, near_pair=near.pair[:100], near_poses=near.poses[:100],
+        near_kind=np.full(100, NEAR_TRANSIT, np.int8), near_labels=near.labels[:100],
+    )  # fmt: skip
+    cfg = collision.NCE_PRESETS["tiny"]
+    _, log = train_nce(
+        train, cfg, steps=120, time_budget=120, batch=32, progress=False, transit_share=0.5,
+        val=val, val_every=60, val_labels=256,
+    )  # fmt: skip
+    assert log["transit_share"] == 0.5 and log["near_share"] == 0.0
+    curve = log["val_history"]
+    assert "val_near_loss" not in curve[0]  # no near rows but transit ones
+    assert curve[-1]["val_transit_loss"] < curve[0]["val_transit_loss"]
+    with pytest.raises(ValueError, match="share"):
+        train_nce(train, cfg, steps=1, time_budget=10, batch=32, progress=False,
+                  near_share=0.75, transit_share=0.5)  # fmt: skip
+
+
 def test_goal_pass_threshold_and_near_metrics():
     from experiments.train_collision import (
         NEAR_JITTER,

@@ -167,6 +167,7 @@ summary = dict(
     held_out_labels={k: {x: v.get(x) for x in ("accuracy", "precision", "recall", "balanced_accuracy", "n")}
                      for k, v in m.get("held_out", {}).items()},
     goal_pass=near.get("goal_pass"), near_contact=near.get("near"),
+    transit=near.get("transit"), transit_apart=near.get("transit_apart"),
 )
 if os.path.exists(f"{state}/run_crop/metrics.json"):
     c = json.load(open(f"{state}/run_crop/metrics.json"))
@@ -175,6 +176,7 @@ if os.path.exists(f"{state}/run_crop/metrics.json"):
         nce_threshold=c.get("nce_threshold"), nce_steps_this_call=c.get("nce", {}).get("steps"),
         held_out_labels={x: c.get("held_out", {}).get("nce", {}).get(x) for x in ("accuracy", "precision", "recall")},
         goal_pass=cn.get("goal_pass"), near_contact=cn.get("near"),
+        transit=cn.get("transit"), transit_apart=cn.get("transit_apart"),
     )
 json.dump(summary, open(out, "w"), indent=2)
 print(json.dumps(summary))
