@@ -149,7 +149,7 @@ def cloud_gap(object_points, support_points, poses: np.ndarray, upper: float = n
     Distances beyond ``upper`` come back as inf (a much faster search)."""
     from scipy.spatial import cKDTree
 
-    from omnihang_jax.planner import posed_points
+    from omnihang_jax.collision import posed_points
 
     obj = np.asarray(object_points, float)
     obj = obj[np.linspace(0, len(obj) - 1, min(TRANSIT_POINTS, len(obj))).astype(int)]

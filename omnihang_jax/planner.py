@@ -54,6 +54,7 @@ from omnihang_jax.collision import (  # re-exported: the planner's ground truth 
     MeshChecker,
     default_bounds,
     object_radius,
+    posed_points,
     start_pose,
 )
 
@@ -259,22 +260,6 @@ class ExemptNearGoal:
         poses = np.asarray(poses).reshape(-1, 7)
         far = poses[goal_distances(poses, self.goal, self.weight) > self.radius]
         return bool(len(far)) and any_colliding(self.checker, far)
-
-
-def posed_points(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """NumPy twin of ``collision.transform_points`` for host-side checkers: poses [B, 7]
-    (xyz + wxyz), points [N, 3] (object frame) -> [B, N, 3] (support frame). The planner calls
-    its checkers ~1,000 times a plan with varying batch sizes: eager JAX ops or a jit per size
-    would cost more than the arithmetic."""
-    poses = np.asarray(poses, float).reshape(-1, 7)
-    q = poses[:, 3:] / np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
-    w, x, y, z = q.T
-    rot = np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=1)  # fmt: skip
-    return np.einsum("bij,nj->bni", rot, np.asarray(points, float)) + poses[:, None, :3]
 
 
 class ClearanceFarFromGoal:
