@@ -200,7 +200,7 @@ class Estimators(NamedTuple):
     nce: object
     heuristic: object
     normals: object
-    nce_far_threshold: float | None = None  # see goal_ball_collides
+    nce_far_threshold: float | None = None  # see collision.goal_ball_collides
     nce_goal_ball: float = 0.0
     geometric: collision.GeometricConfig = collision.GeometricConfig()
     nce_geometric: object = None  # jitted collision.nce_geometric_collides
@@ -212,24 +212,6 @@ class Estimators(NamedTuple):
     far_ball: float = 0.0
 
 
-def goal_ball_collides(config: collision.NCEConfig, far_threshold: float, ball: float):
-    """``collides((params, goal [7], weight), object_cloud, support_cloud, poses)``: the NCE
-    with its own threshold (chosen so that stable goals pass) within ``ball`` (planner
-    metric: translation + weight x angle, m) of the goal, and ``far_threshold`` (stricter)
-    elsewhere: lenient only where the object must touch the support."""
-    probability = collision.nce_probability(config)
-
-    def collides(params, object_cloud, support_cloud, poses):
-        nce_params, goal, weight = params
-        p = probability(nce_params, object_cloud, support_cloud, poses)
-        dot = jax.numpy.abs(poses[:, 3:] @ goal[3:]) / jax.numpy.linalg.norm(poses[:, 3:], axis=1)
-        angle = 2.0 * jax.numpy.arccos(jax.numpy.clip(dot, 0.0, 1.0))
-        dist = jax.numpy.linalg.norm(poses[:, :3] - goal[:3], axis=1) + weight * angle
-        return p > jax.numpy.where(dist <= ball, config.threshold, far_threshold)
-
-    return collides
-
-
 def load_estimators(
     weights: str,
     nce_threshold: float | None = None,
@@ -238,7 +220,7 @@ def load_estimators(
     geometric: collision.GeometricConfig = collision.GeometricConfig(),
 ) -> Estimators:
     """The estimators of a weights folder; ``nce_threshold`` overrides the NCE's threshold;
-    ``nce_far_threshold`` with ``nce_goal_ball`` > 0: :func:`goal_ball_collides`;
+    ``nce_far_threshold`` with ``nce_goal_ball`` > 0: ``collision.goal_ball_collides``;
     ``geometric``: the penetration test of ``nce_geometric`` (the NCE with its own
     threshold OR the test)."""
     nce_cfg, nce_params, _ = collision.load_estimator(Path(weights, "nce"))
@@ -259,7 +241,7 @@ def load_estimators(
         jax.jit(
             collision.nce_collides(nce_cfg)
             if nce_far_threshold is None or nce_goal_ball <= 0
-            else goal_ball_collides(nce_cfg, nce_far_threshold, nce_goal_ball)
+            else collision.goal_ball_collides(nce_cfg, nce_far_threshold, nce_goal_ball)
         ),
         jax.jit(collision.heuristic_score),
         jax.jit(lambda params, pts: net.apply(params, pts[None])[0]),
@@ -468,7 +450,7 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
     n_obj, n_sup = est.nce_config.object_points, est.nce_config.support_input
     n_nce_obj = est.nce_config.object_input  # the contact NCE is given more (NCEConfig)
     nce_params = est.nce_params
-    if est.nce_far_threshold is not None:  # goal_ball_collides
+    if est.nce_far_threshold is not None:  # collision.goal_ball_collides
         weight = np.float32(planner.object_radius(case.scene))
         nce_params = (est.nce_params, np.asarray(case.goal, np.float32), weight)
     nce = planner.EstimatorChecker(

@@ -780,6 +780,24 @@ def nce_geometric_collides(config: NCEConfig, geometric: GeometricConfig) -> Cal
     return collides
 
 
+def goal_ball_collides(config: NCEConfig, far_threshold: float, ball: float):
+    """``collides((params, goal [7], weight), object_cloud, support_cloud, poses)``: the NCE
+    with its own threshold (chosen so that stable goals pass) within ``ball`` (planner
+    metric: translation + weight x angle, m) of the goal, and ``far_threshold`` (stricter)
+    elsewhere: lenient only where the object must touch the support."""
+    probability = nce_probability(config)
+
+    def collides(params, object_cloud, support_cloud, poses):
+        nce_params, goal, weight = params
+        p = probability(nce_params, object_cloud, support_cloud, poses)
+        dot = jnp.abs(poses[:, 3:] @ goal[3:]) / jnp.linalg.norm(poses[:, 3:], axis=1)
+        angle = 2.0 * jnp.arccos(jnp.clip(dot, 0.0, 1.0))
+        dist = jnp.linalg.norm(poses[:, :3] - goal[:3], axis=1) + weight * angle
+        return p > jnp.where(dist <= ball, config.threshold, far_threshold)
+
+    return collides
+
+
 # ----------------------------------------------------------------------------------------------
 # Host helpers: clouds, weights, metrics
 

@@ -871,6 +871,36 @@ COLLISION_WEIGHTS = (
 )
 
 
+# The planner's best checker on the 80 held-out pairs (docs/paths.md, twenty-second session:
+# 71.7 / 53.8 / 61.4 against 36.4 F1 for the contact NCE alone): the observed-cloud test first,
+# then the NCE, strict (the selection's threshold) beyond 2 cm of the goal and lenient (0.99)
+# within it. Used for the NCE folder it names when its selection file is there.
+HYBRID = dict(
+    weights="weights/collision_s18_contact",
+    selection="results/paths_hybrid_s18_joint95_selection.json",
+    near_threshold=0.99,
+    goal_ball=0.02,
+)
+
+
+def hybrid_settings(nce_folder) -> tuple[Any, str]:
+    """(planner.HybridSettings or None, why) for the NCE folder ``<weights>/nce``."""
+    from omnihang_jax import planner
+
+    if nce_folder is None or Path(nce_folder).parent.resolve() != Path(HYBRID["weights"]).resolve():
+        return None, f"no hybrid settings for {nce_folder} (they are for {HYBRID['weights']})"
+    if not Path(HYBRID["selection"]).exists():
+        return None, f"{HYBRID['selection']} missing: the NCE alone"
+    settings = planner.HybridSettings.from_selection(
+        HYBRID["selection"], HYBRID["near_threshold"], HYBRID["goal_ball"]
+    )
+    return settings, (
+        f"the observed-cloud test (depth {settings.geometric.depth * 1e3:g} mm, radius "
+        f"{settings.geometric.radius * 1e3:g} mm) OR the NCE at {settings.far_threshold:g} "
+        f"({settings.near_threshold:g} within {settings.goal_ball * 100:g} cm of the goal)"
+    )
+
+
 def find_collision_weights() -> Path | None:
     """The first trained neural collision estimator (``<folder>/nce/config.json``) among
     COLLISION_WEIGHTS, then any ``weights/collision_*``; None when there is none yet.
@@ -897,7 +927,9 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
     (``planner.MeshChecker``, needs both meshes). With meshes, every returned path is checked
     densely against the meshes (``planner.dense_check``). The path is resampled every
     ``path_step`` (m, in the planner's metric) for drawing and keyframes. ``checker``:
-    "auto" (as described), "mesh" (the full meshes only) or "nce" (the estimator only)."""
+    "auto" (as described, the estimator as the hybrid of :data:`HYBRID` where its settings
+    are there: the observed-cloud test OR the NCE, lenient near the goal), "mesh" (the full
+    meshes only) or "nce" (the estimator alone, no fallback)."""
     if checker not in ("auto", "mesh", "nce"):
         raise ValueError(f"checker must be 'auto', 'mesh' or 'nce', got {checker!r}")
     try:
@@ -907,6 +939,7 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
     weights = None if checker == "mesh" else find_collision_weights()
     if checker == "nce" and weights is None:
         return None, "no trained neural collision estimator (weights/collision_*/nce)"
+    hybrid, hybrid_why = (None, "") if checker != "auto" else hybrid_settings(weights)
 
     def how(scene, obj: Body, sup: Body, pose: np.ndarray) -> PathPlan | None:
 
@@ -939,11 +972,19 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
             cfg, params, collides = _nce(os.path.abspath(weights))
             # one plan, not hundreds: powers of two (8 sizes to compile up to 128, not the
             # evaluation's 21 multiples of 8), an edge's coarse states still first
-            nce_checker = planner.EstimatorChecker(
-                collides, params, *nce_clouds(cfg, obj.points, sup.points), pow2=True
-            )
+            if hybrid is not None:
+                nce_checker = planner.hybrid_checker(
+                    cfg, params, obj.points, sup.points, sup.normals, hybrid, pose, radius,
+                    pow2=True,
+                )  # fmt: skip
+                name = f"the hybrid checker ({hybrid_why}; NCE {weights})"
+            else:
+                nce_checker = planner.EstimatorChecker(
+                    collides, params, *nce_clouds(cfg, obj.points, sup.points), pow2=True
+                )
+                name = f"the neural collision estimator {weights}"
             nce_checker.warm_up(128)
-            path, info = attempt(nce_checker, f"the neural collision estimator {weights}")
+            path, info = attempt(nce_checker, name)
             tried.append(info)
         if path is None and scene is not None and checker != "nce":
             # no NCE, or it found no path (an estimator can call the start colliding): the
@@ -969,6 +1010,11 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
 
     if weights is None:
         return how, "OMPL RRT-Connect, full-mesh checker (no trained collision estimator yet)"
+    if hybrid is not None:
+        return how, (
+            f"OMPL RRT-Connect, hybrid checker: {hybrid_why}, NCE {weights} (the full meshes "
+            f"when it finds no path and meshes are known)"
+        )
     return how, (
         f"OMPL RRT-Connect, neural collision estimator {weights} (the full meshes when it "
         f"finds no path and meshes are known)"

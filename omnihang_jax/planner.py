@@ -40,9 +40,10 @@ free; same answer, docs/paths.md "The planner's checker"). Settings (:class:`Pla
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -65,6 +66,8 @@ __all__ = [
     "MeshChecker",
     "EstimatorChecker",
     "CascadeChecker",
+    "HybridSettings",
+    "hybrid_checker",
     "ExemptNearGoal",
     "ClearanceFarFromGoal",
     "posed_points",
@@ -291,6 +294,87 @@ class ClearanceFarFromGoal:
             dist, _ = self.tree.query(world.reshape(-1, 3), k=1, distance_upper_bound=self.margin)
             hit[far] = np.isfinite(dist.reshape(len(far), -1)).any(axis=1)
         return hit
+
+
+class HybridSettings(NamedTuple):
+    """The best planner's checker (docs/paths.md, twenty-second session): the observed-cloud
+    penetration test (``geometric``) first, the NCE only where it says free; the NCE's
+    threshold is ``near_threshold`` within ``goal_ball`` (planner metric, m) of the goal and
+    ``far_threshold`` beyond it (``goal_ball`` 0: ``far_threshold`` everywhere)."""
+
+    geometric: Any  # collision.GeometricConfig
+    far_threshold: float
+    near_threshold: float
+    goal_ball: float
+
+    @classmethod
+    def from_selection(cls, path, near_threshold: float, goal_ball: float):
+        """From an ``eval_paths --select-geometric`` file (its ``chosen`` row: the test's depth /
+        radius / min points and, for a joint selection, the NCE threshold)."""
+        import json
+
+        from omnihang_jax import collision
+
+        chosen = json.loads(open(path).read())["chosen"]
+        if chosen is None:
+            raise ValueError(f"{path}: no setting was chosen (none kept the goal pass)")
+        geo = dataclasses.replace(
+            collision.GeometricConfig(),
+            **{k: chosen[k] for k in ("depth", "radius", "min_points")},
+        )
+        if "nce_threshold" not in chosen:
+            raise ValueError(f"{path}: not a joint selection (no nce_threshold)")
+        return cls(geo, float(chosen["nce_threshold"]), float(near_threshold), float(goal_ball))
+
+
+@functools.lru_cache(maxsize=8)
+def _jitted(kind: str, *args):
+    from omnihang_jax import collision
+
+    if kind == "goal_ball":
+        return jax.jit(collision.goal_ball_collides(*args))
+    if kind == "nce":
+        return jax.jit(collision.nce_collides(*args))
+    return jax.jit(collision.geometric_collides(*args))
+
+
+def hybrid_checker(
+    nce_config,
+    nce_params,
+    object_points: np.ndarray,
+    support_points: np.ndarray,
+    support_normals: np.ndarray,
+    settings: HybridSettings,
+    goal: np.ndarray,
+    rotation_weight: float,
+    pow2: bool = False,
+) -> CascadeChecker:
+    """:class:`HybridSettings`' checker for one pair: ``CascadeChecker(test, nce)``, as
+    ``experiments.eval_paths`` builds its ``nce_geometric`` method (same cloud subsets, seeds 0
+    / 1; the support's lookup table built here, once). Clouds: the observed ones, object frame
+    / support frame, with the support's outward normals."""
+    from omnihang_jax import collision
+
+    sub = collision.subsample_cloud
+    geo = settings.geometric
+    grid = collision.support_grid(support_points, support_normals, geo.voxel, geo.max_voxels,
+                                  geo.margin)  # fmt: skip
+    test = EstimatorChecker(
+        _jitted("geometric", geo), grid, sub(object_points, geo.object_points, 0), grid.points,
+        pow2=pow2,
+    )  # fmt: skip
+    clouds = (
+        sub(object_points, nce_config.object_input, 0),
+        sub(support_points, nce_config.support_input, 1),
+    )
+    if settings.goal_ball > 0:
+        cfg = dataclasses.replace(nce_config, threshold=settings.near_threshold)
+        fn = _jitted("goal_ball", cfg, settings.far_threshold, settings.goal_ball)
+        params = (nce_params, np.asarray(goal, np.float32), np.float32(rotation_weight))
+    else:
+        fn = _jitted("nce", dataclasses.replace(nce_config, threshold=settings.far_threshold))
+        params = nce_params
+    return CascadeChecker(test, EstimatorChecker(fn, params, *clouds, pow2=pow2))
 
 
 def any_colliding(checker: Callable, poses: np.ndarray) -> bool:

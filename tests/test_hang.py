@@ -354,3 +354,20 @@ def test_network_sizes_of_a_stage1_mix():
     assert H.network_sizes("weights/where_small_paper+weights/where_original_paper") == (4096, 512)
     with pytest.raises(H.HangInputError, match="no Stage-1 network"):
         H.network_sizes("weights/where_small_paper+weights/nowhere")
+
+
+def test_hang_plans_with_the_hybrid_checker_of_the_best_planner():
+    """`hang`'s "auto" checker is the best planner of docs/paths.md (the observed-cloud test OR
+    the contact NCE, lenient near the goal), with the committed selection's settings; another
+    NCE folder, or the "nce" checker, gets the estimator alone."""
+    settings, why = H.hybrid_settings(Path(H.HYBRID["weights"]) / "nce")
+    chosen = json.loads(Path(H.HYBRID["selection"]).read_text())["chosen"]
+    assert settings is not None, why
+    assert settings.far_threshold == chosen["nce_threshold"]
+    assert settings.geometric.depth == chosen["depth"]
+    assert (settings.near_threshold, settings.goal_ball) == (0.99, 0.02)
+    assert H.hybrid_settings(Path("weights/collision_s16_planner/nce"))[0] is None
+    if H.find_collision_weights() == Path(H.HYBRID["weights"]) / "nce":
+        how, text = H.planner_how(5.0)
+        assert how is not None and "hybrid" in text, text
+        assert "hybrid" not in H.planner_how(5.0, checker="nce")[1]

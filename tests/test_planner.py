@@ -4,6 +4,9 @@ ring onto a hook, and the batched estimator checker agrees with per-pose calls."
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -435,3 +438,56 @@ def test_posed_points_matches_the_jax_transform():
         collision.transform_points(poses.astype(np.float32), points.astype(np.float32))
     )
     np.testing.assert_allclose(planner.posed_points(poses, points), want, rtol=1e-4, atol=1e-5)
+
+
+def test_goal_ball_nce_and_the_hang_hybrid_checker():
+    """collision.goal_ball_collides: the NCE's own threshold within the ball of the goal,
+    the far threshold beyond it; planner.hybrid_checker (the `hang` command's checker) calls
+    exactly the observed-cloud test OR that NCE, with the settings of a selection file."""
+    import dataclasses
+    import json
+
+    import jax
+
+    from omnihang_jax import collision
+
+    rng = np.random.default_rng(7)
+    n = 4096  # a 6 x 6 cm flat support patch at z = 0, outward normals +z
+    patch = np.concatenate([rng.uniform(-0.03, 0.03, (n, 2)), np.zeros((n, 1))], 1)
+    patch, normals = patch.astype(np.float32), np.tile([0, 0, 1.0], (n, 1)).astype(np.float32)
+    obj = rng.uniform(-0.01, 0.01, (4096, 3)).astype(np.float32)
+    cfg = collision.NCE_PRESETS["tiny"]
+    params = collision.make_nce(cfg).init(jax.random.key(1))
+    goal = np.array([0, 0, 0.004, 1, 0, 0, 0], np.float32)
+    poses = np.tile(goal, (40, 1))
+    poses[:, :3] += rng.normal(0, 0.02, (40, 3)) * np.linspace(0.1, 2.0, 40)[:, None]
+    q = rng.normal(size=(40, 4)) * 0.05 + [1, 0, 0, 0]
+    poses[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
+    poses[:, 2] = np.abs(poses[:, 2])  # most above the patch, a few close to it
+    poses[:4, 2] = -0.006  # 6 mm into it: the test's
+    oc, sc = (collision.subsample_cloud(obj, cfg.object_input, 0),
+              collision.subsample_cloud(patch, cfg.support_input, 1))  # fmt: skip
+    p = np.asarray(jax.jit(collision.nce_probability(cfg))(params, oc, sc, poses))
+    near_t, far_t, ball, weight = float(np.quantile(p, 0.8)), float(np.quantile(p, 0.3)), 0.02, 0.05
+    dist = np.array([planner.pose_distance(x, goal, weight) for x in poses])
+    assert (dist <= ball).any() and (dist > ball).any()
+    fn = collision.goal_ball_collides(dataclasses.replace(cfg, threshold=near_t), far_t, ball)
+    got = np.asarray(jax.jit(fn)((params, goal, np.float32(weight)), oc, sc, poses))
+    np.testing.assert_array_equal(got, p > np.where(dist <= ball, near_t, far_t))
+    assert (got != (p > far_t)).any() and (got != (p > near_t)).any()  # both sides matter
+
+    geo = collision.GeometricConfig(depth=0.002, radius=0.004, min_points=2)
+    selection = dict(chosen=dict(depth=0.002, radius=0.004, min_points=2, nce_threshold=far_t))
+    path = Path(tempfile.mkdtemp()) / "selection.json"
+    path.write_text(json.dumps(selection))
+    settings = planner.HybridSettings.from_selection(path, near_t, ball)
+    assert settings.geometric == geo and settings.far_threshold == far_t
+    checker = planner.hybrid_checker(cfg, params, obj, patch, normals, settings, goal, weight)
+    grid = collision.support_grid(patch, normals, geo.voxel, geo.max_voxels, geo.margin)
+    test = np.asarray(jax.jit(collision.geometric_collides(geo))(
+        grid, collision.subsample_cloud(obj, geo.object_points, 0), grid.points, poses))  # fmt: skip
+    assert test[:4].all() and not test.all()
+    np.testing.assert_array_equal(checker(poses), test | got)
+    path.write_text(json.dumps(dict(chosen=None)))
+    with pytest.raises(ValueError, match="no setting"):
+        planner.HybridSettings.from_selection(path, near_t, ball)
