@@ -710,6 +710,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--time-limit", type=float, default=20.0, help="s per plan")
     parser.add_argument(
+        "--planner-seed", type=int, default=planner.PlannerConfig.seed,
+        help="OMPL's random seed (once per process; > 0): repeat a run with other seeds to "
+        "see the planner's run-to-run spread",
+    )  # fmt: skip
+    parser.add_argument(
         "--pairs-from",
         default=None,
         metavar="PAIRS_JSONL",
@@ -852,6 +857,8 @@ def main(argv=None) -> dict:
         parser.error("--goal answer needs --pairs-from (an eval_stage3 run's per-pair records)")
     if not args.resolution > 0:
         parser.error("--resolution must be > 0")
+    if args.planner_seed < 1:
+        parser.error("--planner-seed must be >= 1 (OMPL does not take 0)")
     try:
         retreat = tuple(float(x) for x in args.retreat.split(",") if x.strip())
     except ValueError:
@@ -864,7 +871,7 @@ def main(argv=None) -> dict:
         parser.error("--retreat-after must be in [0, --time-limit)")
     config = planner.PlannerConfig(
         time_limit=args.time_limit, goal_radius=args.goal_radius, resolution=args.resolution,
-        retreat_lengths=retreat, retreat_after=args.retreat_after,
+        retreat_lengths=retreat, retreat_after=args.retreat_after, seed=args.planner_seed,
     )  # fmt: skip
     out = Path(args.out)
     (out / "scenes").mkdir(parents=True, exist_ok=True)

@@ -491,3 +491,20 @@ def test_goal_ball_nce_and_the_hang_hybrid_checker():
     path.write_text(json.dumps(dict(chosen=None)))
     with pytest.raises(ValueError, match="no setting"):
         planner.HybridSettings.from_selection(path, near_t, ball)
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--planner-seed", "0"], "planner-seed"),
+        (["--resolution", "0"], "resolution"),
+        (["--far-clearance", "-0.001"], "far-clearance"),
+    ],
+)
+def test_eval_paths_refuses_bad_planner_settings(flags, message, capsys):
+    """eval_paths says what is wrong with a setting before it derives or plans anything."""
+    from experiments.eval_paths import main
+
+    with pytest.raises(SystemExit):
+        main(["--weights", "weights/collision_s18_contact", "--pairs", "1", *flags])
+    assert message in capsys.readouterr().err
