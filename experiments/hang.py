@@ -105,6 +105,12 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"planner time limit, s (default {d.plan_time:g})",
     )  # fmt: skip
     p.add_argument(
+        "--checker", choices=["auto", "nce", "mesh"], default=d.checker,
+        help="the planner's collision checker: auto (the observed-cloud test OR the contact "
+        "NCE, lenient near the answer; the full meshes when it finds no path), nce (the "
+        "estimator alone) or mesh (the full meshes in MuJoCo)",
+    )  # fmt: skip
+    p.add_argument(
         "--coacd", choices=["default", "fast"], default="default",
         help="convex decomposition settings for user meshes (fast: previews)",
     )  # fmt: skip
@@ -171,6 +177,7 @@ def main(argv=None) -> int:
         search_candidates=args.search_candidates,
         plan=not args.no_plan,
         plan_time=args.plan_time,
+        checker=args.checker,
         scale=args.scale,
         object_scale=args.object_scale,
         support_scale=args.support_scale,

@@ -126,6 +126,9 @@ class HangConfig:
     search_candidates: int = 4096  # uniform yield is ~0.8 % (results/proposal_yield.json)
     plan: bool = True  # run the how-to-hang planner when it exists
     plan_time: float = 20.0  # s, OMPL's time limit (omnihang_jax.planner.PlannerConfig)
+    # the planner's checker (planner_how): "auto" (the hybrid of HYBRID, else the NCE, then the
+    # full meshes when it finds no path), "nce" (the estimator alone) or "mesh"
+    checker: str = "auto"
     scale: float | None = None  # multiply both inputs' coordinates (0.001 for millimetres)
     object_scale: float | None = None  # overrides ``scale`` for the object
     support_scale: float | None = None  # overrides ``scale`` for the support
@@ -1184,6 +1187,8 @@ def hang(
         raise HangInputError(f"--num-proposals must be >= 1, got {config.num_proposals}")
     if not config.plan_time > 0:
         raise HangInputError(f"--plan-time must be > 0 s, got {config.plan_time}")
+    if config.checker not in ("auto", "nce", "mesh"):
+        raise HangInputError(f"--checker must be 'auto', 'nce' or 'mesh', got {config.checker!r}")
     if config.coacd not in ("default", "fast"):
         raise HangInputError(f"--coacd must be 'default' or 'fast', got {config.coacd!r}")
     if config.up not in ("z", "y"):
@@ -1348,7 +1353,7 @@ def hang(
     path = None
     if config.plan:
         if how is None:
-            how, reason = planner_how(config.plan_time)
+            how, reason = planner_how(config.plan_time, checker=config.checker)
         else:
             reason = f"user function {getattr(how, '__name__', repr(how))}"
         if how is None:

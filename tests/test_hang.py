@@ -371,3 +371,9 @@ def test_hang_plans_with_the_hybrid_checker_of_the_best_planner():
         how, text = H.planner_how(5.0)
         assert how is not None and "hybrid" in text, text
         assert "hybrid" not in H.planner_how(5.0, checker="nce")[1]
+
+
+def test_hang_refuses_an_unknown_checker(tmp_path):
+    with pytest.raises(H.HangInputError, match="--checker"):
+        H.hang(None, None, tmp_path / "out", H.HangConfig(checker="octree"), log=None)
+    assert not (tmp_path / "out").exists()
