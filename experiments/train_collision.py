@@ -143,23 +143,13 @@ NEAR_KINDS = {"jitter": NEAR_JITTER, "approach": NEAR_APPROACH, "lift": NEAR_LIF
               "transit": NEAR_TRANSIT}  # fmt: skip
 
 
-def cloud_gap(object_points, support_points, poses: np.ndarray, upper: float = np.inf):
-    """[K] the smallest distance (m) between the object's observed cloud moved by each pose
-    ([K, 7]) and the support's observed cloud: what the planner's clouds see of a pose.
-    Distances beyond ``upper`` come back as inf (a much faster search)."""
-    from scipy.spatial import cKDTree
-
-    from omnihang_jax.collision import posed_points
-
+def observed_gap(object_points, support, poses: np.ndarray, upper: float = np.inf):
+    """[K] float32 ``collision.cloud_gap`` with ``TRANSIT_POINTS`` evenly strided object points:
+    how close the observed clouds come at each pose [K, 7] (``support``: the support cloud or
+    a cKDTree of it)."""
     obj = np.asarray(object_points, float)
     obj = obj[np.linspace(0, len(obj) - 1, min(TRANSIT_POINTS, len(obj))).astype(int)]
-    poses = np.asarray(poses, float).reshape(-1, 7)
-    if len(poses) == 0:
-        return np.zeros(0, np.float32)
-    moved = posed_points(poses, obj)  # [K, n, 3]
-    tree = cKDTree(np.asarray(support_points, float))
-    d, _ = tree.query(moved.reshape(-1, 3), distance_upper_bound=upper)
-    return d.reshape(len(poses), -1).min(axis=1).astype(np.float32)
+    return collision.cloud_gap(obj, support, poses, upper).astype(np.float32)
 
 
 def transit_poses(scene, stable: np.ndarray, clouds, rng: np.random.Generator, n: int, mesh=None):
@@ -169,7 +159,7 @@ def transit_poses(scene, stable: np.ndarray, clouds, rng: np.random.Generator, n
     - positions uniform in the planner's bounds (``collision.default_bounds``), orientations
       half uniform and half a stable pose's turned by up to pi about a random axis (the trees
       grow from the start, in the goal's orientation, through uniformly sampled rotations);
-    - kept only where the observed clouds come within ``TRANSIT_GAP`` (:func:`cloud_gap`):
+    - kept only where the observed clouds come within ``TRANSIT_GAP`` (:func:`observed_gap`):
       the open space is free by geometry and covered by the far poses;
     - labelled on the full meshes (``mesh``, a ``collision.MeshChecker``), and the colliding
       ones deeper than ``TRANSIT_DEEP`` dropped: half of the ``n`` are free, half collide by
@@ -188,8 +178,11 @@ def transit_poses(scene, stable: np.ndarray, clouds, rng: np.random.Generator, n
     lo, hi = default_bounds(scene)
     # a cheap first cut: the object cloud's bounding sphere (about its origin) must come
     # within TRANSIT_GAP of the support cloud's box
+    from scipy.spatial import cKDTree
+
     reach = float(np.linalg.norm(clouds["object_points"], axis=1).max()) + TRANSIT_GAP
     box_lo, box_hi = clouds["support_points"].min(0), clouds["support_points"].max(0)
+    tree = cKDTree(np.asarray(clouds["support_points"], float))  # once for all rounds
     free, shallow = [], []
     for _ in range(12):
         m = 16 * n
@@ -205,7 +198,7 @@ def transit_poses(scene, stable: np.ndarray, clouds, rng: np.random.Generator, n
         quat *= np.where(quat[:, :1] < 0, -1.0, 1.0)  # w >= 0, as the other kinds
         poses = np.concatenate([pos, quat], axis=1)
         poses = poses[np.linalg.norm(pos - np.clip(pos, box_lo, box_hi), axis=1) < reach]
-        gap = cloud_gap(clouds["object_points"], clouds["support_points"], poses, TRANSIT_GAP)
+        gap = observed_gap(clouds["object_points"], tree, poses, TRANSIT_GAP)
         poses = poses[gap < TRANSIT_GAP]
         pen = mesh.penetration(poses)
         free.append(poses[pen <= mesh.tolerance])
@@ -284,7 +277,7 @@ def near_contact_labels(scene, stable, dataset_poses, seed: int, clouds=None) ->
     ``near_kind`` (:func:`near_contact_poses`, seeded by the pair; the transit poses only
     with ``clouds``), ``near_penetration`` (deepest object-support penetration on the full
     meshes, m: the planner's ground truth, ``collision.MeshChecker``; colliding above 1 mm),
-    ``near_gap`` (:func:`cloud_gap`, m; NaN without ``clouds``) and ``collision_penetration``
+    ``near_gap`` (:func:`observed_gap`, m; NaN without ``clouds``) and ``collision_penetration``
     (the same for the dataset's labelled poses, whose own labels call any penetration
     colliding)."""
     mesh = collision.MeshChecker(scene)
@@ -292,7 +285,7 @@ def near_contact_labels(scene, stable, dataset_poses, seed: int, clouds=None) ->
     if clouds is None:
         gap = np.full(len(poses), np.nan, np.float32)
     else:
-        gap = cloud_gap(clouds["object_points"], clouds["support_points"], poses)
+        gap = observed_gap(clouds["object_points"], clouds["support_points"], poses)
     return dict(
         near_poses=poses,
         near_kind=kind,
@@ -452,7 +445,7 @@ class CollisionData:
     near_poses: np.ndarray | None = None  # [K, 7]
     near_kind: np.ndarray | None = None  # [K] int8 (NEAR_STABLE ... NEAR_TRANSIT)
     near_labels: np.ndarray | None = None  # [K] bool
-    near_gap: np.ndarray | None = None  # [K] observed clouds' gap (m; cloud_gap), NaN: unknown
+    near_gap: np.ndarray | None = None  # [K] observed clouds' gap (m; observed_gap), NaN: unknown
 
 
 def _geometry_of(f, meta: dict, cache: dict) -> dict:

@@ -945,6 +945,24 @@ def posed_points(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.einsum("bij,nj->bni", rot, np.asarray(points, float)) + poses[:, None, :3]
 
 
+def cloud_gap(object_points, support, poses: np.ndarray, upper: float = np.inf) -> np.ndarray:
+    """[K] the smallest distance (m) between the object cloud [N, 3] (object frame) moved by
+    each pose [K, 7] and the support cloud (support frame): ``support`` is its points [M, 3]
+    or a ``scipy.spatial.cKDTree`` of them (build it once for many calls). Distances of
+    ``upper`` or more come back as inf (a much faster search). Host NumPy: the quantity
+    ``planner.ClearanceFarFromGoal`` thresholds and the transit poses of
+    ``experiments.train_collision`` are kept by."""
+    from scipy.spatial import cKDTree
+
+    poses = np.asarray(poses, float).reshape(-1, 7)
+    if len(poses) == 0:
+        return np.zeros(0)
+    tree = support if isinstance(support, cKDTree) else cKDTree(np.asarray(support, float))
+    moved = posed_points(poses, object_points)  # [K, N, 3]
+    d, _ = tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=upper)
+    return d.reshape(len(poses), -1).min(axis=1)
+
+
 def object_radius(scene) -> float:
     """Half the object's largest extent (m): the rotation weight of the planner's metric."""
     return 0.5 * float(np.max(scene.obj.extents))

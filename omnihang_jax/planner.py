@@ -53,6 +53,7 @@ from ompl import util as ou
 
 from omnihang_jax.collision import (  # re-exported: the planner's ground truth and geometry
     MeshChecker,
+    cloud_gap,
     default_bounds,
     object_radius,
     posed_points,
@@ -290,9 +291,8 @@ class ClearanceFarFromGoal:
         hit = np.zeros(len(poses), bool)
         far = np.flatnonzero(goal_distances(poses, self.goal, self.weight) > self.radius)
         if len(far):
-            world = posed_points(poses[far], self.object_points)
-            dist, _ = self.tree.query(world.reshape(-1, 3), k=1, distance_upper_bound=self.margin)
-            hit[far] = np.isfinite(dist.reshape(len(far), -1)).any(axis=1)
+            gap = cloud_gap(self.object_points, self.tree, poses[far], self.margin)
+            hit[far] = np.isfinite(gap)
         return hit
 
 

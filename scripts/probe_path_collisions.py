@@ -31,8 +31,7 @@ from omnihang_jax import collision, planner
 def clearance(tree: cKDTree, object_points: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """Smallest distance from the posed object cloud to the support cloud (``tree``), a pose:
     the quantity ``planner.ClearanceFarFromGoal`` thresholds."""
-    world = planner.posed_points(poses, object_points)
-    return tree.query(world.reshape(-1, 3), k=1)[0].reshape(len(world), -1).min(axis=1)
+    return collision.cloud_gap(object_points, tree, poses)
 
 
 def main(argv=None) -> dict:

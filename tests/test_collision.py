@@ -161,6 +161,15 @@ def test_far_free_poses_never_touch_the_support_or_its_wall():
         assert inside.mean() > 0.2
 
 
+def _mug_on_pegboard():
+    """A library mug and pegboard hook in one MuJoCo scene (the near-pose tests' pair)."""
+    from sim.assets import objects, supports  # noqa: F401  (registers the generators)
+    from sim.assets.base import build_object, build_support
+    from sim.scene import build_scene
+
+    return build_scene(build_object("mug", 1), build_support("pegboard_hook", 1))
+
+
 def test_near_contact_poses_and_their_mesh_labels():
     from experiments.train_collision import (
         NEAR_APPROACH,
@@ -172,12 +181,8 @@ def test_near_contact_poses_and_their_mesh_labels():
         near_contact_poses,
     )
     from omnihang_jax import planner
-    from sim.assets import objects, supports  # noqa: F401  (registers the generators)
-    from sim.assets.base import build_object, build_support
-    from sim.scene import build_scene
 
-    obj, sup = build_object("mug", 1), build_support("pegboard_hook", 1)
-    scene = build_scene(obj, sup)
+    scene = _mug_on_pegboard()
     lo, hi = np.asarray(scene.support_bounds, float)
     centre = 0.5 * (lo + hi)
     stable = np.array([[*centre, 1, 0, 0, 0], [centre[0], hi[1], hi[2], 0, 1, 0, 0]], float)
@@ -214,18 +219,14 @@ def test_transit_poses_are_near_the_support_at_the_boundary_and_leave_the_rest_u
         NEAR_TRANSIT,
         TRANSIT_DEEP,
         TRANSIT_GAP,
-        cloud_gap,
         near_contact_labels,
         near_contact_poses,
+        observed_gap,
     )
     from omnihang_jax import planner
     from sim import camera
-    from sim.assets import objects, supports  # noqa: F401  (registers the generators)
-    from sim.assets.base import build_object, build_support
-    from sim.scene import build_scene
 
-    obj, sup = build_object("mug", 1), build_support("pegboard_hook", 1)
-    scene = build_scene(obj, sup)
+    scene = _mug_on_pegboard()
     rng = np.random.default_rng(0)
     cfg = camera.CameraConfig(width=160, height=120, n_points=512)
     obj_eye, sup_eye = camera.default_eyes(scene, rng, cfg)
@@ -248,7 +249,7 @@ def test_transit_poses_are_near_the_support_at_the_boundary_and_leave_the_rest_u
     # near the support as the clouds see it, and at the boundary on the full meshes: free, or
     # colliding by at most TRANSIT_DEEP (the deep ones, easy for the NCE, are dropped)
     oc, sc = clouds["object_points"], clouds["support_points"]
-    assert np.all(cloud_gap(oc, sc, transit) < TRANSIT_GAP)
+    assert np.all(observed_gap(oc, sc, transit) < TRANSIT_GAP)
     pen = planner.MeshChecker(scene).penetration(transit)
     assert pen.max() <= TRANSIT_DEEP + 1e-9
     assert 0.2 < (pen > 1e-3).mean() < 0.8  # both sides of the boundary
@@ -256,7 +257,13 @@ def test_transit_poses_are_near_the_support_at_the_boundary_and_leave_the_rest_u
     strided = oc[np.linspace(0, len(oc) - 1, 256).astype(int)]
     moved = planner.posed_points(transit[:5].astype(float), strided)
     brute = np.linalg.norm(moved[:, :, None] - sc[None, None], axis=-1).min(axis=(1, 2))
-    np.testing.assert_allclose(cloud_gap(oc, sc, transit[:5]), brute, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(observed_gap(oc, sc, transit[:5]), brute, rtol=1e-5, atol=1e-7)
+    # the upper bound: gaps at or beyond it come back as inf, the others unchanged
+    bounded = observed_gap(oc, sc, transit[:5], upper=float(np.median(brute)))
+    assert np.isinf(bounded).any() and np.isfinite(bounded).any()
+    np.testing.assert_allclose(
+        bounded[np.isfinite(bounded)], brute[np.isfinite(bounded)], rtol=1e-5
+    )
     fields = near_contact_labels(scene, stable, stable, seed=0, clouds=clouds)
     assert np.isfinite(fields["near_gap"]).all() and fields["near_version"] == 2
     assert np.isnan(near_contact_labels(scene, stable, stable, seed=0)["near_gap"]).all()
