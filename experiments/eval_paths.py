@@ -513,8 +513,17 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
     return checkers
 
 
-def evaluate_pair(case: PairCase, est: Estimators, config: planner.PlannerConfig, methods):
-    """Plan with each method and densely check what comes back. Returns (rows, paths)."""
+def evaluate_pair(
+    case: PairCase,
+    est: Estimators,
+    config: planner.PlannerConfig,
+    methods,
+    clearance: planner.ClearanceConfig | None = None,
+):
+    """Plan with each method and densely check what comes back. Returns (rows, paths).
+    ``clearance``: each estimator's returned path is moved away from the observed support
+    (``planner.clear_path`` with that method's checker) and the moved path is the one
+    returned; the path as planned is checked too (the row's ``raw_*`` keys)."""
     scene = case.scene
     weight = planner.object_radius(scene)
     bounds = planner.default_bounds(scene)
@@ -550,6 +559,21 @@ def evaluate_pair(case: PairCase, est: Estimators, config: planner.PlannerConfig
                 direction=retreat.direction.round(3).tolist(), length_m=retreat.length,
                 search_s=round(retreat.seconds, 3), states=retreat.states_checked,
             )  # fmt: skip
+        if res.path is not None and clearance is not None and name != "mesh":
+            free, deepest, _ = planner.dense_check(mesh, res.path, config.dense_resolution, weight)
+            cleared = planner.clear_path(
+                res.path, check, collision.subsample_cloud(case.object_points, FAR_CLEARANCE_POINTS, SUBSET_SEED_OBJECT),
+                case.support_points,
+                goal, weight, bounds, config.resolution, clearance, config.goal_radius,
+            )  # fmt: skip
+            row |= dict(
+                raw_collision_free=free, raw_deepest_m=round(deepest, 5),
+                raw_waypoints=len(res.path), clear_gap_before_m=round(cleared.gap_before, 5),
+                clear_gap_after_m=round(cleared.gap_after, 5), clear_moves=cleared.moves,
+                clear_removed=cleared.removed, clear_states=cleared.states_checked,
+                clear_s=round(cleared.seconds, 3),
+            )  # fmt: skip
+            res = res._replace(path=cleared.path)
         if res.path is not None:
             free, deepest, n = planner.dense_check(mesh, res.path, config.dense_resolution, weight)
             # would a denser check by the same estimator have caught it? (estimator misses
@@ -615,6 +639,27 @@ def summarise(rows: list[dict], methods=METHODS) -> dict:
             ),
             median_states_checked=float(np.median([r["states_checked"] for r in mine])),
         )
+        if (
+            mine
+            and all("raw_collision_free" in r for r in mine if r["returned"])
+            and any("raw_collision_free" in r for r in mine)
+        ):  # --clear-path: the same plans as returned by the planner, before clearing
+            raw = [r | dict(collision_free=r.get("raw_collision_free", False)) for r in mine]
+            entry["as_planned"] = {
+                k: v
+                for k, v in prf(raw).items()
+                if k in ("returned", "collision_free", "precision", "recall", "f1")
+            }
+            moved = [r for r in mine if r["returned"]]
+            entry["clearing"] = dict(
+                became_free=sum(r["collision_free"] and not r["raw_collision_free"] for r in moved),
+                became_colliding=sum(
+                    r["raw_collision_free"] and not r["collision_free"] for r in moved
+                ),
+                median_gap_before_m=float(np.median([r["clear_gap_before_m"] for r in moved])),
+                median_gap_after_m=float(np.median([r["clear_gap_after_m"] for r in moved])),
+                median_s=float(np.median([r["clear_s"] for r in moved])),
+            )
         bad = [r for r in mine if r["returned"] and not r["collision_free"]]
         if bad and all("estimator_dense_flags" in r for r in bad):
             # colliding paths whose states at the dense (ground-truth) spacing the estimator
@@ -778,6 +823,16 @@ def main(argv=None) -> dict:
         "finds no path (PlannerConfig.retreat_after; 0: the retreat first)",
     )  # fmt: skip
     parser.add_argument(
+        "--clear-path", type=float, default=0.0, metavar="M",
+        help="move each estimator's returned path away from the observed support, towards an "
+        "observed clearance of M where its checker allows (planner.clear_path; the path as "
+        "planned is checked too: the summary's as_planned); 0: off",
+    )  # fmt: skip
+    parser.add_argument(
+        "--clear-keep-ball", type=float, default=planner.ClearanceConfig.keep_ball, metavar="R",
+        help="with --clear-path: waypoints within R (planner metric) of the goal stay",
+    )  # fmt: skip
+    parser.add_argument(
         "--select-geometric",
         default=None,
         metavar="JSON",
@@ -869,6 +924,11 @@ def main(argv=None) -> dict:
         parser.error("--far-clearance must be >= 0, and with it --far-ball > 0")
     if not 0 <= args.retreat_after < args.time_limit:
         parser.error("--retreat-after must be in [0, --time-limit)")
+    if args.clear_path < 0 or args.clear_keep_ball < 0:
+        parser.error("--clear-path and --clear-keep-ball must be >= 0")
+    clearance = None
+    if args.clear_path > 0:
+        clearance = planner.ClearanceConfig(target=args.clear_path, keep_ball=args.clear_keep_ball)
     config = planner.PlannerConfig(
         time_limit=args.time_limit, goal_radius=args.goal_radius, resolution=args.resolution,
         retreat_lengths=retreat, retreat_after=args.retreat_after, seed=args.planner_seed,
@@ -900,7 +960,7 @@ def main(argv=None) -> dict:
         todo = [m for m in methods if (case.name, m) not in done]
         if not todo:
             continue
-        new_rows, paths = evaluate_pair(case, est, config, todo)
+        new_rows, paths = evaluate_pair(case, est, config, todo, clearance)
         for row in new_rows:
             row["goal_kind"] = kind
         with open(jsonl, "a") as f:
@@ -933,6 +993,7 @@ def main(argv=None) -> dict:
         far_clearance_m=est.far_clearance,
         far_ball_m=est.far_ball,
         retreat_lengths_m=list(config.retreat_lengths),
+        clear_path=None if clearance is None else dataclasses.asdict(clearance),
         goal="first stable pose of each held-out pair"
         if args.goal == "stable"
         else f"the where-to-hang pipeline's all-stages answer ({args.pairs_from})",

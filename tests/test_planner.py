@@ -499,6 +499,7 @@ def test_goal_ball_nce_and_the_hang_hybrid_checker():
         (["--planner-seed", "0"], "planner-seed"),
         (["--resolution", "0"], "resolution"),
         (["--far-clearance", "-0.001"], "far-clearance"),
+        (["--clear-path", "-0.01"], "clear-path"),
     ],
 )
 def test_eval_paths_refuses_bad_planner_settings(flags, message, capsys):
@@ -508,3 +509,70 @@ def test_eval_paths_refuses_bad_planner_settings(flags, message, capsys):
     with pytest.raises(SystemExit):
         main(["--weights", "weights/collision_s18_contact", "--pairs", "1", *flags])
     assert message in capsys.readouterr().err
+
+
+def _box_surface(lo, hi, n=30):
+    """Points on the faces of an axis-aligned box (an observed support cloud)."""
+    g = np.linspace(0, 1, n)
+    u, v = np.meshgrid(g, g)
+    u, v = u.ravel(), v.ravel()
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pts = []
+    for axis in range(3):
+        a, b = [i for i in range(3) if i != axis]
+        for side in (lo[axis], hi[axis]):
+            p = np.zeros((len(u), 3))
+            p[:, axis] = side
+            p[:, a] = lo[a] + u * (hi[a] - lo[a])
+            p[:, b] = lo[b] + v * (hi[b] - lo[b])
+            pts.append(p)
+    return np.concatenate(pts)
+
+
+def _clearance_along(path, support, weight=0.05):
+    dense = planner.interpolate_path(path, 0.002, weight)
+    from scipy.spatial import cKDTree
+
+    return cKDTree(support).query(dense[:, :3])[0], dense
+
+
+def test_clear_path_moves_a_grazing_path_away_and_keeps_it_free_and_its_ends():
+    """A straight path 1 cm over a box (the support) is lifted towards the target clearance:
+    the ends and the goal's neighbourhood stay, every state stays free for the checker, and
+    the observed clearance along the path grows."""
+    lo, hi = (-0.1, -0.1, -0.1), (0.1, 0.1, 0.1)
+    checker = planner.AnalyticChecker([(lo, hi)], radius=0.005)
+    support = _box_surface(lo, hi)
+    q = [1.0, 0, 0, 0]
+    start, goal = np.array([0, -0.3, 0.11, *q]), np.array([0, 0.3, 0.11, *q])
+    path = np.stack([start, goal])
+    bounds = (np.full(3, -0.5), np.full(3, 0.5))
+    cfg = planner.ClearanceConfig(target=0.04, keep_ball=0.05)
+    out = planner.clear_path(path, checker, np.zeros((1, 3)), support, goal, 0.05, bounds,
+                             0.005, cfg)  # fmt: skip
+    before, _ = _clearance_along(path, support)
+    after, dense = _clearance_along(out.path, support)
+    assert np.allclose(out.path[0], start) and np.allclose(out.path[-1], goal)
+    assert not checker(dense).any()
+    assert before.min() < 0.0125 and out.gap_before < 0.0125
+    over_box = np.abs(dense[:, 1]) < 0.1  # the part above the box, far from both ends
+    assert after[over_box].min() > 0.035 and out.gap_after > 0.035
+    assert out.moves > 0 and out.removed > 0  # lifted, then the straight stretches merged
+    near_goal = planner.goal_distances(out.path, goal, 0.05) <= 0.05
+    assert np.all(out.path[near_goal, 2] == pytest.approx(0.11))  # the goal ball untouched
+
+
+def test_clear_path_never_pushes_into_what_the_checker_blocks():
+    """A ceiling 3 cm over the box: the path rises only as far as the checker allows."""
+    lo, hi = (-0.1, -0.1, -0.1), (0.1, 0.1, 0.1)
+    ceiling = ((-0.2, -0.2, 0.13), (0.2, 0.2, 0.2))
+    checker = planner.AnalyticChecker([(lo, hi), ceiling], radius=0.005)
+    support = _box_surface(lo, hi)  # the ceiling is not observed: only the checker knows it
+    q = [1.0, 0, 0, 0]
+    start, goal = np.array([0, -0.3, 0.11, *q]), np.array([0, 0.3, 0.11, *q])
+    bounds = (np.full(3, -0.5), np.full(3, 0.5))
+    out = planner.clear_path(np.stack([start, goal]), checker, np.zeros((1, 3)), support, goal,
+                             0.05, bounds, 0.005, planner.ClearanceConfig(target=0.05))  # fmt: skip
+    _, dense = _clearance_along(out.path, support)
+    assert not checker(dense).any()
+    assert out.moves > 0 and 0.012 < out.gap_after < 0.025
