@@ -44,6 +44,11 @@ def main(argv=None) -> dict:
         "the facts' 5 with --proposals 5)",
     )  # fmt: skip
     parser.add_argument("--rounds", type=int, default=1, help="CEM rounds (1 = facts)")
+    parser.add_argument(
+        "--stage1-rounds", type=int, default=None, metavar="N",
+        help="CEM rounds of the Stage-1 starts only (default: --rounds); e.g. 2 widens the "
+        "Stage-1 starts' reach to +-4 cm while the Stage-2 starts keep one round",
+    )  # fmt: skip
     parser.add_argument("--batch", type=int, default=16, help="pairs per network call")
     parser.add_argument("--workers", type=int, default=0, help="simulation processes")
     parser.add_argument(
@@ -89,6 +94,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--label", default="")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    if args.rounds < 1 or (args.stage1_rounds is not None and args.stage1_rounds < 1):
+        parser.error("--rounds and --stage1-rounds must be >= 1")
     dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(args.data)
     files = dataset_bridge.derived_files(derived_dir, args.split)
     if args.pairs_from:
@@ -121,10 +128,12 @@ def main(argv=None) -> dict:
         progress=not args.no_progress, stage2_clearance=args.stage2_clearance, select=select,
         pool_starts=args.pool_starts, rank_value_dirs=rank_values, seed=args.seed,
         rank_with_value=args.rank_with_value,
+        cem_stage1=None if args.stage1_rounds is None else CEMConfig(rounds=args.stage1_rounds),
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
-                   cem_rounds=args.rounds, num_proposals=args.proposals, seed=args.seed,
+                   cem_rounds=args.rounds, cem_rounds_stage1=args.stage1_rounds,
+                   num_proposals=args.proposals, seed=args.seed,
                    stage2_clearance_m=args.stage2_clearance,
                    select=dataclasses.asdict(select),
                    pool_starts=args.pool_starts, rank_values=rank_values,

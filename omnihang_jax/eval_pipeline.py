@@ -80,6 +80,7 @@ def evaluate_pipeline(
     pool_starts: bool = False,
     rank_value_dirs: Sequence[str | os.PathLike] = (),
     rank_with_value: bool = True,
+    cem_stage1: stage3.CEMConfig | None = None,
 ) -> tuple[list[dict], dict]:
     """Run Stages 1-3 on every pair file and simulate every candidate. Returns (records,
     timings). ``stage2_clearance`` (m): replaces the model's ``Stage2Config.clearance`` (None:
@@ -96,7 +97,8 @@ def evaluate_pipeline(
     (``stage3.make_ensemble_score``, as ``PipelineConfig.rank_values``), and each record also
     holds every candidate's V under each of them (``v_rank``); ``v`` stays the CEM's V and
     ``all_stages_paper`` its highest V. ``rank_with_value=False``: the ``rank_value_dirs``
-    rank alone, without the CEM's V (``PipelineConfig.rank_with_value``)."""
+    rank alone, without the CEM's V (``PipelineConfig.rank_with_value``). ``cem_stage1``: the
+    CEM of the Stage-1 starts when it differs from ``cem`` (e.g. more rounds there only)."""
     from omnihang_jax.predict import load_predictor, load_rank_values
     from sim import kernels
 
@@ -105,6 +107,9 @@ def evaluate_pipeline(
     predictor = load_predictor(weights, stage2_overrides=overrides)
     value_config, value_params = refine.load_value(value_dir)
     refine_fn = jax.jit(stage3.make_refiner(value_config, cem))
+    refine_fn1 = refine_fn
+    if cem_stage1 is not None and cem_stage1 != cem:
+        refine_fn1 = jax.jit(stage3.make_refiner(value_config, cem_stage1))
     value_fn = jax.jit(stage3.make_value(value_config).value)
     rank_configs, rank_params = load_rank_values(rank_value_dirs)
     ensemble_fn = jax.jit(stage3.make_ensemble_score(rank_configs, rank_with_value))
@@ -155,7 +160,7 @@ def evaluate_pipeline(
         small = stage3.subsample_clouds(jax.tree.map(jnp.asarray, full), value_config)
         r2 = refine_fn(value_params, jax.random.fold_in(key, 2 * i + 1), small,
                        jnp.asarray(pred.stage2_poses))  # fmt: skip
-        r1 = refine_fn(value_params, jax.random.fold_in(key, 2 * i + 2), small,
+        r1 = refine_fn1(value_params, jax.random.fold_in(key, 2 * i + 2), small,
                        jnp.asarray(pred.stage1_poses))  # fmt: skip
         # the answers: the rule over the refined candidates' final V and inside counts
         fullj = jax.tree.map(jnp.asarray, full)

@@ -289,3 +289,26 @@ def test_hang_stage2_clearance_option(monkeypatch):
     cands = H.stages_where(predictor, 2, None)(obj, sup, 0)
     assert len(cands.poses) == 4
     np.testing.assert_array_equal(got["normals"], sup.normals[None])
+
+
+def test_evaluate_pipeline_stage1_rounds_change_only_the_stage1_starts(monkeypatch):
+    """``cem_stage1`` (eval_stage3 --stage1-rounds): a second CEM round for the Stage-1
+    starts moves their refined candidates; the Stage-2 starts' stay exactly as with one."""
+    from omnihang_jax import stage3
+
+    monkeypatch.setattr(predict, "load_predictor", _fake_load_predictor([]))
+    monkeypatch.setattr(refine, "load_value", _fake_load_value)
+    monkeypatch.setattr(refine, "Labeller", _FakeLabeller)
+    monkeypatch.setattr(dataset_bridge, "load_pair_file", _fake_pair)
+    k = 2
+    runs = {}
+    for rounds in (None, 2):
+        records, _ = eval_pipeline.evaluate_pipeline(
+            ["00003_x.npz"], "W", "V", "D", num_proposals=k, batch=1, progress=False,
+            cem_stage1=None if rounds is None else stage3.CEMConfig(rounds=rounds),
+        )  # fmt: skip
+        runs[rounds] = np.asarray(records[0]["poses_all"])
+    one, two = runs[None], runs[2]
+    np.testing.assert_array_equal(one[: 2 * k], two[: 2 * k])  # the proposals themselves
+    np.testing.assert_array_equal(one[3 * k : 4 * k], two[3 * k : 4 * k])  # Stage-2 starts
+    assert not np.allclose(one[2 * k : 3 * k], two[2 * k : 3 * k])  # Stage-1 starts moved
