@@ -89,12 +89,27 @@ def pipeline_table(rows, k, values, names) -> list[dict]:
     return out
 
 
+PESSIMISM = (0.25, 0.5, 1.0)  # lambda of "mean - lambda sd" over the ranking networks
+
+
 def combinations(values: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
-    """Each V alone, and the mean of P and of log P over all of them ([N, P] each)."""
+    """Each V alone, and the mean of P and of log P over all of them ([N, P] each). With two
+    or more ranking networks beside the run's V (values[1:], the pipeline's ranking since the
+    twentieth session): their mean log P, and pessimistic combinations of their log P (the
+    smallest, the median, the mean minus ``lambda`` standard deviations for each of
+    :data:`PESSIMISM`): a candidate the networks disagree on ranks lower (twenty-fourth
+    session: CEM pushed harder finds poses some networks overrate)."""
     combos = {name: v for name, v in zip(names, values, strict=True)}
     if len(values) > 1:
         combos["mean V"] = values.mean(0)
         combos["mean log V"] = np.exp(np.log(np.clip(values, 1e-12, 1.0)).mean(0))
+    if len(values) > 2:
+        logs = np.log(np.clip(values[1:], 1e-12, 1.0))
+        combos["rankers: mean log V"] = np.exp(logs.mean(0))
+        combos["rankers: min log V"] = np.exp(logs.min(0))
+        combos["rankers: median log V"] = np.exp(np.median(logs, 0))
+        for lam in PESSIMISM:
+            combos[f"rankers: mean - {lam} sd log V"] = np.exp(logs.mean(0) - lam * logs.std(0))
     return combos
 
 

@@ -223,3 +223,26 @@ def test_committed_cem_value_loads_beside_the_ranking_networks():
         plain = dataclasses.replace(c, support_near=0, object_near=0)
         assert plain == config, folder
     assert stage3.CEM_VALUE not in stage3.RANK_VALUES
+
+
+def test_pessimistic_combinations_over_the_ranking_networks():
+    """With the run's V and two or more ranking networks, the combinations include the
+    networks' own mean log V, their smallest and the mean minus lambda sd: a candidate the
+    networks disagree on ranks below one they agree on at the same mean."""
+    from experiments import ensemble_stage3
+
+    run_v = np.full((1, 2), 0.5)
+    agree = np.array([[0.4, 0.4, 0.4]]).T  # candidate 0: every network says 0.4
+    spread = np.array([[0.1, 0.4, 0.9]]).T  # candidate 1: they disagree
+    nets = np.concatenate([agree, spread], axis=1)[:, None, :]  # [3, 1, 2]
+    values = np.concatenate([run_v[None], nets])  # [4, 1, 2]
+    combos = ensemble_stage3.combinations(values, ["run", "a", "b", "c"])
+    assert {"rankers: mean log V", "rankers: min log V", "rankers: median log V"} <= set(combos)
+    for lam in ensemble_stage3.PESSIMISM:
+        assert f"rankers: mean - {lam} sd log V" in combos
+    logs = np.log(nets[:, 0])
+    np.testing.assert_allclose(combos["rankers: mean log V"][0], np.exp(logs.mean(0)))
+    np.testing.assert_allclose(combos["rankers: min log V"][0], [0.4, 0.1])
+    sd = combos["rankers: mean - 1.0 sd log V"][0]
+    assert sd[0] == pytest.approx(0.4) and sd[1] < np.exp(logs[:, 1].mean())
+    assert "rankers: min log V" not in ensemble_stage3.combinations(values[:2], ["r", "a"])
