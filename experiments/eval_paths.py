@@ -873,6 +873,17 @@ def main(argv=None) -> dict:
     parser.add_argument("--figure", default=None, help="strip-of-frames PNG")
     parser.add_argument("--figure-paths", type=int, default=4)
     parser.add_argument("--workers", type=int, default=1, help="derive processes")
+    parser.add_argument(
+        "--summary-only", action="store_true",
+        help="plan nothing: the summary of the rows already in OUT/pairs.jsonl (after --shard "
+        "runs; pairs without rows are left out and counted as missing_pairs)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--shard", default=None, metavar="I/N",
+        help="plan only every N-th pair from the I-th (0-based) into OUT/pairs.jsonl and write "
+        "no summary: N processes plan one run together (scripts/device_paths.sh); a run "
+        "without --shard afterwards plans nothing new and writes the summary",
+    )  # fmt: skip
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     geo = collision.GeometricConfig()
@@ -924,6 +935,13 @@ def main(argv=None) -> dict:
         parser.error("--far-clearance must be >= 0, and with it --far-ball > 0")
     if not 0 <= args.retreat_after < args.time_limit:
         parser.error("--retreat-after must be in [0, --time-limit)")
+    shard = None
+    if args.shard is not None:
+        try:
+            shard = tuple(int(x) for x in args.shard.split("/"))
+            assert len(shard) == 2 and 0 <= shard[0] < shard[1]
+        except (ValueError, AssertionError):
+            parser.error(f"--shard {args.shard!r}: I/N with 0 <= I < N")
     if args.clear_path < 0 or args.clear_keep_ball < 0:
         parser.error("--clear-path and --clear-keep-ball must be >= 0")
     clearance = None
@@ -956,7 +974,10 @@ def main(argv=None) -> dict:
     done = {(r["pair"], r["method"]) for r in rows}
     figure_items = []
     t0 = time.time()
-    for case in tqdm(cases, desc="plan", unit="pair", disable=args.no_progress):
+    mine = cases if shard is None else cases[shard[0] :: shard[1]]
+    if args.summary_only:
+        mine = []
+    for case in tqdm(mine, desc="plan", unit="pair", disable=args.no_progress):
         todo = [m for m in methods if (case.name, m) not in done]
         if not todo:
             continue
@@ -973,10 +994,17 @@ def main(argv=None) -> dict:
             (out / "scenes" / case.name).mkdir(exist_ok=True)
             (out / "scenes" / case.name / f"{method}.xml").write_text(xml)
             np.save(out / "scenes" / case.name / f"{method}_path.npy", path)
+    if shard is not None:
+        print(f"shard {args.shard}: {len(mine)} of {len(cases)} pairs planned into {jsonl}")
+        return {}
     names = {c.name for c in cases}
     latest = {(r["pair"], r["method"]): r for r in rows}  # a resumed run: the last row counts
     rows = [r for r in latest.values() if r["pair"] in names and r["method"] in methods]
     summary = summarise(rows, methods)
+    missing = sorted(names - {r["pair"] for r in rows})
+    if missing:  # only with --summary-only (or --shard runs cut short): say so
+        print(f"{len(missing)} of {len(names)} pairs have no rows in {jsonl}: left out")
+        summary["missing_pairs"] = missing
     summary["settings"] = dict(
         planner=dataclasses.asdict(config),
         weights=args.weights,

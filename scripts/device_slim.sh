@@ -92,6 +92,14 @@ if [ -n "${MORE:-}" ]; then
         results/cross_engine*.json results/*judges* results/validation_pairs_all.jsonl \
         results/dataset_card.json results/stage3_train_chain; do LIST+=("$f"); done
 fi
+# PATHS=1 (twenty-fourth session; device_paths.sh): as NCE=1, and the best hybrid's selection
+# file stays too
+if [ -n "${PATHS:-}" ]; then
+    NCE=1
+    KEEP=()
+    for p in "${LIST[@]}"; do [ "$p" = results/paths_hybrid_s18_joint95_selection.json ] || KEEP+=("$p"); done
+    LIST=("${KEEP[@]}")
+fi
 # NCE=1 (twenty-third session; device_nce.sh calls seeded from the contact NCE): the contact
 # NCE's weights stay, the pipeline's weights go aside (no NCE call reads them)
 if [ -n "${NCE:-}" ]; then

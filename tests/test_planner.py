@@ -500,6 +500,7 @@ def test_goal_ball_nce_and_the_hang_hybrid_checker():
         (["--resolution", "0"], "resolution"),
         (["--far-clearance", "-0.001"], "far-clearance"),
         (["--clear-path", "-0.01"], "clear-path"),
+        (["--shard", "2/2"], "shard"),
     ],
 )
 def test_eval_paths_refuses_bad_planner_settings(flags, message, capsys):
