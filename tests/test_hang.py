@@ -366,6 +366,7 @@ def test_hang_plans_with_the_hybrid_checker_of_the_best_planner():
     assert settings.far_threshold == chosen["nce_threshold"]
     assert settings.geometric.depth == chosen["depth"]
     assert (settings.near_threshold, settings.goal_ball) == (0.99, 0.02)
+    assert (H.HYBRID["clear_target"], H.HYBRID["clear_keep_ball"]) == (0.03, 0.045)
     assert H.hybrid_settings(Path("weights/collision_s16_planner/nce"))[0] is None
     if H.find_collision_weights() == Path(H.HYBRID["weights"]) / "nce":
         how, text = H.planner_how(5.0)
