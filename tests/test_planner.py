@@ -577,3 +577,28 @@ def test_clear_path_never_pushes_into_what_the_checker_blocks():
     _, dense = _clearance_along(out.path, support)
     assert not checker(dense).any()
     assert out.moves > 0 and 0.012 < out.gap_after < 0.025
+
+
+def test_eval_paths_summary_pairs_cleared_paths_with_the_plans_as_returned():
+    """--clear-path rows carry the plan as returned (raw_*): the summary gives both figures
+    and how many outcomes clearing changed each way."""
+    from experiments.eval_paths import summarise
+
+    def row(i, returned, raw_free=None, free=False):
+        r = dict(pair=f"p{i}", method="nce_geometric", object_category="mug", returned=returned,
+                 collision_free=free, planning_s=1.0, status="Exact solution" if returned else
+                 "Approximate solution", start_called_colliding=False, goal_called_colliding=False,
+                 states_checked=10)  # fmt: skip
+        if returned:
+            r |= dict(deepest_m=0.0 if free else 0.003, raw_collision_free=raw_free,
+                      raw_deepest_m=0.0, clear_gap_before_m=0.005, clear_gap_after_m=0.02,
+                      clear_s=1.0)  # fmt: skip
+        return r
+
+    rows = [row(0, True, False, True), row(1, True, True, True), row(2, True, True, False),
+            row(3, True, False, True), row(4, False)]  # fmt: skip
+    s = summarise(rows, methods=("nce_geometric",))["nce_geometric"]
+    assert (s["returned"], s["collision_free"]) == (4, 3)
+    assert (s["as_planned"]["returned"], s["as_planned"]["collision_free"]) == (4, 2)
+    assert s["clearing"]["became_free"] == 2 and s["clearing"]["became_colliding"] == 1
+    assert s["clearing"]["median_gap_after_m"] == 0.02
