@@ -562,9 +562,8 @@ def evaluate_pair(
         if res.path is not None and clearance is not None and name != "mesh":
             free, deepest, _ = planner.dense_check(mesh, res.path, config.dense_resolution, weight)
             cleared = planner.clear_path(
-                res.path, check, collision.subsample_cloud(case.object_points, FAR_CLEARANCE_POINTS, SUBSET_SEED_OBJECT),
-                case.support_points,
-                goal, weight, bounds, config.resolution, clearance, config.goal_radius,
+                res.path, check, case.object_points, case.support_points, goal, weight, bounds,
+                config.resolution, clearance, config.goal_radius,
             )  # fmt: skip
             row |= dict(
                 raw_collision_free=free, raw_deepest_m=round(deepest, 5),

@@ -889,7 +889,6 @@ HYBRID = dict(
     clear_target=0.03,
     clear_keep_ball=0.045,
 )
-CLEAR_POINTS = 512  # observed object points that measure the clearance (eval_paths' subsample)
 
 
 def hybrid_settings(nce_folder) -> tuple[Any, str]:
@@ -995,11 +994,9 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
             nce_checker.warm_up(128)
             path, info = attempt(nce_checker, name)
             if path is not None and hybrid is not None:
-                from omnihang_jax.collision import subsample_cloud
-
                 cleared = planner.clear_path(
-                    path, nce_checker, subsample_cloud(obj.points, CLEAR_POINTS, 0), sup.points,
-                    pose, radius, bounds, config.resolution,
+                    path, nce_checker, obj.points, sup.points, pose, radius, bounds,
+                    config.resolution,
                     planner.ClearanceConfig(target=HYBRID["clear_target"],
                                             keep_ball=HYBRID["clear_keep_ball"]),
                     config.goal_radius,

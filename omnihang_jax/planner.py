@@ -678,6 +678,7 @@ class ClearanceConfig:
     spacing: float = 0.02  # m (planner metric): the path subdivided first, waypoints this apart
     shortcut: bool = True  # drop waypoints whose neighbours connect without losing clearance
     band: float = 0.005  # m: object points this near the smallest gap set the push direction
+    object_points: int = 512  # observed object points (a fixed subsample, seed 0) measure gaps
 
 
 class ClearedPath(NamedTuple):
@@ -712,7 +713,8 @@ def clear_path(
     """``path`` (a plan's waypoints, start ... goal) moved away from the observed support:
     subdivided to ``config.spacing``; then, in rounds, every waypoint farther than
     ``config.keep_ball`` from the goal (start excluded) whose observed clearance (the posed
-    ``object_points`` [N, 3], object frame, to ``support_points`` [M, 3]) is below
+    observed object cloud [N, 3], object frame, ``config.object_points`` of it, to
+    ``support_points`` [M, 3]) is below
     ``config.target`` is pushed ``config.step`` along the direction that opens its smallest
     gap (orientation kept). A push is kept only when it opens the gap, stays in ``bounds`` and
     ``checker`` calls both edges to its neighbours free at ``resolution`` (odd and even
@@ -722,11 +724,13 @@ def clear_path(
     States within ``goal_radius`` of the goal are not checked, as in :func:`plan`."""
     from scipy.spatial import cKDTree
 
+    from omnihang_jax.collision import subsample_cloud
+
     t0 = time.perf_counter()
     cfg = config
     goal = np.asarray(goal, float)
     lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
-    obj = np.asarray(object_points, float)
+    obj = subsample_cloud(np.asarray(object_points, float), cfg.object_points, 0)
     sup = np.asarray(support_points, float)
     tree = cKDTree(sup)
     upper = cfg.target + cfg.band + 0.01  # gaps beyond this need no push: inf is enough
@@ -808,8 +812,11 @@ def clear_path(
                 continue
             old = np.concatenate([edge_states(p[i], p[i + 1]), edge_states(p[i + 1], p[j])])
             new = edge_states(p[i], p[j])
-            need = min(cfg.target, float(gaps_dirs(old)[0].min()))
-            if float(gaps_dirs(new)[0].min()) >= need and edges_free([(p[i], p[j])])[0]:
+            need = min(cfg.target, float(cloud_gap(obj, tree, old, upper).min()))
+            if (
+                float(cloud_gap(obj, tree, new, upper).min()) >= need
+                and edges_free([(p[i], p[j])])[0]
+            ):
                 keep[i + 1] = False
                 p = p[keep]
                 movable, gap = movable[keep], gap[keep]

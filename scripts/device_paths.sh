@@ -2,7 +2,8 @@
 # Issue 13 on the device machine's CPU cores (twenty-fourth session): experiments.eval_paths runs
 # planned by SHARDS processes at once (`eval_paths --shard I/N`), each pinned to CORES cores with
 # JAX on the CPU, as one run plans on the 2-core VM; the variants one after another, side by side
-# in one call. A planning variant takes ~27 min on the VM and ~4 min here with 8 shards.
+# in one call. An 80-pair variant with --clear-path took ~32 min on the VM and ~9 min here with
+# 8 shards (each process at about half the VM's speed: compare device runs with each other).
 #
 #   python scripts/slim_path_records.py results/hanging_success_stage3_s14_cemv.pairs.jsonl.gz \
 #       out/paths_records.jsonl.gz
