@@ -190,3 +190,44 @@ def default_eyes(scene: Scene, rng: np.random.Generator, config: CameraConfig = 
         front_only=scene.support.wall_y is not None,
     )
     return obj_eye, sup_eye
+
+
+def sphere_directions(n: int) -> np.ndarray:
+    """[n, 3] unit vectors spread evenly on the sphere (Fibonacci lattice), deterministic."""
+    if n < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = np.pi * (1.0 + 5**0.5) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def surface_cloud(
+    scene: Scene,
+    which: str,
+    rng: np.random.Generator,
+    config: CameraConfig = CameraConfig(),
+    n_dirs: int = 42,
+    n_points: int = 2048,
+    voxel: float = 0.002,
+) -> np.ndarray:
+    """The body's whole visible-from-outside surface as ``n_points`` points (the frame of
+    :func:`partial_cloud`): the union of its clouds from ``n_dirs`` cameras spread over the
+    whole sphere (behind a support's wall too: the wall is never drawn), thinned to one point
+    per ``voxel`` cell (so overlapping views do not weigh more), then sampled. The target of
+    shape completion (``omnihang_jax.completion``)."""
+    ext = scene.obj.extents if which == "object" else scene.support.extents
+    radius = camera_distance(float(np.linalg.norm(ext)) / 2, config)
+    pts = []
+    for d in sphere_directions(n_dirs):
+        dist, _, dirs, _ = render_depth(scene, which, radius * d, np.zeros(3), config)
+        hit = dist.ravel() > 0
+        pts.append(radius * d + dist.ravel()[hit, None] * dirs.reshape(-1, 3)[hit])
+    pts = np.concatenate(pts)
+    if len(pts) == 0:
+        raise ValueError(f"no camera sees the {which} of {scene.model.names[:40]!r}")
+    _, keep = np.unique(np.floor(pts / voxel).astype(np.int64), axis=0, return_index=True)
+    pts = pts[keep]
+    idx = rng.choice(len(pts), n_points, replace=len(pts) < n_points)
+    return pts[idx].astype(np.float32)
