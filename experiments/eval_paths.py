@@ -86,6 +86,10 @@ class PairCase(NamedTuple):
     support_points: np.ndarray  # [M, 3]
     support_normals: np.ndarray  # [M, 3]
     goal: np.ndarray  # [7]
+    # --completion (twenty-fifth session): the completion networks' predicted points of each
+    # body (object frame / support frame), None without
+    predicted_object: np.ndarray | None = None
+    predicted_support: np.ndarray | None = None
 
 
 class Answer(NamedTuple):
@@ -210,6 +214,9 @@ class Estimators(NamedTuple):
     # observed clouds beyond far_ball of the goal (planner.ClearanceFarFromGoal)
     far_clearance: float = 0.0
     far_ball: float = 0.0
+    # with --completion: where the completed clouds replace the observed ones ("clear": the
+    # returned path's clearing, "far": the clearance far from the goal)
+    completion_in: tuple[str, ...] = ()
 
 
 def load_estimators(
@@ -441,6 +448,28 @@ def select_geometric(
 FAR_CLEARANCE_POINTS = 512  # object points of planner.ClearanceFarFromGoal (--far-clearance)
 
 
+def completed(case: PairCase, n_observed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(object, support) clouds for the clearance tests with --completion: a fixed subset of
+    ``n_observed`` observed object points plus ``n_observed`` of the predicted ones (the
+    planner's seeds), and the whole observed support cloud plus its predicted points."""
+    sub = collision.subsample_cloud
+    obj = np.concatenate([sub(case.object_points, n_observed, SUBSET_SEED_OBJECT),
+                          sub(case.predicted_object, n_observed, SUBSET_SEED_OBJECT)])  # fmt: skip
+    return obj, np.concatenate([case.support_points, case.predicted_support])
+
+
+def add_completion(cases: list[PairCase], folder: str) -> list[PairCase]:
+    """The cases with the completion networks' predicted points (``omnihang_jax.completion``)."""
+    from omnihang_jax import completion
+
+    nets = {k: completion.load_completion(Path(folder) / k)[:2] for k in completion.KINDS}
+    out = []
+    for case in cases:
+        po, ps = completion.predict_points(nets, case.object_points, case.support_points)
+        out.append(case._replace(predicted_object=po, predicted_support=ps))
+    return out
+
+
 def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METHODS) -> dict:
     """The checkers of one pair. The HCEs' support normals do not depend on the pose:
     predicted once per pair (``collision.hce_collides`` computes the same per call); nor does
@@ -500,11 +529,15 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
             test = planner.ExemptNearGoal(test, case.goal, est.test_goal_ball, weight)
         checkers["nce_geometric"] = planner.CascadeChecker(test, nce)
     if est.far_ball > 0 and est.far_clearance > 0:  # the clearance first, far from the goal
-        clear = planner.ClearanceFarFromGoal(
+        obj, sup = (
             sub(case.object_points, FAR_CLEARANCE_POINTS, SUBSET_SEED_OBJECT),
-            case.support_points, case.goal, est.far_ball, est.far_clearance,
-            planner.object_radius(case.scene),
-        )  # fmt: skip
+            case.support_points,
+        )
+        if "far" in est.completion_in and case.predicted_object is not None:
+            obj, sup = completed(case, FAR_CLEARANCE_POINTS)
+        clear = planner.ClearanceFarFromGoal(
+            obj, sup, case.goal, est.far_ball, est.far_clearance, planner.object_radius(case.scene)
+        )
         for name in ("nce", "nce_geometric"):
             if name in checkers:
                 checkers[name] = planner.CascadeChecker(clear, checkers[name])
@@ -561,9 +594,13 @@ def evaluate_pair(
             )  # fmt: skip
         if res.path is not None and clearance is not None and name != "mesh":
             free, deepest, _ = planner.dense_check(mesh, res.path, config.dense_resolution, weight)
+            obj, sup, cfg = case.object_points, case.support_points, clearance
+            if "clear" in est.completion_in and case.predicted_object is not None:
+                obj, sup = completed(case, clearance.object_points)
+                cfg = dataclasses.replace(clearance, object_points=len(obj))
             cleared = planner.clear_path(
-                res.path, check, case.object_points, case.support_points, goal, weight, bounds,
-                config.resolution, clearance, config.goal_radius,
+                res.path, check, obj, sup, goal, weight, bounds, config.resolution, cfg,
+                config.goal_radius,
             )  # fmt: skip
             row |= dict(
                 raw_collision_free=free, raw_deepest_m=round(deepest, 5),
@@ -832,6 +869,17 @@ def main(argv=None) -> dict:
         help="with --clear-path: waypoints within R (planner metric) of the goal stay",
     )  # fmt: skip
     parser.add_argument(
+        "--completion", default=None, metavar="FOLDER",
+        help="shape-completion networks (FOLDER/object, FOLDER/support; experiments."
+        "train_completion): their predicted points are added to the observed clouds where "
+        "--completion-in says",
+    )  # fmt: skip
+    parser.add_argument(
+        "--completion-in", default="clear", metavar="WHERE",
+        help="with --completion, comma-separated: clear (the returned path's clearing, "
+        "--clear-path), far (the clearance far from the goal, --far-clearance)",
+    )  # fmt: skip
+    parser.add_argument(
         "--select-geometric",
         default=None,
         metavar="JSON",
@@ -943,6 +991,9 @@ def main(argv=None) -> dict:
             parser.error(f"--shard {args.shard!r}: I/N with 0 <= I < N")
     if args.clear_path < 0 or args.clear_keep_ball < 0:
         parser.error("--clear-path and --clear-keep-ball must be >= 0")
+    completion_in = tuple(x for x in args.completion_in.split(",") if x) if args.completion else ()
+    if set(completion_in) - {"clear", "far"}:
+        parser.error(f"--completion-in {args.completion_in!r}: clear and/or far")
     clearance = None
     if args.clear_path > 0:
         clearance = planner.ClearanceConfig(target=args.clear_path, keep_ball=args.clear_keep_ball)
@@ -960,11 +1011,14 @@ def main(argv=None) -> dict:
         test_goal_ball=args.test_goal_ball,
         far_clearance=args.far_clearance,
         far_ball=args.far_ball if args.far_clearance > 0 else 0.0,
+        completion_in=completion_in,
     )
     records = read_answers(args.pairs_from) if args.pairs_from else None
     cases = load_pairs(
         args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer"
     )
+    if args.completion:
+        cases = add_completion(cases, args.completion)
     jsonl = out / "pairs.jsonl"
     rows = [json.loads(x) for x in jsonl.read_text().splitlines()] if jsonl.exists() else []
     # a resumed run reuses only rows planned to the same kind of goal (older rows: stable)
@@ -1019,6 +1073,8 @@ def main(argv=None) -> dict:
         test_goal_ball_m=est.test_goal_ball,
         far_clearance_m=est.far_clearance,
         far_ball_m=est.far_ball,
+        completion=args.completion,
+        completion_in=list(completion_in),
         retreat_lengths_m=list(config.retreat_lengths),
         clear_path=None if clearance is None else dataclasses.asdict(clearance),
         goal="first stable pose of each held-out pair"

@@ -409,23 +409,36 @@ def plot_history(history, png, title: str) -> None:
     plt.close(fig)
 
 
-def completed_clouds(folder_or_nets, object_points, support_points, seed: int = 0):
-    """(object cloud, support cloud) observed + predicted, each in its own frame, from a
-    folder holding ``object/`` and ``support/`` networks (or a dict kind -> (config, params))."""
-    nets = folder_or_nets
-    if not isinstance(nets, dict):
-        nets = {k: load_completion(Path(folder_or_nets) / k)[:2] for k in KINDS}
+def _nets(folder_or_nets) -> dict:
+    if isinstance(folder_or_nets, dict):
+        return folder_or_nets
+    return {k: load_completion(Path(folder_or_nets) / k)[:2] for k in KINDS}
+
+
+def predict_points(folder_or_nets, object_points, support_points, seed: int = 0):
+    """(predicted object points [M, 3], predicted support points [M, 3]), each in its cloud's
+    frame, from a folder holding ``object/`` and ``support/`` networks (or a dict kind ->
+    (config, params)). Each network sees a fixed random ``n_input`` subset (``seed``) of its
+    observed cloud. Raises ``ValueError`` for an empty or non-finite cloud."""
+    nets = _nets(folder_or_nets)
     out = []
     for kind, pts in (("object", object_points), ("support", support_points)):
         pts = np.asarray(pts, np.float32)
         if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or not np.all(np.isfinite(pts)):
-            raise ValueError(f"the {kind} cloud must be finite [N>0, 3], got {pts.shape}")
+            raise ValueError(f"the {kind} cloud must be finite [N>0, 3], got {pts.shape}"
+                             + ("" if pts.ndim != 2 or np.all(np.isfinite(pts)) else " with NaN/inf"))  # fmt: skip
         config, params = nets[kind]
         rng = np.random.default_rng(seed)
         sub = pts[rng.choice(len(pts), config.n_input, replace=len(pts) < config.n_input)]
-        pred = np.asarray(_complete_cached(config)(params, sub[None]))[0]
-        out.append(np.concatenate([pts, pred]))
+        out.append(np.asarray(_complete_cached(config)(params, sub[None]))[0])
     return tuple(out)
+
+
+def completed_clouds(folder_or_nets, object_points, support_points, seed: int = 0):
+    """(object cloud, support cloud), each observed + predicted (:func:`predict_points`)."""
+    po, ps = predict_points(folder_or_nets, object_points, support_points, seed)
+    return (np.concatenate([np.asarray(object_points, np.float32), po]),
+            np.concatenate([np.asarray(support_points, np.float32), ps]))  # fmt: skip
 
 
 _COMPLETE: dict = {}
