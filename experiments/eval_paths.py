@@ -876,7 +876,7 @@ def main(argv=None) -> dict:
     )  # fmt: skip
     parser.add_argument(
         "--completion-in", default="clear", metavar="WHERE",
-        help="with --completion, comma-separated: clear (the returned path's clearing, "
+        help="with --completion, comma- (or plus-) separated: clear (the returned path's clearing, "
         "--clear-path), far (the clearance far from the goal, --far-clearance)",
     )  # fmt: skip
     parser.add_argument(
@@ -991,7 +991,11 @@ def main(argv=None) -> dict:
             parser.error(f"--shard {args.shard!r}: I/N with 0 <= I < N")
     if args.clear_path < 0 or args.clear_keep_ball < 0:
         parser.error("--clear-path and --clear-keep-ball must be >= 0")
-    completion_in = tuple(x for x in args.completion_in.split(",") if x) if args.completion else ()
+    completion_in = (
+        tuple(x for x in args.completion_in.replace("+", ",").split(",") if x)
+        if args.completion
+        else ()
+    )
     if set(completion_in) - {"clear", "far"}:
         parser.error(f"--completion-in {args.completion_in!r}: clear and/or far")
     clearance = None

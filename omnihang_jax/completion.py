@@ -279,6 +279,8 @@ def load_completion(folder) -> tuple[CompletionConfig, dict, dict]:
     params = flax.serialization.from_bytes(
         init(jax.random.key(0)), (Path(folder) / WEIGHTS_FILE).read_bytes()
     )
+    # (a copy stored in float16 to travel light loads as float32)
+    params = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float32), params)
     return config, params, meta
 
 
