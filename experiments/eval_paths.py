@@ -453,19 +453,34 @@ def completed(case: PairCase, n_observed: int) -> tuple[np.ndarray, np.ndarray]:
     ``n_observed`` observed object points plus ``n_observed`` of the predicted ones (the
     planner's seeds), and the whole observed support cloud plus its predicted points."""
     sub = collision.subsample_cloud
-    obj = np.concatenate([sub(case.object_points, n_observed, SUBSET_SEED_OBJECT),
-                          sub(case.predicted_object, n_observed, SUBSET_SEED_OBJECT)])  # fmt: skip
+    parts = [sub(case.object_points, n_observed, SUBSET_SEED_OBJECT)]
+    if len(case.predicted_object):  # (carving may leave none)
+        parts.append(sub(case.predicted_object, n_observed, SUBSET_SEED_OBJECT))
+    obj = np.concatenate(parts)
     return obj, np.concatenate([case.support_points, case.predicted_support])
 
 
-def add_completion(cases: list[PairCase], folder: str) -> list[PairCase]:
-    """The cases with the completion networks' predicted points (``omnihang_jax.completion``)."""
+def add_completion(cases: list[PairCase], folder: str, carve_with: str | None = None):
+    """The cases with the completion networks' predicted points (``omnihang_jax.completion``);
+    with ``carve_with`` (a dataset folder), less the points each body's camera would have seen
+    (``completion.carve``, the cameras of the dataset's records)."""
     from omnihang_jax import completion
 
     nets = {k: completion.load_completion(Path(folder) / k)[:2] for k in completion.KINDS}
+    eyes = {}
+    if carve_with is not None:
+        from sim import dataset
+
+        want = {int(c.meta["pair_index"]) for c in cases}
+        eyes = {int(r["pair_index"]): (r["object_eye"], r["support_eye"])
+                for r in dataset.load_records(carve_with) if int(r["pair_index"]) in want}  # fmt: skip
     out = []
     for case in cases:
         po, ps = completion.predict_points(nets, case.object_points, case.support_points)
+        if carve_with is not None:
+            obj_eye, sup_eye = eyes[int(case.meta["pair_index"])]
+            po = completion.carve(po, case.object_points, obj_eye)[0]
+            ps = completion.carve(ps, case.support_points, sup_eye)[0]
         out.append(case._replace(predicted_object=po, predicted_support=ps))
     return out
 
@@ -880,6 +895,11 @@ def main(argv=None) -> dict:
         "--clear-path), far (the clearance far from the goal, --far-clearance)",
     )  # fmt: skip
     parser.add_argument(
+        "--completion-carve", action="store_true",
+        help="with --completion: drop the predicted points each body's camera would have seen "
+        "(omnihang_jax.completion.carve; the cameras of the dataset's records)",
+    )  # fmt: skip
+    parser.add_argument(
         "--select-geometric",
         default=None,
         metavar="JSON",
@@ -1022,7 +1042,7 @@ def main(argv=None) -> dict:
         args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer"
     )
     if args.completion:
-        cases = add_completion(cases, args.completion)
+        cases = add_completion(cases, args.completion, args.data if args.completion_carve else None)
     jsonl = out / "pairs.jsonl"
     rows = [json.loads(x) for x in jsonl.read_text().splitlines()] if jsonl.exists() else []
     # a resumed run reuses only rows planned to the same kind of goal (older rows: stable)
@@ -1079,6 +1099,7 @@ def main(argv=None) -> dict:
         far_ball_m=est.far_ball,
         completion=args.completion,
         completion_in=list(completion_in),
+        completion_carve=bool(args.completion and args.completion_carve),
         retreat_lengths_m=list(config.retreat_lengths),
         clear_path=None if clearance is None else dataclasses.asdict(clearance),
         goal="first stable pose of each held-out pair"

@@ -450,3 +450,51 @@ def _complete_cached(config: CompletionConfig):
     if config not in _COMPLETE:
         _COMPLETE[config] = complete_fn(config)
     return _COMPLETE[config]
+
+
+def carve(predicted, observed, eye, behind: float = 0.002, cell_factor: float = 1.5):
+    """Predicted points [M, 3] that the camera at ``eye`` could not have seen, the rest dropped
+    (free-space carving; numpy, host side). The observed cloud [N, 3] (same frame as ``eye``)
+    becomes a depth map over viewing directions, cells ``cell_factor`` x the cloud's median
+    angular spacing, each cell the nearest depth within its 3 x 3 neighbourhood. A predicted
+    point is dropped when its direction falls in a cell where the camera saw nothing (the ray
+    went through empty space) or when it lies more than ``behind`` in front of the observed
+    surface there: either way the camera would have seen it. Kept: points behind the observed
+    surface (its hidden back). Returns (kept points [K, 3], kept mask [M])."""
+    from scipy.spatial import cKDTree
+
+    obs = np.asarray(observed, float)
+    pred = np.asarray(predicted, float)
+    eye = np.asarray(eye, float).reshape(3)
+    fwd = (obs - eye).mean(axis=0)
+    fwd /= np.linalg.norm(fwd)
+    up = np.array([0.0, 0.0, 1.0]) if abs(fwd[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    axes = np.stack([right, np.cross(right, fwd), fwd])
+
+    def project(points):
+        v = (points - eye) @ axes.T
+        ahead = v[:, 2] > 1e-6
+        ab = v[:, :2] / np.maximum(v[:, 2:3], 1e-6)
+        return ab, np.linalg.norm(v, axis=1), ahead
+
+    ab, depth, _ = project(obs)
+    cell = cell_factor * float(np.median(cKDTree(ab).query(ab, k=2)[0][:, 1]))
+    ij = np.floor(ab / cell).astype(np.int64)
+    lo = ij.min(axis=0) - 2
+    shape = tuple(ij.max(axis=0) - lo + 3)
+    grid = np.full(shape, np.inf)
+    np.minimum.at(grid, tuple((ij - lo).T), depth)
+    near = grid.copy()
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            near = np.minimum(near, np.roll(np.roll(grid, di, 0), dj, 1))
+    pab, pdepth, ahead = project(pred)
+    pij = np.floor(pab / cell).astype(np.int64) - lo
+    inside = ahead & np.all((pij >= 0) & (pij < np.array(shape)), axis=1)
+    front = np.full(len(pred), np.inf)
+    pij = np.where(inside[:, None], pij, 0)
+    front[inside] = near[pij[inside, 0], pij[inside, 1]]
+    keep = inside & np.isfinite(front) & (pdepth >= front - behind)
+    return pred[keep], keep

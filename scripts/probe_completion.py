@@ -44,12 +44,23 @@ def main(argv=None) -> dict:
     ap.add_argument("--data", default="datasets/paper")
     ap.add_argument("--radius", type=float, default=0.045, help="m: the goal ball left out")
     ap.add_argument("--object-points", type=int, default=1024, help="observed object points kept")
+    ap.add_argument(
+        "--carve",
+        action="store_true",
+        help="drop predicted points the cameras would have seen (completion.carve)",
+    )
     ap.add_argument("--out", default=None, help="JSON")
     args = ap.parse_args(argv)
     nets = {k: completion.load_completion(Path(args.completion) / k)[:2] for k in completion.KINDS}
     config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(args.data))
     lib = build_library(config.library, progress=False)
     rows_out, cache = [], {}
+    recs = {}
+    if args.carve:
+        from sim import dataset
+
+        recs = {int(r["pair_index"]): r for r in dataset.load_records(args.data)}
+    kept_share = []
     for run in [Path(r) for r in args.runs.split(",") if r]:
         rows = [json.loads(x) for x in (run / "pairs.jsonl").read_text().splitlines() if x.strip()]
         latest = {(r["pair"], r["method"]): r for r in rows}
@@ -60,12 +71,19 @@ def main(argv=None) -> dict:
             if r["pair"] not in cache:
                 f = np.load(Path(args.data, "derived", "collision", "test", f"{r['pair']}.npz"))
                 obs_o, obs_s = f["object_points"], f["support_points"]
-                comp_o, comp_s = completion.completed_clouds(nets, obs_o, obs_s)
-                n_pred_o = len(comp_o) - len(obs_o)
+                po, ps = completion.predict_points(nets, obs_o, obs_s)
+                if args.carve:
+                    rec = recs[int(r["pair_index"])]
+                    po, ko = completion.carve(po, obs_o, rec["object_eye"])
+                    ps, ks = completion.carve(ps, obs_s, rec["support_eye"])
+                    kept_share.append((ko.mean(), ks.mean()))
                 obs_o_sub = collision.subsample_cloud(obs_o, args.object_points, 0)
                 cache[r["pair"]] = dict(
                     observed=(obs_o_sub, cKDTree(obs_s)),
-                    completed=(np.concatenate([obs_o_sub, comp_o[-n_pred_o:]]), cKDTree(comp_s)),
+                    completed=(
+                        np.concatenate([obs_o_sub, po]),
+                        cKDTree(np.concatenate([obs_s, ps])),
+                    ),
                 )
             clouds = cache[r["pair"]]
             scene = build_scene(lib.objects[r["object_name"]], lib.supports[r["support_name"]])
@@ -96,7 +114,8 @@ def main(argv=None) -> dict:
                 free_blocked=sum((o[f"{name}_min_far_gap_mm"] or np.inf) < mm for o in free),
             )
     summary = dict(
-        runs=args.runs, completion=args.completion, radius_m=args.radius,
+        runs=args.runs, completion=args.completion, radius_m=args.radius, carve=args.carve,
+        kept_share=np.mean(kept_share, axis=0).round(3).tolist() if kept_share else None,
         returned=len(rows_out), colliding=sum(not o["free"] for o in rows_out),
         colliding_with_far_penetration=len(col), free=len(free), by_margin=table, rows=rows_out,
     )  # fmt: skip
