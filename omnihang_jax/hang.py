@@ -888,7 +888,48 @@ HYBRID = dict(
     # 11 colliding paths became free and 4 free ones colliding (docs/paths.md)
     clear_target=0.03,
     clear_keep_ball=0.045,
+    # twenty-fifth session: shape completion (omnihang_jax.completion) of both bodies, carved
+    # with their cameras; beyond far_ball of the goal a state collides when the completed
+    # clouds come within far_clearance (planner.ClearanceFarFromGoal, first in the cascade).
+    # None: off (docs/paths.md "Shape completion")
+    completion=None,
+    far_clearance=0.0015,
+    far_ball=0.045,
 )
+
+FAR_TEST_POINTS = 1024  # observed object points (and as many predicted) in the far test
+
+
+def completed_far_test(obj: Body, sup: Body, pose: np.ndarray, radius: float, folder=None):
+    """(checker or None, info) of :data:`HYBRID`'s far clearance on the completed clouds: the
+    observed clouds plus the completion networks' points, less what each body's camera would
+    have seen (``completion.carve``). None (with the reason in info) without networks or
+    without a camera position for a body (given clouds): carving needs the camera."""
+    from omnihang_jax import completion, planner
+    from omnihang_jax.collision import subsample_cloud
+
+    folder = folder or HYBRID.get("completion")
+    if not folder:
+        return None, dict(used=False, why="off")
+    if not all((Path(folder) / k / "config.json").exists() for k in completion.KINDS):
+        return None, dict(used=False, why=f"no completion networks in {folder}")
+    if obj.eye is None or sup.eye is None:
+        return None, dict(used=False, why="a body came as a cloud: no camera to carve with")
+    po, ps = completion.predict_points(folder, obj.points, sup.points)
+    po, ko = completion.carve(po, obj.points, obj.eye)
+    ps, ks = completion.carve(ps, sup.points, sup.eye)
+    parts = [subsample_cloud(obj.points, FAR_TEST_POINTS, 0)]
+    if len(po):
+        parts.append(subsample_cloud(po, FAR_TEST_POINTS, 0))
+    test = planner.ClearanceFarFromGoal(
+        np.concatenate(parts), np.concatenate([sup.points, ps]), pose, HYBRID["far_ball"],
+        HYBRID["far_clearance"], radius,
+    )  # fmt: skip
+    info = dict(used=True, networks=str(folder), object_points_added=int(len(po)),
+                support_points_added=int(len(ps)), carved_share=[round(1 - float(ko.mean()), 3),
+                round(1 - float(ks.mean()), 3)], far_clearance_m=HYBRID["far_clearance"],
+                far_ball_m=HYBRID["far_ball"])  # fmt: skip
+    return test, info
 
 
 def hybrid_settings(nce_folder) -> tuple[Any, str]:
@@ -986,6 +1027,11 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
                     pow2=True,
                 )  # fmt: skip
                 name = f"the hybrid checker ({hybrid_why}; NCE {weights})"
+                far, far_info = completed_far_test(obj, sup, pose, radius)
+                if far is not None:
+                    nce_checker = planner.CascadeChecker(far, nce_checker)
+                    name += (f"; the completed clouds {HYBRID['far_clearance'] * 1e3:g} mm apart "
+                             f"beyond {HYBRID['far_ball'] * 100:g} cm of the goal")  # fmt: skip
             else:
                 nce_checker = planner.EstimatorChecker(
                     collides, params, *nce_clouds(cfg, obj.points, sup.points), pow2=True
@@ -993,6 +1039,8 @@ def planner_how(time_limit: float = 20.0, path_step: float = 0.01, checker: str 
                 name = f"the neural collision estimator {weights}"
             nce_checker.warm_up(128)
             path, info = attempt(nce_checker, name)
+            if hybrid is not None:
+                info["completion"] = far_info
             if path is not None and hybrid is not None:
                 cleared = planner.clear_path(
                     path, nce_checker, obj.points, sup.points, pose, radius, bounds,

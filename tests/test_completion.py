@@ -166,3 +166,39 @@ def test_carving_keeps_the_hidden_back_and_drops_what_the_camera_saw_empty():
     assert mask[300:600].mean() < 0.05  # beside the silhouette: gone
     assert mask[600:].mean() < 0.05  # in front of the observed surface: gone
     assert len(kept) == mask.sum()
+
+
+def test_the_hang_commands_far_test_on_completed_clouds(tmp_path):
+    from omnihang_jax import hang
+
+    init, _ = completion.make_completion(TINY_NET)
+    params = init(jax.random.key(2))
+    completion.save_completion(tmp_path / "object", TINY_NET, params)
+    completion.save_completion(
+        tmp_path / "support", dataclasses.replace(TINY_NET, kind="support"), params
+    )
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(600, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    ball = 0.03 * u[u[:, 1] < 0]  # the half of a 3 cm ball its camera sees
+    eye = np.array([0.0, -0.4, 0.0])
+
+    def body(kind, points, eye):
+        return hang.Body(kind, kind, "builtin", None, points, points, None, eye, {})
+
+    obj, sup = body("object", ball, eye), body("support", ball + [0.0, 0.0, -0.1], eye)
+    goal = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    test, info = hang.completed_far_test(obj, sup, goal, 0.05, folder=tmp_path)
+    assert test is not None and info["used"] and info["support_points_added"] >= 0
+    # far from the goal: the object pressed onto the support collides, lifted clear it does not
+    far_down = np.array([0.0, 0.0, -0.1, 1.0, 0.0, 0.0, 0.0])  # inside the support ball
+    far_up = np.array([0.3, 0.0, 0.3, 1.0, 0.0, 0.0, 0.0])
+    assert test(np.stack([far_down, far_up])).tolist() == [True, False]
+    # the goal's neighbourhood is left to the hybrid
+    assert test(goal[None]).tolist() == [False]
+    # a body given as a cloud has no camera: no carving, no test
+    none, why = hang.completed_far_test(
+        obj, body("support", sup.points, None), goal, 0.05, tmp_path
+    )
+    assert none is None and "camera" in why["why"]
+    assert hang.completed_far_test(obj, sup, goal, 0.05, folder=tmp_path / "nothing")[0] is None
