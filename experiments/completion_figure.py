@@ -30,7 +30,7 @@ def main(argv=None) -> str:
         )
     # spread over categories: every k-th file
     picks = files[:: max(1, len(files) // args.pairs)][: args.pairs]
-    nets = {k: completion.load_completion(Path(args.completion) / k)[:2] for k in completion.KINDS}
+    nets = completion.load_nets(args.completion)
     import matplotlib
 
     matplotlib.use("Agg")

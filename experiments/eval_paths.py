@@ -449,15 +449,13 @@ FAR_CLEARANCE_POINTS = 512  # object points of planner.ClearanceFarFromGoal (--f
 
 
 def completed(case: PairCase, n_observed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(object, support) clouds for the clearance tests with --completion: a fixed subset of
-    ``n_observed`` observed object points plus ``n_observed`` of the predicted ones (the
-    planner's seeds), and the whole observed support cloud plus its predicted points."""
-    sub = collision.subsample_cloud
-    parts = [sub(case.object_points, n_observed, SUBSET_SEED_OBJECT)]
-    if len(case.predicted_object):  # (carving may leave none)
-        parts.append(sub(case.predicted_object, n_observed, SUBSET_SEED_OBJECT))
-    obj = np.concatenate(parts)
-    return obj, np.concatenate([case.support_points, case.predicted_support])
+    """(object, support) clouds for the clearance tests with --completion
+    (``completion.clearance_clouds``, the planner's object seed)."""
+    from omnihang_jax import completion
+
+    return completion.clearance_clouds(case.object_points, case.support_points,
+                                       case.predicted_object, case.predicted_support,
+                                       n_observed, SUBSET_SEED_OBJECT)  # fmt: skip
 
 
 def add_completion(cases: list[PairCase], folder: str, carve_with: str | None = None):
@@ -466,7 +464,7 @@ def add_completion(cases: list[PairCase], folder: str, carve_with: str | None = 
     (``completion.carve``, the cameras of the dataset's records)."""
     from omnihang_jax import completion
 
-    nets = {k: completion.load_completion(Path(folder) / k)[:2] for k in completion.KINDS}
+    nets = completion.load_nets(folder)
     eyes = {}
     if carve_with is not None:
         from sim import dataset
@@ -476,11 +474,8 @@ def add_completion(cases: list[PairCase], folder: str, carve_with: str | None = 
                 for r in dataset.load_records(carve_with) if int(r["pair_index"]) in want}  # fmt: skip
     out = []
     for case in cases:
-        po, ps = completion.predict_points(nets, case.object_points, case.support_points)
-        if carve_with is not None:
-            obj_eye, sup_eye = eyes[int(case.meta["pair_index"])]
-            po = completion.carve(po, case.object_points, obj_eye)[0]
-            ps = completion.carve(ps, case.support_points, sup_eye)[0]
+        po, ps = completion.predict_points(nets, case.object_points, case.support_points,
+                                           eyes.get(int(case.meta["pair_index"])))  # fmt: skip
         out.append(case._replace(predicted_object=po, predicted_support=ps))
     return out
 

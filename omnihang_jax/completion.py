@@ -19,6 +19,8 @@ completed points are in the input cloud's frame. The planner uses ``observed + p
 Pure functions: ``make_completion(config) -> (init, apply)``; ``complete_fn(config)(params,
 clouds [B, N, 3]) -> [B, M, 3]``; ``chamfer`` / ``coverage`` are the loss and the metrics.
 ``train_completion`` is the host loop (validation curve, cosine schedule, resumable).
+For the planner: ``predict_points`` (optionally carved with the cameras, ``carve``) and
+``clearance_clouds`` (the clouds a clearance test on completed shapes uses).
 """
 
 from __future__ import annotations
@@ -411,36 +413,54 @@ def plot_history(history, png, title: str) -> None:
     plt.close(fig)
 
 
-def _nets(folder_or_nets) -> dict:
+def load_nets(folder_or_nets) -> dict:
+    """kind -> (config, params) of both networks, from a folder holding ``object/`` and
+    ``support/`` (a dict of them is returned as it is)."""
     if isinstance(folder_or_nets, dict):
         return folder_or_nets
     return {k: load_completion(Path(folder_or_nets) / k)[:2] for k in KINDS}
 
 
-def predict_points(folder_or_nets, object_points, support_points, seed: int = 0):
-    """(predicted object points [M, 3], predicted support points [M, 3]), each in its cloud's
-    frame, from a folder holding ``object/`` and ``support/`` networks (or a dict kind ->
-    (config, params)). Each network sees a fixed random ``n_input`` subset (``seed``) of its
-    observed cloud. Raises ``ValueError`` for an empty or non-finite cloud."""
-    nets = _nets(folder_or_nets)
+def predict_points(folder_or_nets, object_points, support_points, eyes=None, seed: int = 0):
+    """(predicted object points [M, 3], predicted support points [M', 3]), each in its cloud's
+    frame (:func:`load_nets`' networks). Each network sees a fixed random ``n_input`` subset
+    (``seed``) of its observed cloud. With ``eyes`` = (object camera, support camera) the points
+    each camera would have seen are dropped (:func:`carve`), so M, M' <= ``n_output``. Raises
+    ``ValueError`` for an empty or non-finite cloud."""
+    nets = load_nets(folder_or_nets)
     out = []
-    for kind, pts in (("object", object_points), ("support", support_points)):
+    for i, (kind, pts) in enumerate((("object", object_points), ("support", support_points))):
         pts = np.asarray(pts, np.float32)
-        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or not np.all(np.isfinite(pts)):
-            raise ValueError(f"the {kind} cloud must be finite [N>0, 3], got {pts.shape}"
-                             + ("" if pts.ndim != 2 or np.all(np.isfinite(pts)) else " with NaN/inf"))  # fmt: skip
+        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+            raise ValueError(f"the {kind} cloud must be [N>0, 3], got {pts.shape}")
+        if not np.all(np.isfinite(pts)):
+            raise ValueError(f"the {kind} cloud holds NaN or inf")
         config, params = nets[kind]
         rng = np.random.default_rng(seed)
         sub = pts[rng.choice(len(pts), config.n_input, replace=len(pts) < config.n_input)]
-        out.append(np.asarray(_complete_cached(config)(params, sub[None]))[0])
+        pred = np.asarray(_complete_cached(config)(params, sub[None]))[0]
+        if eyes is not None:
+            pred = carve(pred, pts, eyes[i])[0]
+        out.append(pred)
     return tuple(out)
 
 
-def completed_clouds(folder_or_nets, object_points, support_points, seed: int = 0):
-    """(object cloud, support cloud), each observed + predicted (:func:`predict_points`)."""
-    po, ps = predict_points(folder_or_nets, object_points, support_points, seed)
-    return (np.concatenate([np.asarray(object_points, np.float32), po]),
-            np.concatenate([np.asarray(support_points, np.float32), ps]))  # fmt: skip
+def clearance_clouds(object_points, support_points, predicted_object, predicted_support,
+                     n_object: int, seed: int = 0):  # fmt: skip
+    """(object cloud, support cloud) of a clearance test on completed shapes: a fixed subset
+    (``seed``) of ``n_object`` observed object points plus as many of the predicted ones (none
+    when carving left none), and the whole observed support cloud plus its predicted points.
+    Used alike by ``experiments.eval_paths --completion`` and the ``hang`` command."""
+    from omnihang_jax.collision import subsample_cloud
+
+    parts = [subsample_cloud(object_points, n_object, seed)]
+    if len(predicted_object):
+        parts.append(subsample_cloud(predicted_object, n_object, seed))
+    support = [
+        np.asarray(support_points, float),
+        np.asarray(predicted_support, float).reshape(-1, 3),
+    ]
+    return np.concatenate(parts).astype(float), np.concatenate(support)
 
 
 _COMPLETE: dict = {}

@@ -906,7 +906,6 @@ def completed_far_test(obj: Body, sup: Body, pose: np.ndarray, radius: float, fo
     have seen (``completion.carve``). None (with the reason in info) without networks or
     without a camera position for a body (given clouds): carving needs the camera."""
     from omnihang_jax import completion, planner
-    from omnihang_jax.collision import subsample_cloud
 
     folder = folder or HYBRID.get("completion")
     if not folder:
@@ -915,19 +914,13 @@ def completed_far_test(obj: Body, sup: Body, pose: np.ndarray, radius: float, fo
         return None, dict(used=False, why=f"no completion networks in {folder}")
     if obj.eye is None or sup.eye is None:
         return None, dict(used=False, why="a body came as a cloud: no camera to carve with")
-    po, ps = completion.predict_points(folder, obj.points, sup.points)
-    po, ko = completion.carve(po, obj.points, obj.eye)
-    ps, ks = completion.carve(ps, sup.points, sup.eye)
-    parts = [subsample_cloud(obj.points, FAR_TEST_POINTS, 0)]
-    if len(po):
-        parts.append(subsample_cloud(po, FAR_TEST_POINTS, 0))
+    po, ps = completion.predict_points(folder, obj.points, sup.points, eyes=(obj.eye, sup.eye))
+    clouds = completion.clearance_clouds(obj.points, sup.points, po, ps, FAR_TEST_POINTS)
     test = planner.ClearanceFarFromGoal(
-        np.concatenate(parts), np.concatenate([sup.points, ps]), pose, HYBRID["far_ball"],
-        HYBRID["far_clearance"], radius,
-    )  # fmt: skip
+        *clouds, pose, HYBRID["far_ball"], HYBRID["far_clearance"], radius
+    )
     info = dict(used=True, networks=str(folder), object_points_added=int(len(po)),
-                support_points_added=int(len(ps)), carved_share=[round(1 - float(ko.mean()), 3),
-                round(1 - float(ks.mean()), 3)], far_clearance_m=HYBRID["far_clearance"],
+                support_points_added=int(len(ps)), far_clearance_m=HYBRID["far_clearance"],
                 far_ball_m=HYBRID["far_ball"])  # fmt: skip
     return test, info
 

@@ -51,7 +51,7 @@ def main(argv=None) -> dict:
     )
     ap.add_argument("--out", default=None, help="JSON")
     args = ap.parse_args(argv)
-    nets = {k: completion.load_completion(Path(args.completion) / k)[:2] for k in completion.KINDS}
+    nets = completion.load_nets(args.completion)
     config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(args.data))
     lib = build_library(config.library, progress=False)
     rows_out, cache = [], {}
@@ -71,12 +71,14 @@ def main(argv=None) -> dict:
             if r["pair"] not in cache:
                 f = np.load(Path(args.data, "derived", "collision", "test", f"{r['pair']}.npz"))
                 obs_o, obs_s = f["object_points"], f["support_points"]
-                po, ps = completion.predict_points(nets, obs_o, obs_s)
+                eyes = None
                 if args.carve:
                     rec = recs[int(r["pair_index"])]
-                    po, ko = completion.carve(po, obs_o, rec["object_eye"])
-                    ps, ks = completion.carve(ps, obs_s, rec["support_eye"])
-                    kept_share.append((ko.mean(), ks.mean()))
+                    eyes = (rec["object_eye"], rec["support_eye"])
+                po, ps = completion.predict_points(nets, obs_o, obs_s, eyes)
+                if args.carve:
+                    n = nets["object"][0].n_output, nets["support"][0].n_output
+                    kept_share.append((len(po) / n[0], len(ps) / n[1]))
                 obs_o_sub = collision.subsample_cloud(obs_o, args.object_points, 0)
                 cache[r["pair"]] = dict(
                     observed=(obs_o_sub, cKDTree(obs_s)),

@@ -133,13 +133,22 @@ def test_predict_points_shapes_and_bad_clouds(tmp_path):
     # in the cloud's frame: moving the cloud moves the prediction with it
     po2, _ = completion.predict_points(nets, obj + [1.0, 0, 0], sup)
     np.testing.assert_allclose(po2, po + [1.0, 0, 0], atol=1e-4)
-    o, s = completion.completed_clouds(nets, obj, sup)
-    assert o.shape == (300 + TINY_NET.n_output, 3) and s.shape == (50 + TINY_NET.n_output, 3)
+    o, s = completion.clearance_clouds(obj, sup, po, ps, n_object=64)
+    assert o.shape == (64 + 64, 3) and s.shape == (50 + TINY_NET.n_output, 3)
+    # every observed support point is kept; the object's are a subset of observed + predicted
+    np.testing.assert_array_equal(s[:50], sup)
+    assert np.isin(o[:64], obj).all(axis=1).all() and np.isin(o[64:], po).all(axis=1).all()
+    # carving that leaves no predicted points: the observed subset alone
+    o2, _ = completion.clearance_clouds(obj, sup, np.zeros((0, 3)), np.zeros((0, 3)), n_object=64)
+    assert o2.shape == (64, 3)
+    # with cameras, fewer points: those the cameras would have seen are carved away
+    pc, sc = completion.predict_points(nets, obj, sup, eyes=([0, -1.0, 0], [0, -1.0, 0]))
+    assert len(pc) <= len(po) and len(sc) <= len(ps)
     bad = obj.copy()
     bad[3] = np.nan
-    with pytest.raises(ValueError, match="NaN"):
+    with pytest.raises(ValueError, match="NaN or inf"):
         completion.predict_points(nets, bad, sup)
-    with pytest.raises(ValueError, match="finite"):
+    with pytest.raises(ValueError, match=r"\[N>0, 3\]"):
         completion.predict_points(nets, np.zeros((0, 3)), sup)
     # saved and loaded: the same predictions
     completion.save_completion(tmp_path / "object", TINY_NET, params)
