@@ -87,6 +87,12 @@ def main(argv=None) -> dict:
         "--no-rank-with-value: they rank alone (default: stage3.RANK_WITH_CEM_VALUE)",
     )  # fmt: skip
     parser.add_argument(
+        "--rank-subsets", type=int, default=stage3.ANSWER_PIPELINE.rank_subsets, metavar="T",
+        help="each ranking network scores every candidate on T evenly spaced subsets of the "
+        "clouds, the mean log V ranks (stage3.subset_clouds; default "
+        "stage3.ANSWER_PIPELINE.rank_subsets)",
+    )  # fmt: skip
+    parser.add_argument(
         "--seed", type=int, default=0,
         help="the key of Stage 1's noise and CEM's samples (0: every committed run); other "
         "seeds measure the figure's spread",
@@ -96,6 +102,8 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     if args.rounds < 1 or (args.stage1_rounds is not None and args.stage1_rounds < 1):
         parser.error("--rounds and --stage1-rounds must be >= 1")
+    if args.rank_subsets < 1:
+        parser.error("--rank-subsets must be >= 1")
     dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(args.data)
     files = dataset_bridge.derived_files(derived_dir, args.split)
     if args.pairs_from:
@@ -129,6 +137,7 @@ def main(argv=None) -> dict:
         pool_starts=args.pool_starts, rank_value_dirs=rank_values, seed=args.seed,
         rank_with_value=args.rank_with_value,
         cem_stage1=None if args.stage1_rounds is None else CEMConfig(rounds=args.stage1_rounds),
+        rank_subsets=args.rank_subsets,
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
@@ -137,7 +146,8 @@ def main(argv=None) -> dict:
                    stage2_clearance_m=args.stage2_clearance,
                    select=dataclasses.asdict(select),
                    pool_starts=args.pool_starts, rank_values=rank_values,
-                   rank_with_value=args.rank_with_value)  # fmt: skip
+                   rank_with_value=args.rank_with_value,
+                   rank_subsets=args.rank_subsets)  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     refine.write_json(out, summary)

@@ -167,6 +167,20 @@ def load_bank(table: dict, data: str, split: str, config, progress: bool) -> ref
 # Loss and scores (pure)
 
 
+def load_subset_bank(table: dict, data: str, split: str, config, subsets: int,
+                     progress: bool) -> PairClouds:  # fmt: skip
+    """[subsets, N, ...] the pairs' clouds on each of ``subsets`` evenly spaced subsets
+    (``stage3.subset_clouds``; subset 0 is :func:`load_bank`'s)."""
+    from experiments.rank_subsets import load_clouds
+
+    full = load_clouds(Path(data) / "derived" / split, table["files"])
+    stacked = PairClouds(*(np.stack([c[f] for c in full]) for f in range(4)))
+    del full
+    parts = [stage3.subset_clouds(stacked, config, j, subsets) for j in range(subsets)]
+    return PairClouds(*(np.stack([np.asarray(getattr(p, f)) for p in parts])
+                        for f in PairClouds._fields))  # fmt: skip
+
+
 def ranking_loss(logits, stable, clear, list_weight: float, bce_weight: float):
     """logits [B, P, 2], stable / clear [B, P] bool -> (loss, metrics). The listwise term
     counts only pairs with a clear stable and a clear unstable candidate."""
@@ -265,12 +279,19 @@ def train(args) -> dict:
     schedule = refine.make_schedule(run_config, args.steps)
     tx = refine.make_optimizer(run_config, args.steps)
     net = stage3.make_value(config)
-    bank_dev = jax.tree.map(jnp.asarray, bank.clouds)
+    n_sub = args.subset_augment
+    if n_sub > 1:  # [n_sub, N, ...]: each step draws a subset per pair
+        bank_dev = jax.tree.map(
+            jnp.asarray, load_subset_bank(table, args.data, args.split, config, n_sub, progress)
+        )
+    else:
+        bank_dev = jax.tree.map(lambda x: jnp.asarray(x)[None], bank.clouds)
     poses_dev = jnp.asarray(table["poses"])
     stable_dev, clear_dev = jnp.asarray(table["stable"]), jnp.asarray(clear)
 
     def loss_fn(params, slots, key):
-        clouds = jax.tree.map(lambda x: x[slots], bank_dev)
+        which = jax.random.randint(jax.random.fold_in(key, 1), slots.shape, 0, n_sub)
+        clouds = jax.tree.map(lambda x: x[which, slots], bank_dev)
         poses = poses_dev[slots]
         b, p = poses.shape[:2]
         tiled = jax.tree.map(lambda x: jnp.repeat(x, p, axis=0), clouds)
@@ -448,6 +469,11 @@ def main(argv=None) -> dict:
                          "(ValueConfig.support_near; 0: evenly spaced only)")  # fmt: skip
     tr.add_argument("--object-near", type=int, default=0, help="ValueConfig.object_near")
     tr.add_argument("--near-pool", type=int, default=2048, help="ValueConfig.near_pool")
+    tr.add_argument("--subset-augment", type=int, default=1, metavar="N",
+                    help="each training pair is seen on a random one of N evenly spaced subsets "
+                         "of its clouds a step (stage3.subset_clouds; 1: subset 0 only, as "
+                         "the committed rankers), for rankers used with "
+                         "PipelineConfig.rank_subsets")  # fmt: skip
     tr.add_argument("--no-progress", action="store_true")
     sc = sub.add_parser("score", help="a ranker's scores on a run's records + the rule's table")
     sc.add_argument("--ranker", nargs="+", required=True,

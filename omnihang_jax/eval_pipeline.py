@@ -81,6 +81,7 @@ def evaluate_pipeline(
     rank_value_dirs: Sequence[str | os.PathLike] = (),
     rank_with_value: bool = True,
     cem_stage1: stage3.CEMConfig | None = None,
+    rank_subsets: int = 1,
 ) -> tuple[list[dict], dict]:
     """Run Stages 1-3 on every pair file and simulate every candidate. Returns (records,
     timings). ``stage2_clearance`` (m): replaces the model's ``Stage2Config.clearance`` (None:
@@ -98,7 +99,10 @@ def evaluate_pipeline(
     holds every candidate's V under each of them (``v_rank``); ``v`` stays the CEM's V and
     ``all_stages_paper`` its highest V. ``rank_with_value=False``: the ``rank_value_dirs``
     rank alone, without the CEM's V (``PipelineConfig.rank_with_value``). ``cem_stage1``: the
-    CEM of the Stage-1 starts when it differs from ``cem`` (e.g. more rounds there only)."""
+    CEM of the Stage-1 starts when it differs from ``cem`` (e.g. more rounds there only).
+    ``rank_subsets``: each ranking network scores on that many evenly spaced subsets of the
+    clouds (``PipelineConfig.rank_subsets``); ``v_rank`` then holds each network's geometric
+    mean over them."""
     from omnihang_jax.predict import load_predictor, load_rank_values
     from sim import kernels
 
@@ -112,7 +116,7 @@ def evaluate_pipeline(
         refine_fn1 = jax.jit(stage3.make_refiner(value_config, cem_stage1))
     value_fn = jax.jit(stage3.make_value(value_config).value)
     rank_configs, rank_params = load_rank_values(rank_value_dirs)
-    ensemble_fn = jax.jit(stage3.make_ensemble_score(rank_configs, rank_with_value))
+    ensemble_fn = jax.jit(stage3.make_ensemble_score(rank_configs, rank_with_value, rank_subsets))
     jits = {c: jax.jit(stage3.make_value(c).value) for c in set(rank_configs)}  # one per config
     rank_value_fns = [jits[c] for c in rank_configs]
 
@@ -189,10 +193,13 @@ def evaluate_pipeline(
         v_all = value_fn(value_params, tiled, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1)
         v_rank = []  # each ranking network on its own subsample of the clouds
         for fn, c, p in zip(rank_value_fns, rank_configs, rank_params, strict=True):
-            tiled_rank = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0),
-                                      stage3.subsample_clouds(fullj, c))  # fmt: skip
-            v_rank.append(np.asarray(fn(p, tiled_rank, allp.reshape(-1, 7))
-                                     .reshape(batch, 4 * k + 1)))  # fmt: skip
+            logv = 0.0
+            for j in range(rank_subsets):
+                tiled_rank = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0),
+                                          stage3.subset_clouds(fullj, c, j, rank_subsets))  # fmt: skip
+                v = fn(p, tiled_rank, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1)
+                logv = logv + jnp.log(jnp.clip(v, 1e-12, 1.0)) / rank_subsets
+            v_rank.append(np.asarray(jnp.exp(logv) if rank_subsets > 1 else v))
         jax.block_until_ready(v_all)
         t_net += time.time() - tn
         allp, v_all, counts = np.asarray(allp), np.asarray(v_all), np.asarray(counts)

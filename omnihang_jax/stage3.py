@@ -51,6 +51,8 @@ __all__ = [
     "PairClouds",
     "stack_clouds",
     "subsample_clouds",
+    "subset_clouds",
+    "subset_shift",
     "subsample_index",
     "near_points",
     "posed_state",
@@ -181,6 +183,35 @@ def subsample_clouds(clouds: PairClouds, config: ValueConfig) -> PairClouds:
         clouds.support_points[..., js, :],
         clouds.support_normals[..., js, :],
     )
+
+
+def subset_shift(n: int, config: ValueConfig, which: str, index: int, subsets: int) -> int:
+    """Points an ``n``-point cloud is rolled by for subset ``index`` of ``subsets``
+    (:func:`subset_clouds`): ``index / subsets`` of the evenly spaced part's stride."""
+    if not 0 <= index < subsets:
+        raise ValueError(f"subset {index} of {subsets}: need 0 <= index < subsets")
+    total = config.num_object_points if which == "object" else config.num_support_points
+    near = config.object_near if which == "object" else config.support_near
+    stride = max(n // (total - near), 1)
+    return (index * stride) // subsets
+
+
+def subset_clouds(clouds: PairClouds, config: ValueConfig, index: int = 0, subsets: int = 1):
+    """Subset ``index`` of ``subsets`` evenly spaced subsets of the observed clouds: the clouds
+    rolled by :func:`subset_shift` points, then :func:`subsample_clouds` (index 0: exactly
+    ``subsample_clouds``). Ours (twenty-sixth session): a ranking network scores each candidate
+    on several such subsets and their mean log P ranks (``PipelineConfig.rank_subsets``),
+    since one network's pick moves with the subset it sees (docs/stage3.md)."""
+    n, m = clouds.object_points.shape[-2], clouds.support_points.shape[-2]
+    so = subset_shift(n, config, "object", index, subsets)
+    ss = subset_shift(m, config, "support", index, subsets)
+    rolled = PairClouds(
+        jnp.roll(clouds.object_points, -so, axis=-2),
+        jnp.roll(clouds.object_normals, -so, axis=-2),
+        jnp.roll(clouds.support_points, -ss, axis=-2),
+        jnp.roll(clouds.support_normals, -ss, axis=-2),
+    )
+    return subsample_clouds(rolled, config)
 
 
 def _so3(pose7: jax.Array) -> jaxlie.SO3:
@@ -494,6 +525,9 @@ class PipelineConfig:
     # without the CEM's V), e.g. a ranker trained on the pipeline's own refined candidates
     # (experiments.train_ranker); only with rank_values > 0
     rank_with_value: bool = True
+    # ours (twenty-sixth session): each ranking network scores every candidate on this many
+    # evenly spaced subsets of the observed clouds, the mean log V ranks (stage3.subset_clouds)
+    rank_subsets: int = 1
 
 
 # The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
@@ -650,7 +684,7 @@ def make_smoothed_value(
     return smoothed
 
 
-def make_ensemble_score(rank_configs, with_first: bool = True) -> Callable:
+def make_ensemble_score(rank_configs, with_first: bool = True, subsets: int = 1) -> Callable:
     """``ensemble(scores [B, P], extra_params [R value params], clouds [B, ...] the observed
     clouds, poses [B, P, 7]) -> [B, P]``: the mean of log V over the first V (its final
     scores, as CEM returns them) and the R other value networks on the same poses, network i of
@@ -658,7 +692,12 @@ def make_ensemble_score(rank_configs, with_first: bool = True) -> Callable:
     each other and from the CEM's V, e.g. near points; one ``ValueConfig``: all R share it): a
     geometric-mean ensemble that ranks CEM's candidates (``PipelineConfig.rank_values``,
     ``eval_pipeline.evaluate_pipeline(rank_value_dirs=)``). ``with_first=False``: the mean
-    over the R networks alone (``PipelineConfig.rank_with_value``). Pure, un-jitted."""
+    over the R networks alone (``PipelineConfig.rank_with_value``). ``subsets`` > 1: each of
+    the R networks scores the poses on that many evenly spaced subsets of the clouds
+    (:func:`subset_clouds`) and its log V is their mean (``PipelineConfig.rank_subsets``).
+    Pure, un-jitted."""
+    if subsets < 1:
+        raise ValueError(f"subsets must be >= 1, got {subsets}")
 
     def per_pair(config):
         value = make_value(config)
@@ -679,13 +718,17 @@ def make_ensemble_score(rank_configs, with_first: bool = True) -> Callable:
             groups.setdefault(c, []).append(p)
         logs, count = [], 0
         for c, ps in groups.items():
-            sub, score = subsample_clouds(clouds, c), per_pair(c)
-            if len(ps) == 1:
-                logs.append(score(ps[0], sub, poses))
-            else:
-                stacked = jax.tree.map(lambda *x: jnp.stack(x), *ps)
-                each = jax.vmap(score, in_axes=(0, None, None))(stacked, sub, poses)
-                logs.append(jnp.sum(each, axis=0))
+            score = per_pair(c)
+            stacked = jax.tree.map(lambda *x: jnp.stack(x), *ps) if len(ps) > 1 else None
+            total = 0.0
+            for i in range(subsets):
+                sub = subset_clouds(clouds, c, i, subsets)
+                if stacked is None:
+                    total = total + score(ps[0], sub, poses)
+                else:
+                    each = jax.vmap(score, in_axes=(0, None, None))(stacked, sub, poses)
+                    total = total + jnp.sum(each, axis=0)
+            logs.append(total / subsets)
             count += len(ps)
         if with_first or not logs:
             logs, count = [scores] + logs, count + 1
@@ -709,8 +752,9 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
     predict = make_predict(stage1_config, stage2_config)
     refine = make_refiner(value_config, config.cem)
     rank = make_ensemble_score(
-        value_config if rank_configs is None else rank_configs, config.rank_with_value
-    )
+        value_config if rank_configs is None else rank_configs, config.rank_with_value,
+        config.rank_subsets,
+    )  # fmt: skip
     rule = config.select
 
     def hang(params, key, clouds: PairClouds) -> HangOutput:

@@ -1,0 +1,195 @@
+"""Twenty-sixth session (issue 12): the ranking networks on several evenly spaced subsets of the
+clouds (``stage3.subset_clouds``, ``PipelineConfig.rank_subsets``, ``experiments.rank_subsets``),
+rankers trained with subset augmentation (``train_ranker --subset-augment``), and the answer
+rule on completed clouds (``experiments.rerank_completed``)."""
+
+from __future__ import annotations
+
+import gzip
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from experiments import rank_subsets, rerank_completed, train_ranker
+from omnihang_jax import completion, refine, stage3
+from tests.test_train_ranker import _records, _write_pair
+
+CFG = stage3.VALUE_TINY  # 64 + 64 state points
+
+
+def _clouds(n_pairs=4, n=256, seed=0):
+    """Pairs of 256-point clouds (four subsets of the tiny config's 64) and eight candidates each,
+    hanging iff low (as tests.test_train_ranker._synthetic)."""
+    rng = np.random.default_rng(seed)
+    obj = rng.normal(scale=0.01, size=(n_pairs, n, 3)).astype(np.float32)
+    sup = rng.normal(scale=0.03, size=(n_pairs, n, 3)).astype(np.float32)
+
+    def unit(x):
+        return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+    clouds = stage3.PairClouds(obj, unit(obj), sup, unit(sup))
+    poses = np.zeros((n_pairs, 8, 7), np.float32)
+    poses[..., 3] = 1.0
+    poses[..., 2] = rng.uniform(0.0, 0.06, size=(n_pairs, 8))
+    return clouds, poses, poses[..., 2] < 0.03
+
+
+def test_subset_zero_is_the_subsample_and_the_others_are_other_points():
+    clouds, _, _ = _clouds()
+    base = stage3.subsample_clouds(clouds, CFG)
+    first = stage3.subset_clouds(clouds, CFG, 0, 4)
+    for a, b in zip(base, first, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    seen = []
+    for j in range(4):
+        sub = stage3.subset_clouds(clouds, CFG, j, 4)
+        assert sub.object_points.shape == base.object_points.shape
+        rows = {tuple(p) for p in np.asarray(sub.object_points[0])}
+        assert rows <= {tuple(p) for p in clouds.object_points[0]}  # points of the cloud
+        # each point keeps its own normal through the roll
+        idx = [int(np.flatnonzero((clouds.object_points[0] == p).all(1))[0])
+               for p in np.asarray(sub.object_points[0])]  # fmt: skip
+        np.testing.assert_array_equal(
+            np.asarray(sub.object_normals[0]), clouds.object_normals[0][idx]
+        )
+        seen.append(rows)
+    assert all(not (seen[i] & seen[j]) for i in range(4) for j in range(i))  # disjoint subsets
+    with pytest.raises(ValueError, match="subset 4 of 4"):
+        stage3.subset_clouds(clouds, CFG, 4, 4)
+
+
+def test_ensemble_over_subsets_is_the_mean_of_each_subsets_score():
+    clouds, poses, _ = _clouds()
+    nets = [stage3.make_value(CFG).init(jax.random.key(k)) for k in (3, 4)]
+    value = stage3.make_value(CFG)
+    first = np.zeros(poses.shape[:2], np.float32)
+    got = np.asarray(jax.jit(stage3.make_ensemble_score(CFG, False, 2))(first, nets, clouds, poses))
+    want = np.zeros_like(got)
+    for p in nets:
+        for j in range(2):
+            sub = stage3.subset_clouds(jax.tree.map(np.asarray, clouds), CFG, j, 2)
+            want += np.stack([np.asarray(value.score(p, jax.tree.map(lambda x, i=i: x[i], sub),
+                                                     poses[i])) for i in range(len(poses))]) / 4  # fmt: skip
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    one = np.asarray(jax.jit(stage3.make_ensemble_score(CFG, False, 1))(first, nets, clouds, poses))
+    assert not np.allclose(one, got)  # a second subset changes the scores
+    with pytest.raises(ValueError, match="subsets must be >= 1"):
+        stage3.make_ensemble_score(CFG, False, 0)
+
+
+def _dataset(tmp_path, clouds, poses, stable, k=4):
+    folder = tmp_path / "ds" / "derived" / "train"
+    folder.mkdir(parents=True)
+    rows = _records(clouds, poses, stable, k)
+    for i, r in enumerate(rows):
+        _write_pair(folder / r["file"], clouds, i, i)
+    rec = tmp_path / "run.pairs.jsonl.gz"
+    with gzip.open(rec, "wt") as f:
+        f.write("".join(json.dumps(r) + "\n" for r in rows))
+    return rec
+
+
+def test_rank_subsets_scores_every_subset_and_averages_them(tmp_path):
+    clouds, poses, stable = _clouds()
+    rec = _dataset(tmp_path, clouds, poses, stable)
+    net = tmp_path / "v"
+    refine.save_value(net, CFG, stage3.make_value(CFG).init(jax.random.key(1)))
+    res = rank_subsets.main([
+        "--select-on", str(rec), "--apply-to", str(rec), "--data", str(tmp_path / "ds"),
+        "--apply-split", "train", "--rank-value", str(net), "--subsets", "1,2,4",
+        "--batch", "3", "--scores", str(tmp_path / "s.npz"), "--out", str(tmp_path / "r.json"),
+        "--no-progress"])  # fmt: skip
+    scores = np.load(tmp_path / "s.npz")["select_on_scores"]
+    assert scores.shape == (1, 4, 4, 8) and np.all(np.isfinite(scores))
+    table = train_ranker.load_table(rec)
+    # T = 1 is subset 0, the network as the pipeline runs it today
+    config, params = refine.load_value(net)
+    bank = train_ranker.load_bank(table, str(tmp_path / "ds"), "train", config, False)
+    plain = train_ranker.score_table(train_ranker.make_scorer(config), params, bank, table, 3)
+    np.testing.assert_allclose(scores[0, 0], plain, rtol=1e-5, atol=1e-5)
+    # T = 2 averages subsets 0 and 2 of the four scored
+    want = train_ranker.rule_success(table, scores[0, [0, 2]].mean(0))["mean"]
+    assert res["select_on"]["by_t"]["2"]["mean"] == pytest.approx(want)
+    assert len(res["select_on"]["single_subset"]) == 4
+    assert res["chosen_subsets"] in (1, 2, 4)
+    assert json.loads((tmp_path / "r.json").read_text())["subsets"] == [1, 2, 4]
+    with pytest.raises(ValueError, match="divide the largest"):
+        rank_subsets.main(["--select-on", str(rec), "--apply-to", str(rec), "--data",
+                           str(tmp_path / "ds"), "--subsets", "1,3,4", "--no-progress"])  # fmt: skip
+
+
+def test_ranker_trains_with_subset_augmentation(tmp_path):
+    """--subset-augment 4: the bank holds each pair on four subsets (subset 0 = load_bank's),
+    the run trains and saves a ranker whose validation pick does not get worse."""
+    clouds, poses, stable = _clouds(n_pairs=6)
+    rec = _dataset(tmp_path, clouds, poses, stable)
+    table = train_ranker.load_table(rec)
+    stacked = train_ranker.load_subset_bank(table, str(tmp_path / "ds"), "train", CFG, 4, False)
+    bank = train_ranker.load_bank(table, str(tmp_path / "ds"), "train", CFG, False)
+    assert stacked.object_points.shape == (4, 6, 64, 3)
+    np.testing.assert_array_equal(stacked.support_points[0], bank.clouds.support_points)
+    assert not np.array_equal(stacked.support_points[1], bank.clouds.support_points)
+    init = tmp_path / "v0"
+    refine.save_value(init, CFG, stage3.make_value(CFG).init(jax.random.key(1)))
+    summary = train_ranker.main([
+        "train", "--records", str(rec), "--data", str(tmp_path / "ds"), "--init", str(init),
+        "--out", str(tmp_path / "rk"), "--val-records", str(rec), "--steps", "60",
+        "--pairs-per-batch", "4", "--lr", "3e-3", "--warmup", "5", "--eval-every", "30",
+        "--log-every", "10", "--subset-augment", "4", "--no-progress"])  # fmt: skip
+    val = summary["validation"]
+    assert summary["steps"] == 60 and val[-1]["ranker"] >= val[0]["ranker"]
+    assert refine.load_value(tmp_path / "rk" / "value")[0] == CFG
+
+
+def test_facing_normals_turn_away_from_the_camera():
+    """A sphere seen from +x: PCA normals of its far half face away from the camera (outward
+    there), those of its near half towards it (inward: the rule is for hidden points only)."""
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(2000, 3))
+    pts = 0.05 * pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    eye = np.array([1.0, 0.0, 0.0])
+    back = pts[pts[:, 0] < -0.02]
+    n = rerank_completed.facing_normals(back, pts, eye)
+    radial = back / np.linalg.norm(back, axis=1, keepdims=True)
+    assert np.mean(np.einsum("ij,ij->i", n, radial) > 0.9) > 0.95
+    assert rerank_completed.facing_normals(np.zeros((0, 3)), pts, eye).shape == (0, 3)
+
+
+def test_inside_grid_counts_points_behind_a_plane_within_the_radius():
+    xy = np.stack(np.meshgrid(np.linspace(-0.05, 0.05, 41), np.linspace(-0.05, 0.05, 41)), -1)
+    surface = np.concatenate([xy.reshape(-1, 2), np.zeros((41 * 41, 1))], 1)
+    normals = np.tile([0.0, 0.0, 1.0], (len(surface), 1))
+    posed = np.array([[[0.0, 0.0, -0.0015], [0.01, 0.0, -0.004], [0.0, 0.0, 0.003]],
+                      [[0.2, 0.0, -0.004], [0.0, 0.0, 0.01], [0.0, 0.01, 0.0]]])  # fmt: skip
+    counts = rerank_completed.inside_grid(posed, surface, normals)
+    g = {dr: i for i, dr in enumerate(rerank_completed.GRID)}
+    assert counts[g[(0.001, 0.003)]].tolist() == [2, 0]  # 1.5 and 4 mm deep; beside it: none
+    assert counts[g[(0.002, 0.003)]].tolist() == [1, 0]
+    assert counts[g[(0.005, 0.003)]].tolist() == [0, 0]
+
+
+def test_candidate_counts_on_completed_clouds_have_one_row_per_setting():
+    """With (untrained) completion networks: every variant gives [G, P] counts; a pose 1 m above
+    the support plane has no object point behind it (the ``object`` variant: the observed
+    support's true normals)."""
+    rng = np.random.default_rng(0)
+    tiny = completion.CompletionConfig(n_input=64, encoder=(16,), encoder2=(32,), decoder=(32,),
+                                       n_coarse=16, fold=(2, 2), fine=(16,))  # fmt: skip
+    nets = {}
+    for i, kind in enumerate(completion.KINDS):
+        config = completion.CompletionConfig(**{**tiny.__dict__, "kind": kind})
+        init, _ = completion.make_completion(config)
+        nets[kind] = (config, init(jax.random.key(i)))
+    obj = 0.02 * rng.normal(size=(300, 3))
+    sup = np.concatenate([rng.uniform(-0.05, 0.05, (300, 2)), np.zeros((300, 1))], 1)
+    clouds = {"object_points": obj, "object_normals": obj / np.linalg.norm(obj, axis=1)[:, None],
+              "support_points": sup, "support_normals": np.tile([0.0, 0.0, 1.0], (300, 1))}  # fmt: skip
+    eyes = (np.array([0.5, 0.0, 0.0]), np.array([0.0, 0.0, 0.5]))
+    poses = np.array([[0.0, 0.0, 0.0, 1, 0, 0, 0], [0.0, 0.0, 1.0, 1, 0, 0, 0]], float)
+    out = rerank_completed.candidate_counts(nets, clouds, eyes, poses)
+    assert set(out) == set(rerank_completed.VARIANTS)
+    for v in rerank_completed.VARIANTS:
+        assert out[v].shape == (len(rerank_completed.GRID), 2)
+    assert out["object"][:, 1].sum() == 0
