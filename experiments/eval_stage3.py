@@ -93,6 +93,11 @@ def main(argv=None) -> dict:
         "stage3.ANSWER_PIPELINE.rank_subsets)",
     )  # fmt: skip
     parser.add_argument(
+        "--view", default="0/1", metavar="J/T",
+        help="CEM's V and the ranking networks see subset J of T evenly spaced subsets of the "
+        "clouds (stage3.subset_clouds; 0/1: the pipeline's own subsample)",
+    )  # fmt: skip
+    parser.add_argument(
         "--seed", type=int, default=0,
         help="the key of Stage 1's noise and CEM's samples (0: every committed run); other "
         "seeds measure the figure's spread",
@@ -104,6 +109,13 @@ def main(argv=None) -> dict:
         parser.error("--rounds and --stage1-rounds must be >= 1")
     if args.rank_subsets < 1:
         parser.error("--rank-subsets must be >= 1")
+    try:
+        view = tuple(int(x) for x in args.view.split("/"))
+        assert len(view) == 2 and 0 <= view[0] < view[1]
+    except (ValueError, AssertionError):
+        parser.error(f"--view {args.view}: expected J/T with 0 <= J < T")
+    if view != (0, 1) and args.rank_subsets > 1:
+        parser.error("--view and --rank-subsets > 1 do not go together")
     dataset_dir, derived_dir = dataset_bridge.resolve_dataset_dir(args.data)
     files = dataset_bridge.derived_files(derived_dir, args.split)
     if args.pairs_from:
@@ -137,7 +149,7 @@ def main(argv=None) -> dict:
         pool_starts=args.pool_starts, rank_value_dirs=rank_values, seed=args.seed,
         rank_with_value=args.rank_with_value,
         cem_stage1=None if args.stage1_rounds is None else CEMConfig(rounds=args.stage1_rounds),
-        rank_subsets=args.rank_subsets,
+        rank_subsets=args.rank_subsets, view=view,
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
@@ -147,7 +159,7 @@ def main(argv=None) -> dict:
                    select=dataclasses.asdict(select),
                    pool_starts=args.pool_starts, rank_values=rank_values,
                    rank_with_value=args.rank_with_value,
-                   rank_subsets=args.rank_subsets)  # fmt: skip
+                   rank_subsets=args.rank_subsets, view=list(view))  # fmt: skip
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     refine.write_json(out, summary)

@@ -82,6 +82,7 @@ def evaluate_pipeline(
     rank_with_value: bool = True,
     cem_stage1: stage3.CEMConfig | None = None,
     rank_subsets: int = 1,
+    view: tuple[int, int] = (0, 1),
 ) -> tuple[list[dict], dict]:
     """Run Stages 1-3 on every pair file and simulate every candidate. Returns (records,
     timings). ``stage2_clearance`` (m): replaces the model's ``Stage2Config.clearance`` (None:
@@ -102,7 +103,9 @@ def evaluate_pipeline(
     CEM of the Stage-1 starts when it differs from ``cem`` (e.g. more rounds there only).
     ``rank_subsets``: each ranking network scores on that many evenly spaced subsets of the
     clouds (``PipelineConfig.rank_subsets``); ``v_rank`` then holds each network's geometric
-    mean over them."""
+    mean over them. ``view`` = (j, T): CEM's V, every V recorded and the ranking networks see
+    subset j of T of the clouds (``stage3.subset_clouds``) instead of subset 0: the same
+    pipeline on another subsample (twenty-sixth session)."""
     from omnihang_jax.predict import load_predictor, load_rank_values
     from sim import kernels
 
@@ -116,7 +119,11 @@ def evaluate_pipeline(
         refine_fn1 = jax.jit(stage3.make_refiner(value_config, cem_stage1))
     value_fn = jax.jit(stage3.make_value(value_config).value)
     rank_configs, rank_params = load_rank_values(rank_value_dirs)
-    ensemble_fn = jax.jit(stage3.make_ensemble_score(rank_configs, rank_with_value, rank_subsets))
+    view = tuple(view)
+    ensemble_fn = jax.jit(
+        stage3.make_ensemble_score(rank_configs, rank_with_value, rank_subsets, view)
+    )
+    rank_views = [(j, rank_subsets) for j in range(rank_subsets)] if rank_subsets > 1 else [view]
     jits = {c: jax.jit(stage3.make_value(c).value) for c in set(rank_configs)}  # one per config
     rank_value_fns = [jits[c] for c in rank_configs]
 
@@ -161,7 +168,7 @@ def evaluate_pipeline(
         pred = predictor(full.object_points, full.support_points,
                          key=jax.random.fold_in(key, i), num_proposals=k,
                          support_normals=full.support_normals)  # fmt: skip
-        small = stage3.subsample_clouds(jax.tree.map(jnp.asarray, full), value_config)
+        small = stage3.subset_clouds(jax.tree.map(jnp.asarray, full), value_config, *view)
         r2 = refine_fn(value_params, jax.random.fold_in(key, 2 * i + 1), small,
                        jnp.asarray(pred.stage2_poses))  # fmt: skip
         r1 = refine_fn1(value_params, jax.random.fold_in(key, 2 * i + 2), small,
@@ -194,9 +201,9 @@ def evaluate_pipeline(
         v_rank = []  # each ranking network on its own subsample of the clouds
         for fn, c, p in zip(rank_value_fns, rank_configs, rank_params, strict=True):
             logv = 0.0
-            for j in range(rank_subsets):
+            for j, of in rank_views:
                 tiled_rank = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0),
-                                          stage3.subset_clouds(fullj, c, j, rank_subsets))  # fmt: skip
+                                          stage3.subset_clouds(fullj, c, j, of))  # fmt: skip
                 v = fn(p, tiled_rank, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1)
                 logv = logv + jnp.log(jnp.clip(v, 1e-12, 1.0)) / rank_subsets
             v_rank.append(np.asarray(jnp.exp(logv) if rank_subsets > 1 else v))

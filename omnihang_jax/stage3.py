@@ -684,7 +684,9 @@ def make_smoothed_value(
     return smoothed
 
 
-def make_ensemble_score(rank_configs, with_first: bool = True, subsets: int = 1) -> Callable:
+def make_ensemble_score(
+    rank_configs, with_first: bool = True, subsets: int = 1, view: tuple[int, int] = (0, 1)
+) -> Callable:
     """``ensemble(scores [B, P], extra_params [R value params], clouds [B, ...] the observed
     clouds, poses [B, P, 7]) -> [B, P]``: the mean of log V over the first V (its final
     scores, as CEM returns them) and the R other value networks on the same poses, network i of
@@ -695,9 +697,13 @@ def make_ensemble_score(rank_configs, with_first: bool = True, subsets: int = 1)
     over the R networks alone (``PipelineConfig.rank_with_value``). ``subsets`` > 1: each of
     the R networks scores the poses on that many evenly spaced subsets of the clouds
     (:func:`subset_clouds`) and its log V is their mean (``PipelineConfig.rank_subsets``).
-    Pure, un-jitted."""
+    ``view`` = (j, T) with ``subsets`` = 1: every network sees subset j of T instead of subset
+    0 (a study of the pipeline on another subsample, ``eval_stage3 --view``). Pure, un-jitted."""
     if subsets < 1:
         raise ValueError(f"subsets must be >= 1, got {subsets}")
+    if subsets > 1 and tuple(view) != (0, 1):
+        raise ValueError("give either subsets > 1 or a view, not both")
+    views = [(i, subsets) for i in range(subsets)] if subsets > 1 else [tuple(view)]
 
     def per_pair(config):
         value = make_value(config)
@@ -721,8 +727,8 @@ def make_ensemble_score(rank_configs, with_first: bool = True, subsets: int = 1)
             score = per_pair(c)
             stacked = jax.tree.map(lambda *x: jnp.stack(x), *ps) if len(ps) > 1 else None
             total = 0.0
-            for i in range(subsets):
-                sub = subset_clouds(clouds, c, i, subsets)
+            for i, of in views:
+                sub = subset_clouds(clouds, c, i, of)
                 if stacked is None:
                     total = total + score(ps[0], sub, poses)
                 else:
