@@ -25,6 +25,9 @@ from experiments import _cli
 from omnihang_jax import refine, stage3
 from omnihang_jax.predict import load_predictor, load_rank_values
 
+# the subsamples of the "views1" / "views2" pipelines (PipelineConfig.views, twenty-sixth session)
+VIEWS = {"views1": ((0, 1),), "views2": ((0, 1), (1, 2))}
+
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(
@@ -49,8 +52,8 @@ def main(argv=None) -> dict:
         help="comma-separated pipelines timed side by side (interleaved, same clouds): chosen "
         "= stage3.ANSWER_PIPELINE (both starts refined, the observed-cloud rule) ranked with "
         "the networks of --rank-value (the default pipeline), single = the same ranked by "
-        "CEM's V alone, paper = Stage-2 starts, highest V; the first is the reference of the "
-        "ratios",
+        "CEM's V alone, paper = Stage-2 starts, highest V, views1 / views2 = chosen on one "
+        "subsample / on two (PipelineConfig.views); the first is the reference of the ratios",
     )  # fmt: skip
     parser.add_argument(
         "--rank-value", action="append", default=None, metavar="DIR",
@@ -58,9 +61,10 @@ def main(argv=None) -> dict:
     )  # fmt: skip
     args = parser.parse_args(argv)
     answers = args.answers.split(",")
-    bad = [a for a in answers if a not in ("chosen", "single", "paper")]
+    known = ("chosen", "single", "paper", "views1", "views2")
+    bad = [a for a in answers if a not in known]
     if bad:
-        parser.error(f"unknown --answers {bad}; known: chosen, single, paper")
+        parser.error(f"unknown --answers {bad}; known: {', '.join(known)}")
     pred = load_predictor(args.weights)
     vcfg, vparams = refine.load_value(args.value)
     rank_dirs = list(stage3.RANK_VALUES if args.rank_value is None else args.rank_value)
@@ -71,9 +75,11 @@ def main(argv=None) -> dict:
     configs, hangs = {}, {}
     for a in answers:
         base = stage3.PipelineConfig() if a == "paper" else stage3.ANSWER_PIPELINE
-        ranks = len(rank_dirs) if a == "chosen" else 0
+        ranks = len(rank_dirs) if a in ("chosen", "views1", "views2") else 0
         k = args.proposals or base.num_proposals
         configs[a] = dataclasses.replace(base, num_proposals=k, rank_values=ranks)
+        if a in VIEWS:
+            configs[a] = dataclasses.replace(configs[a], views=VIEWS[a])
         hangs[a] = jax.jit(
             stage3.make_hang_pipeline(
                 stage1_config, pred.stage2_config, vcfg, configs[a], rank_configs
@@ -127,6 +133,7 @@ def main(argv=None) -> dict:
                 "rank_values": rank_dirs if configs[a].rank_values else [],
                 "rank_with_value": configs[a].rank_with_value,
                 "proposals": configs[a].num_proposals,
+                "views": [list(v) for v in configs[a].views],
             }
             for a in answers
         },  # fmt: skip

@@ -528,6 +528,10 @@ class PipelineConfig:
     # ours (twenty-sixth session): each ranking network scores every candidate on this many
     # evenly spaced subsets of the observed clouds, the mean log V ranks (stage3.subset_clouds)
     rank_subsets: int = 1
+    # ours (twenty-sixth session): the subsamples (j, T) of the clouds the pipeline runs on
+    # (stage3.subset_clouds); with several, CEM and the ranking run once per view (same keys)
+    # and the answer is picked among every view's candidates (their K axes concatenated)
+    views: tuple[tuple[int, int], ...] = ((0, 1),)
 
 
 # The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
@@ -757,21 +761,22 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
 
     predict = make_predict(stage1_config, stage2_config)
     refine = make_refiner(value_config, config.cem)
-    rank = make_ensemble_score(
-        value_config if rank_configs is None else rank_configs, config.rank_with_value,
-        config.rank_subsets,
-    )  # fmt: skip
+    views = tuple(tuple(int(x) for x in v) for v in config.views)
+    if not views or any(not 0 <= j < t for j, t in views):
+        raise ValueError(f"PipelineConfig.views {config.views}: need (j, T) with 0 <= j < T")
+    ranks = {
+        v: make_ensemble_score(
+            value_config if rank_configs is None else rank_configs, config.rank_with_value,
+            config.rank_subsets, v if config.rank_subsets == 1 else (0, 1),
+        )
+        for v in views
+    }  # fmt: skip
     rule = config.select
 
-    def hang(params, key, clouds: PairClouds) -> HangOutput:
-        k1, k3 = jax.random.split(key)
-        pred = predict(
-            params["stage1"], params["stage2"], clouds.object_points, clouds.support_points,
-            k1, config.num_proposals, support_normals=clouds.support_normals,
-        )  # fmt: skip
-        small = subsample_clouds(clouds, value_config)
-        starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
-        refined, scores, initial, best, keys_of = {}, {}, {}, {}, {}
+    def one_view(params, k3, clouds, starts, view):
+        """CEM and the ranking on one subsample: per start (poses, scores, initial)."""
+        small = subset_clouds(clouds, value_config, *view)
+        refined, scores, initial = {}, {}, {}
         for i, name in enumerate(config.starts):
             res = refine(params["value"], jax.random.fold_in(k3, i), small, starts[name])
             refined[name], scores[name], initial[name] = res.poses, res.scores, res.initial_scores
@@ -782,12 +787,28 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
                                  f"networks, PipelineConfig.rank_values {config.rank_values}")  # fmt: skip
             # every start's candidates in one pass of each network ([B, S*K])
             width = [refined[n].shape[1] for n in config.starts]
-            ranked = rank(
+            ranked = ranks[view](
                 jnp.concatenate([scores[n] for n in config.starts], axis=1), extra, clouds,
                 jnp.concatenate([refined[n] for n in config.starts], axis=1),
             )  # fmt: skip
             parts = jnp.split(ranked, list(np.cumsum(width)[:-1]), axis=1)
             scores = dict(zip(config.starts, parts, strict=True))
+        return refined, scores, initial
+
+    def hang(params, key, clouds: PairClouds) -> HangOutput:
+        k1, k3 = jax.random.split(key)
+        pred = predict(
+            params["stage1"], params["stage2"], clouds.object_points, clouds.support_points,
+            k1, config.num_proposals, support_normals=clouds.support_normals,
+        )  # fmt: skip
+        starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
+        per_view = [one_view(params, k3, clouds, starts, v) for v in views]
+        # the views' candidates side by side: [B, V*K] per start
+        refined, scores, initial = (
+            {n: jnp.concatenate([pv[j][n] for pv in per_view], axis=1) for n in config.starts}
+            for j in range(3)
+        )
+        best, keys_of = {}, {}
         for name in config.starts:
             final = scores[name]
             best[name] = jnp.argmax(final, axis=1)

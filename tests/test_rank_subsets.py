@@ -14,6 +14,7 @@ import pytest
 
 from experiments import rank_subsets, rerank_completed, train_ranker
 from omnihang_jax import completion, refine, stage3
+from tests.test_stage2_clearance_pipeline import params as params  # noqa: F401 (fixture)
 from tests.test_train_ranker import _records, _write_pair
 
 CFG = stage3.VALUE_TINY  # 64 + 64 state points
@@ -193,3 +194,52 @@ def test_candidate_counts_on_completed_clouds_have_one_row_per_setting():
     for v in rerank_completed.VARIANTS:
         assert out[v].shape == (len(rerank_completed.GRID), 2)
     assert out["object"][:, 1].sum() == 0
+
+
+def test_two_view_pipeline_picks_among_both_views_candidates(params):  # noqa: F811
+    """PipelineConfig.views = ((0, 1), (1, 2)): CEM and the ranking run on each subsample with
+    the same keys; each view's candidates equal a one-view pipeline's on that subsample, and the
+    answer is the best of all of them by the rule's key."""
+    import dataclasses
+
+    from omnihang_jax import selection
+    from omnihang_jax.stage1 import STAGE1_TINY
+    from omnihang_jax.stage2 import STAGE2_TINY
+    from tests.test_stage2_clearance_pipeline import PIPE, _plane_pairs
+
+    clouds = _plane_pairs(n=256, m=256)
+    v2 = stage3.make_value(CFG).init(jax.random.key(7))
+    base = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=1,
+                               rank_with_value=False)  # fmt: skip
+    prm = {**params, "rank_values": [v2]}
+    key = jax.random.key(3)
+    outs = {}
+    for views in (((0, 1),), ((1, 2),), ((0, 1), (1, 2))):
+        cfg = dataclasses.replace(base, views=views)
+        outs[views] = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))(
+            prm, key, clouds
+        )
+    one, other, both = outs[((0, 1),)], outs[((1, 2),)], outs[((0, 1), (1, 2))]
+    k = base.num_proposals
+    for name in base.starts:
+        np.testing.assert_allclose(
+            np.asarray(both.refined[name][:, :k]), np.asarray(one.refined[name]), atol=1e-6
+        )
+        np.testing.assert_allclose(
+            np.asarray(both.refined[name][:, k:]), np.asarray(other.refined[name]), atol=1e-6
+        )
+        np.testing.assert_allclose(
+            np.asarray(both.scores[name][:, k:]), np.asarray(other.scores[name]), atol=1e-5
+        )
+    assert not np.allclose(np.asarray(one.scores["stage2"]), np.asarray(other.scores["stage2"]))
+    full = jax.tree.map(np.asarray, clouds)
+    cands = np.concatenate([np.asarray(both.refined[n]) for n in base.starts], axis=1)
+    scores = np.concatenate([np.asarray(both.scores[n]) for n in base.starts], axis=1)
+    counts = np.stack([np.asarray(selection.inside_counts(
+        full.object_points[b], full.support_points[b], full.support_normals[b], cands[b],
+        selection.CHOSEN.depth, selection.CHOSEN.radius)) for b in range(len(cands))])  # fmt: skip
+    pick = np.asarray(selection.select(scores, counts, selection.CHOSEN))
+    np.testing.assert_allclose(np.asarray(both.pose), cands[np.arange(len(cands)), pick], atol=1e-6)
+    with pytest.raises(ValueError, match="views"):
+        stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG,
+                                  dataclasses.replace(base, views=((2, 2),)))  # fmt: skip
