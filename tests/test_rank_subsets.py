@@ -243,3 +243,30 @@ def test_two_view_pipeline_picks_among_both_views_candidates(params):  # noqa: F
     with pytest.raises(ValueError, match="views"):
         stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG,
                                   dataclasses.replace(base, views=((2, 2),)))  # fmt: skip
+
+
+def test_union_of_runs_picks_each_pairs_best_candidate_by_its_own_ranking(tmp_path):
+    """Two runs of the same pairs: the union's answer is the candidate with the highest key
+    over both runs' pools, each scored by its own run's rankers."""
+    from experiments import union_views
+
+    clouds, poses, stable = _clouds(n_pairs=3)
+    k = 4
+    runs = []
+    for run in range(2):
+        rows = _records(clouds, poses, stable, k)
+        for i, r in enumerate(rows):
+            v = np.full(4 * k + 1, 0.1)
+            # run 0 prefers its first pool candidate, run 1 its last; run 1 more strongly,
+            # except on pair 1
+            v[2 * k if run == 0 else 4 * k - 1] = 0.5 if (run == 0) == (i != 1) else 0.9
+            r["v_rank"] = [v.tolist()]
+        runs.append(rows)
+    res = union_views.union(runs)
+    want = []
+    for i in range(3):
+        want.append(bool(stable[i][2 * k - 1 if i != 1 else 0]))
+    assert res["union"]["pair_mean"] == pytest.approx(100 * np.mean(want))
+    assert res["union_any_hangs"] == pytest.approx(100 * float(stable.any(1).mean()))
+    with pytest.raises(ValueError, match="different pairs"):
+        union_views.union([runs[0], runs[1][:2]])

@@ -1,0 +1,82 @@
+"""The answer among the refined candidates of several runs, each ranked by its own run.
+
+    python -m experiments.union_views --runs RUN_VIEW0.pairs.jsonl.gz RUN_VIEW4of8.pairs.jsonl.gz \\
+        --out results/views_s26_heldout.json
+
+Twenty-sixth session (issue 12). ``eval_stage3 --view J/T`` runs the whole pipeline (CEM's V and
+the ranking networks) on another evenly spaced subsample of the clouds. Runs of the same pairs
+with the same key but different views find different candidates and rank them differently;
+``PipelineConfig.views`` runs several views in one call and answers with the best of all their
+candidates by the answer rule's key (the rankers' mean log P from each candidate's own view,
+observed inside points first, ``selection.CHOSEN``). This computes that answer from the runs'
+records (every candidate was simulated): per run, the union, and how often some candidate of
+the union hangs. Mean over categories, as everywhere.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from experiments import _cli
+from experiments.rerank_stage3 import category_means, pool_indices, proposals_of, read_records
+from omnihang_jax import selection
+
+
+def run_keys(rows: list[dict], k: int) -> tuple[np.ndarray, np.ndarray]:
+    """([N, 2K] the answer rule's key, [N, 2K] simulated stable) of a run's pooled candidates;
+    the key is the ranking networks' mean log P (``v_rank``), or the run's V without them."""
+    idx = pool_indices(k, "stage1_2")
+    grid = selection.grid_key(selection.CHOSEN.depth, selection.CHOSEN.radius)
+    keys, stable = [], []
+    for r in rows:
+        ranks = np.asarray(r.get("v_rank") or [r["v"]], np.float64)[:, idx]
+        score = np.log(np.clip(ranks, 1e-12, 1.0)).mean(0)
+        counts = np.asarray(r["inside_counts"][grid], np.int64)[idx]
+        keys.append(np.asarray(selection.select_key(score, counts, selection.CHOSEN)))
+        stable.append(np.asarray(r["stable_all"], bool)[idx])
+    return np.stack(keys), np.stack(stable)
+
+
+def union(runs: list[list[dict]]) -> dict:
+    order = [int(r["pair_index"]) for r in runs[0]]
+    for rows in runs[1:]:
+        if [int(r["pair_index"]) for r in rows] != order:
+            raise ValueError("the runs hold different pairs (or another order)")
+    parts = [run_keys(rows, proposals_of(rows)) for rows in runs]
+    rows0 = runs[0]
+    out = {"runs": []}
+    for keys, stable in parts:
+        pick = stable[np.arange(len(rows0)), keys.argmax(1)]
+        out["runs"].append(category_means(rows0, pick))
+    keys = np.concatenate([p[0] for p in parts], axis=1)
+    stable = np.concatenate([p[1] for p in parts], axis=1)
+    out["union"] = category_means(rows0, stable[np.arange(len(rows0)), keys.argmax(1)])
+    out["union_any_hangs"] = category_means(rows0, stable.any(1))["mean"]
+    out["first_any_hangs"] = category_means(rows0, parts[0][1].any(1))["mean"]
+    return out
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", nargs="+", required=True, help="eval_stage3 records, same pairs")
+    ap.add_argument("--out", default=None, help="JSON")
+    args = ap.parse_args(argv)
+    if len(args.runs) < 2:
+        raise ValueError("--runs needs two runs or more")
+    res = {"records": args.runs, **union([read_records(p) for p in args.runs])}
+    for path, r in zip(args.runs, res["runs"], strict=True):
+        print(f"{Path(path).name}: {r['mean']:.2f}")
+    print(f"union: {res['union']['mean']:.2f} (some candidate hangs: {res['union_any_hangs']:.2f}, "
+          f"first run alone {res['first_any_hangs']:.2f})")  # fmt: skip
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+    return res
+
+
+if __name__ == "__main__":
+    _cli.run(main)
