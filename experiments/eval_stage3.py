@@ -109,10 +109,9 @@ def main(argv=None) -> dict:
         parser.error("--rounds and --stage1-rounds must be >= 1")
     if args.rank_subsets < 1:
         parser.error("--rank-subsets must be >= 1")
-    try:
-        view = tuple(int(x) for x in args.view.split("/"))
-        assert len(view) == 2 and 0 <= view[0] < view[1]
-    except (ValueError, AssertionError):
+    parts = args.view.split("/")
+    view = tuple(int(x) for x in parts) if all(x.strip().isdigit() for x in parts) else ()
+    if len(view) != 2 or not 0 <= view[0] < view[1]:
         parser.error(f"--view {args.view}: expected J/T with 0 <= J < T")
     if view != (0, 1) and args.rank_subsets > 1:
         parser.error("--view and --rank-subsets > 1 do not go together")

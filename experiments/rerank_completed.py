@@ -1,6 +1,6 @@
 """The Stage-3 answer rule with shape completion: candidates whose COMPLETED clouds overlap.
 
-    python -m experiments.rerank_completed --select-on out/val_s24/val_base.pairs.jsonl.gz \\
+    python -m experiments.rerank_completed --select-on results/validation_where_s26/val_base_s24.pairs.jsonl.gz \\
         --apply-to results/hanging_success_stage3_s22_rankset.pairs.jsonl.gz \\
         --completion weights/completion_s25 --out results/rerank_completed_s26.json
 
@@ -48,8 +48,14 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from experiments import _cli
-from experiments.rerank_stage3 import category_means, pool_indices, proposals_of, read_records
-from omnihang_jax import collision, completion, selection
+from experiments.rerank_stage3 import (
+    category_means,
+    pool_indices,
+    proposals_of,
+    read_records,
+    rule_keys,
+)
+from omnihang_jax import collision, completion
 
 DEPTHS = (0.001, 0.002, 0.003, 0.005)
 RADII = (0.003, 0.005, 0.008)
@@ -95,30 +101,29 @@ def candidate_counts(nets, clouds: dict, eyes, poses: np.ndarray, seed: int = 0)
     obs_o, obs_s = clouds["object_points"], clouds["support_points"]
     pred_o, pred_s = completion.predict_points(nets, obs_o, obs_s, eyes, seed=seed)
     pred_o, pred_s = np.asarray(pred_o, float), np.asarray(pred_s, float)
-    sub_o = collision.subsample_cloud(obs_o, N_OBJECT, seed).astype(float)
+    keep_o = collision.subsample_indices(len(obs_o), N_OBJECT, seed)
+    sub_o = np.asarray(obs_o, float)[keep_o]
+    n_sub_o = np.asarray(clouds["object_normals"], float)[keep_o]
     sub_po = collision.subsample_cloud(pred_o, N_OBJECT, seed) if len(pred_o) else pred_o
     comp_o = np.concatenate([sub_o, sub_po])
     comp_s = np.concatenate([obs_s, pred_s])
     n_pred_s = facing_normals(pred_s, comp_s, eyes[1])
     n_pred_o = facing_normals(sub_po, comp_o, eyes[0])
-    n_obs_s = clouds["support_normals"].astype(float)
-    tree_o = cKDTree(obs_o)
-    n_sub_o = clouds["object_normals"][tree_o.query(sub_o)[1]].astype(float)
+    n_obs_s = np.asarray(clouds["support_normals"], float)
     poses = np.asarray(poses, float)
-    rot = np.asarray(collision.quaternion_matrix(poses[:, 3:]), float)  # object -> support
 
-    def pose_obj(points):
-        return np.einsum("pij,nj->pni", rot, points) + poses[:, None, :3]
+    def pose_obj(points):  # object frame -> support frame, [P, N, 3]
+        return collision.posed_points(poses, points)
 
     out = {
-        "object": inside_grid(pose_obj(sub_po), obs_s.astype(float), n_obs_s),
+        "object": inside_grid(pose_obj(sub_po), np.asarray(obs_s, float), n_obs_s),
         "support": inside_grid(pose_obj(sub_o), pred_s, n_pred_s),
     }
     comp_n_s = np.concatenate([n_obs_s, n_pred_s])
     comp_n_o = np.concatenate([n_sub_o, n_pred_o])
     # the symmetric part: completed support points (a 2,048 subset) in the object frame
     sub_s = collision.subsample_cloud(comp_s, 2048, seed).astype(float)
-    local = np.einsum("pji,pmj->pmi", rot, sub_s[None] - poses[:, None, :3])
+    local = np.asarray(collision.inverse_transform_points(poses, sub_s), float)
     out["both"] = inside_grid(pose_obj(comp_o), comp_s, comp_n_s) + inside_grid(
         local, comp_o, comp_n_o
     )
@@ -167,16 +172,9 @@ def save_cache(cache: Path, have: dict) -> None:
 
 
 def committed_key(rows, k) -> np.ndarray:
-    """[N, 2K] the pipeline's key: the rankers' mean log P, observed inside points first."""
-    idx = pool_indices(k, "stage1_2")
-    out = []
-    for r in rows:
-        ranks = np.asarray(r["v_rank"], np.float64)[:, idx]
-        score = np.log(np.clip(ranks, 1e-12, 1.0)).mean(0)
-        counts = np.asarray(r["inside_counts"][selection.grid_key(
-            selection.CHOSEN.depth, selection.CHOSEN.radius)], np.int64)[idx]  # fmt: skip
-        out.append(np.asarray(selection.select_key(score, counts, selection.CHOSEN)))
-    return np.stack(out)
+    """[N, 2K] the pipeline's key: the rankers' mean log P, observed inside points first
+    (``rerank_stage3.rule_keys``)."""
+    return rule_keys(rows, k)[0]
 
 
 def oracle_no_penetrating(rows, k) -> float:

@@ -85,6 +85,24 @@ def successes(rows: list[dict], k: int, pool: str, config: selection.SelectConfi
     return category_means(rows, [r["stable_all"][idx[p]] for r, p in zip(rows, picks, strict=True)])
 
 
+def rule_keys(rows: list[dict], k: int) -> tuple[np.ndarray, np.ndarray]:
+    """([N, 2K] the default pipeline's answer key, [N, 2K] simulated stable) of each record's
+    pooled refined candidates (Stages 1 and 2 starts): the ranking networks' mean log P
+    (``v_rank``; the run's V where none was recorded), observed inside points first
+    (``selection.CHOSEN``). The answer is the argmax (``experiments.rerank_completed``,
+    ``experiments.union_views``)."""
+    idx = pool_indices(k, "stage1_2")
+    grid = selection.grid_key(selection.CHOSEN.depth, selection.CHOSEN.radius)
+    keys, stable = [], []
+    for r in rows:
+        ranks = np.asarray(r.get("v_rank") or [r["v"]], np.float64)[:, idx]
+        score = np.log(np.clip(ranks, 1e-12, 1.0)).mean(0)
+        counts = np.asarray(r["inside_counts"][grid], np.int64)[idx]
+        keys.append(np.asarray(selection.select_key(score, counts, selection.CHOSEN)))
+        stable.append(np.asarray(r["stable_all"], bool)[idx])
+    return np.stack(keys), np.stack(stable)
+
+
 def category_means(rows: list[dict], outcomes) -> dict:
     """Per pair a success (bool) -> the mean over object categories (the figure everywhere),
     over pairs, and per category (percent)."""

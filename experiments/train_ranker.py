@@ -266,7 +266,6 @@ def train(args) -> dict:
     progress = not args.no_progress
     table = concat_tables([load_table(p) for p in args.records])
     n_pairs = len(table["files"])
-    bank = load_bank(table, args.data, args.split, config, progress)
     val = load_table(args.val_records) if args.val_records else None
     val_bank = load_bank(val, args.data, args.val_split, config, progress) if val else None
     clear = table["counts"] <= selection.CHOSEN.max_points
@@ -281,11 +280,11 @@ def train(args) -> dict:
     net = stage3.make_value(config)
     n_sub = args.subset_augment
     if n_sub > 1:  # [n_sub, N, ...]: each step draws a subset per pair
-        bank_dev = jax.tree.map(
-            jnp.asarray, load_subset_bank(table, args.data, args.split, config, n_sub, progress)
-        )
-    else:
-        bank_dev = jax.tree.map(lambda x: jnp.asarray(x)[None], bank.clouds)
+        clouds = load_subset_bank(table, args.data, args.split, config, n_sub, progress)
+    else:  # [1, N, ...]: subset 0, as the pipeline's own subsample
+        bank = load_bank(table, args.data, args.split, config, progress)
+        clouds = jax.tree.map(lambda x: x[None], bank.clouds)
+    bank_dev = jax.tree.map(jnp.asarray, clouds)
     poses_dev = jnp.asarray(table["poses"])
     stable_dev, clear_dev = jnp.asarray(table["stable"]), jnp.asarray(clear)
 

@@ -22,23 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import _cli
-from experiments.rerank_stage3 import category_means, pool_indices, proposals_of, read_records
-from omnihang_jax import selection
-
-
-def run_keys(rows: list[dict], k: int) -> tuple[np.ndarray, np.ndarray]:
-    """([N, 2K] the answer rule's key, [N, 2K] simulated stable) of a run's pooled candidates;
-    the key is the ranking networks' mean log P (``v_rank``), or the run's V without them."""
-    idx = pool_indices(k, "stage1_2")
-    grid = selection.grid_key(selection.CHOSEN.depth, selection.CHOSEN.radius)
-    keys, stable = [], []
-    for r in rows:
-        ranks = np.asarray(r.get("v_rank") or [r["v"]], np.float64)[:, idx]
-        score = np.log(np.clip(ranks, 1e-12, 1.0)).mean(0)
-        counts = np.asarray(r["inside_counts"][grid], np.int64)[idx]
-        keys.append(np.asarray(selection.select_key(score, counts, selection.CHOSEN)))
-        stable.append(np.asarray(r["stable_all"], bool)[idx])
-    return np.stack(keys), np.stack(stable)
+from experiments.rerank_stage3 import category_means, proposals_of, read_records, rule_keys
 
 
 def union(runs: list[list[dict]]) -> dict:
@@ -46,7 +30,7 @@ def union(runs: list[list[dict]]) -> dict:
     for rows in runs[1:]:
         if [int(r["pair_index"]) for r in rows] != order:
             raise ValueError("the runs hold different pairs (or another order)")
-    parts = [run_keys(rows, proposals_of(rows)) for rows in runs]
+    parts = [rule_keys(rows, proposals_of(rows)) for rows in runs]
     rows0 = runs[0]
     out = {"runs": []}
     for keys, stable in parts:

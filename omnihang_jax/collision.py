@@ -802,14 +802,19 @@ def goal_ball_collides(config: NCEConfig, far_threshold: float, ball: float):
 # Host helpers: clouds, weights, metrics
 
 
+def subsample_indices(size: int, n: int, seed: int = 0) -> np.ndarray:
+    """The sorted row indices :func:`subsample_cloud` keeps of a ``size``-row cloud (so that
+    per-point arrays, e.g. normals, can follow the same subset)."""
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(size, n, replace=size < n))
+
+
 def subsample_cloud(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """A fixed random subset of ``n`` rows (with replacement only if there are fewer)."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
         raise ValueError(f"a cloud must be [N>0, 3], got {points.shape}")
-    rng = np.random.default_rng(seed)
-    idx = rng.choice(len(points), n, replace=len(points) < n)
-    return points[np.sort(idx)]
+    return points[subsample_indices(len(points), n, seed)]
 
 
 WEIGHTS_FILE = "params.msgpack"

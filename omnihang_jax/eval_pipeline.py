@@ -200,13 +200,14 @@ def evaluate_pipeline(
         v_all = value_fn(value_params, tiled, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1)
         v_rank = []  # each ranking network on its own subsample of the clouds
         for fn, c, p in zip(rank_value_fns, rank_configs, rank_params, strict=True):
-            logv = 0.0
+            vs = []
             for j, of in rank_views:
                 tiled_rank = jax.tree.map(lambda x: jnp.repeat(x, 4 * k + 1, axis=0),
                                           stage3.subset_clouds(fullj, c, j, of))  # fmt: skip
-                v = fn(p, tiled_rank, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1)
-                logv = logv + jnp.log(jnp.clip(v, 1e-12, 1.0)) / rank_subsets
-            v_rank.append(np.asarray(jnp.exp(logv) if rank_subsets > 1 else v))
+                vs.append(fn(p, tiled_rank, allp.reshape(-1, 7)).reshape(batch, 4 * k + 1))
+            if len(vs) > 1:  # the geometric mean over the subsets, as the ensemble ranks
+                vs = [jnp.exp(jnp.mean(jnp.log(jnp.clip(jnp.stack(vs), 1e-12, 1.0)), axis=0))]
+            v_rank.append(np.asarray(vs[0]))
         jax.block_until_ready(v_all)
         t_net += time.time() - tn
         allp, v_all, counts = np.asarray(allp), np.asarray(v_all), np.asarray(counts)

@@ -767,7 +767,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
     ranks = {
         v: make_ensemble_score(
             value_config if rank_configs is None else rank_configs, config.rank_with_value,
-            config.rank_subsets, v if config.rank_subsets == 1 else (0, 1),
+            config.rank_subsets, v,
         )
         for v in views
     }  # fmt: skip

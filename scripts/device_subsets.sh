@@ -3,7 +3,7 @@
 # clouds (stage3.subset_clouds), scored on the recorded candidates of the committed pipeline's
 # validation-object and held-out runs (experiments.rank_subsets; no simulation).
 #
-#   python -m experiments.train_ranker slim out/val_s24/val_base.pairs.jsonl.gz out/s26/val_base.npz
+#   python -m experiments.train_ranker slim results/validation_where_s26/val_base_s24.pairs.jsonl.gz out/s26/val_base.npz
 #   python -m experiments.train_ranker slim results/hanging_success_stage3_s22_rankset.pairs.jsonl.gz out/s26/held_s22.npz
 #   MORE=1 bash scripts/device_slim.sh out
 #   run(carry=[".whl_min", ".whl_train", "out/s26"], command="bash scripts/device_subsets.sh")

@@ -270,3 +270,34 @@ def test_union_of_runs_picks_each_pairs_best_candidate_by_its_own_ranking(tmp_pa
     assert res["union_any_hangs"] == pytest.approx(100 * float(stable.any(1).mean()))
     with pytest.raises(ValueError, match="different pairs"):
         union_views.union([runs[0], runs[1][:2]])
+
+
+def test_subsample_indices_are_the_rows_subsample_cloud_keeps():
+    from omnihang_jax import collision
+
+    pts = np.random.default_rng(0).normal(size=(300, 3))
+    for n in (50, 400):  # fewer rows than asked: with replacement
+        idx = collision.subsample_indices(len(pts), n, seed=3)
+        np.testing.assert_array_equal(collision.subsample_cloud(pts, n, seed=3), pts[idx])
+        assert len(idx) == n and np.all(np.diff(idx) >= 0)
+
+
+def test_views_and_rank_subsets_do_not_combine_silently():
+    import dataclasses
+
+    from omnihang_jax.stage1 import STAGE1_TINY
+    from omnihang_jax.stage2 import STAGE2_TINY
+    from tests.test_stage2_clearance_pipeline import PIPE
+
+    cfg = dataclasses.replace(PIPE, rank_values=1, rank_subsets=2, views=((0, 1), (1, 2)))
+    with pytest.raises(ValueError, match="not both"):
+        stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg)
+
+
+def test_eval_stage3_refuses_a_bad_view(tmp_path, capsys):
+    from experiments import eval_stage3
+
+    for bad in ("3/3", "a/4", "1"):
+        with pytest.raises(SystemExit):
+            eval_stage3.main(["--out", str(tmp_path / "x.json"), "--view", bad])
+        assert f"--view {bad}: expected J/T" in capsys.readouterr().err
