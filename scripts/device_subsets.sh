@@ -21,14 +21,8 @@ LOG=subsets.log
 . scripts/device_preamble.sh
 SEL=${SUBSETS_SELECT:-out/s26/val_base.npz}
 APP=${SUBSETS_APPLY:-out/s26/held_s22.npz}
-pairs_of() {  # NPZ -> the pairs jsonl derive_dataset reads (pair_index + file)
-    $PY - "$1" <<'PYEOF'
-import sys, json, numpy as np
-with np.load(sys.argv[1]) as z:
-    for i, f in zip(z["pair_index"], z["files"]):
-        print(json.dumps({"pair_index": int(i), "file": str(f)}))
-PYEOF
-}
+# the pairs jsonl of a slim table: device_ranker.sh's pairs_of, sourced without running it
+eval "$(sed -n '/^pairs_of() {/,/^}/p' scripts/device_ranker.sh)"
 pairs_of "$SEL" >"$C/sel_pairs.jsonl"
 pairs_of "$APP" >"$C/app_pairs.jsonl"
 for s in train:sel test:app; do
