@@ -25,8 +25,18 @@ from experiments import _cli
 from omnihang_jax import refine, stage3
 from omnihang_jax.predict import load_predictor, load_rank_values
 
-# the subsamples of the "views1" / "views2" pipelines (PipelineConfig.views, twenty-sixth session)
-VIEWS = {"views1": ((0, 1),), "views2": ((0, 1), (1, 2))}
+# the subsamples of the "viewsN" pipelines (PipelineConfig.views, twenty-sixth session): the
+# quarters of the evenly spaced part's stride in bit-reversed order, each set holding the last
+# ((1, 2) is subset 2 of 4)
+VIEWS = {
+    "views1": ((0, 1),),
+    "views2": ((0, 1), (1, 2)),
+    "views3": ((0, 1), (1, 2), (1, 4)),
+    "views4": ((0, 1), (1, 2), (1, 4), (3, 4)),
+}
+# an answer name ending in SEQ runs each view's and start's CEM one after the other
+# (PipelineConfig.fuse = False, the pipeline before the twenty-seventh session)
+SEQ = "-seq"
 
 
 def main(argv=None) -> dict:
@@ -52,8 +62,10 @@ def main(argv=None) -> dict:
         help="comma-separated pipelines timed side by side (interleaved, same clouds): chosen "
         "= stage3.ANSWER_PIPELINE (both starts refined, the observed-cloud rule) ranked with "
         "the networks of --rank-value (the default pipeline), single = the same ranked by "
-        "CEM's V alone, paper = Stage-2 starts, highest V, views1 / views2 = chosen on one "
-        "subsample / on two (PipelineConfig.views); the first is the reference of the ratios",
+        "CEM's V alone, paper = Stage-2 starts, highest V, views1 / views2 / views3 = chosen "
+        "on one / two / three subsamples (PipelineConfig.views); a name + '-seq' (e.g. "
+        "views2-seq): each view's and start's CEM in turn (PipelineConfig.fuse = False); the "
+        "first is the reference of the ratios",
     )  # fmt: skip
     parser.add_argument(
         "--rank-value", action="append", default=None, metavar="DIR",
@@ -61,8 +73,8 @@ def main(argv=None) -> dict:
     )  # fmt: skip
     args = parser.parse_args(argv)
     answers = args.answers.split(",")
-    known = ("chosen", "single", "paper", "views1", "views2")
-    bad = [a for a in answers if a not in known]
+    known = ("chosen", "single", "paper", *VIEWS)
+    bad = [a for a in answers if a.removesuffix(SEQ) not in known]
     if bad:
         parser.error(f"unknown --answers {bad}; known: {', '.join(known)}")
     pred = load_predictor(args.weights)
@@ -74,12 +86,14 @@ def main(argv=None) -> dict:
               "rank_values": rank_params}  # fmt: skip
     configs, hangs = {}, {}
     for a in answers:
-        base = stage3.PipelineConfig() if a == "paper" else stage3.ANSWER_PIPELINE
-        ranks = len(rank_dirs) if a in ("chosen", "views1", "views2") else 0
+        name = a.removesuffix(SEQ)
+        base = stage3.PipelineConfig() if name == "paper" else stage3.ANSWER_PIPELINE
+        ranks = len(rank_dirs) if name == "chosen" or name in VIEWS else 0
         k = args.proposals or base.num_proposals
-        configs[a] = dataclasses.replace(base, num_proposals=k, rank_values=ranks)
-        if a in VIEWS:
-            configs[a] = dataclasses.replace(configs[a], views=VIEWS[a])
+        configs[a] = dataclasses.replace(
+            base, num_proposals=k, rank_values=ranks, fuse=not a.endswith(SEQ),
+            views=VIEWS.get(name, base.views),
+        )  # fmt: skip
         hangs[a] = jax.jit(
             stage3.make_hang_pipeline(
                 stage1_config, pred.stage2_config, vcfg, configs[a], rank_configs
@@ -134,6 +148,7 @@ def main(argv=None) -> dict:
                 "rank_with_value": configs[a].rank_with_value,
                 "proposals": configs[a].num_proposals,
                 "views": [list(v) for v in configs[a].views],
+                "fuse": configs[a].fuse,
             }
             for a in answers
         },  # fmt: skip

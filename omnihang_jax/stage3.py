@@ -532,6 +532,12 @@ class PipelineConfig:
     # (stage3.subset_clouds); with several, CEM and the ranking run once per view (same keys)
     # and the answer is picked among every view's candidates (their K axes concatenated)
     views: tuple[tuple[int, int], ...] = ((0, 1),)
+    # ours (twenty-seventh session): one CEM over every view and start (their candidates
+    # stacked on the pair axis, each with the key it had in its own CEM) and one ranking pass
+    # over every view: the same candidates as False, up to float rounding, with one sequence of
+    # CEM iterations instead of one per view and start (latency at batch 1; peak memory grows
+    # with views x starts). False: each view and start its own CEM, one after the other
+    fuse: bool = True
 
 
 # The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
@@ -635,8 +641,9 @@ class Refined(NamedTuple):
 def make_refiner(
     value_config: ValueConfig, cem_config: CEMConfig = CEMConfig(), keep_top: int = 0
 ) -> Callable:
-    """``refine(value_params, key, clouds [B, ...] subsampled, starts [B, K, 7]) -> Refined``:
-    CEM on V from every start, vmapped over starts and pairs. Pure, un-jitted. ``keep_top``
+    """``refine(value_params, key, clouds [B, ...] subsampled, starts [B, K, 7], keys=None) ->
+    Refined``: CEM on V from every start, vmapped over starts and pairs (``keys`` [B, K]: each
+    start's own CEM key instead of ``key``'s split). Pure, un-jitted. ``keep_top``
     M > 0 also returns each final population's M best members (the RL loop's hard cases)."""
     value = make_value(value_config)
     cem = make_cem(lambda poses, p, c: value.score(p, c, poses), cem_config, keep_top)
@@ -647,9 +654,10 @@ def make_refiner(
     per_pair = jax.vmap(refine_one, in_axes=(0, 0, None, None))
     batched = jax.vmap(per_pair, in_axes=(0, 0, 0, None))
 
-    def refine(value_params, key, clouds: PairClouds, starts) -> Refined:
+    def refine(value_params, key, clouds: PairClouds, starts, keys=None) -> Refined:
         b, k = starts.shape[:2]
-        keys = jax.random.split(key, b * k).reshape(b, k)
+        if keys is None:  # else: [B, K] the CEM's keys, one per start (key unused)
+            keys = jax.random.split(key, b * k).reshape(b, k)
         res = batched(keys, starts, clouds, value_params)
         return Refined(
             res.pose, res.score, res.initial_score, jnp.argmax(res.score, axis=1),
@@ -689,7 +697,11 @@ def make_smoothed_value(
 
 
 def make_ensemble_score(
-    rank_configs, with_first: bool = True, subsets: int = 1, view: tuple[int, int] = (0, 1)
+    rank_configs,
+    with_first: bool = True,
+    subsets: int = 1,
+    view: tuple[int, int] = (0, 1),
+    stacked: tuple[tuple[int, int], ...] | None = None,
 ) -> Callable:
     """``ensemble(scores [B, P], extra_params [R value params], clouds [B, ...] the observed
     clouds, poses [B, P, 7]) -> [B, P]``: the mean of log V over the first V (its final
@@ -702,12 +714,23 @@ def make_ensemble_score(
     the R networks scores the poses on that many evenly spaced subsets of the clouds
     (:func:`subset_clouds`) and its log V is their mean (``PipelineConfig.rank_subsets``).
     ``view`` = (j, T) with ``subsets`` = 1: every network sees subset j of T instead of subset
-    0 (a study of the pipeline on another subsample, ``eval_stage3 --view``). Pure, un-jitted."""
+    0 (a study of the pipeline on another subsample, ``eval_stage3 --view``). ``stacked`` V
+    views (j, T): scores [V*B, P] and poses [V*B, P, 7] hold V views' candidates, view-major,
+    of the B pairs of ``clouds``; rows of view v are scored on its subset, every view in one
+    pass of each network (``PipelineConfig.fuse``). Pure, un-jitted."""
     if subsets < 1:
         raise ValueError(f"subsets must be >= 1, got {subsets}")
     if subsets > 1 and tuple(view) != (0, 1):
         raise ValueError("give either subsets > 1 or a view, not both")
+    if stacked is not None and (subsets > 1 or tuple(view) != (0, 1) or not stacked):
+        raise ValueError("stacked views go with subsets = 1 and no view")
     views = [(i, subsets) for i in range(subsets)] if subsets > 1 else [tuple(view)]
+
+    def view_clouds(clouds, config, i, of):
+        if stacked is None:
+            return subset_clouds(clouds, config, i, of)
+        subs = [subset_clouds(clouds, config, *v) for v in stacked]
+        return jax.tree.map(lambda *x: jnp.concatenate(x, axis=0), *subs)
 
     def per_pair(config):
         value = make_value(config)
@@ -729,14 +752,14 @@ def make_ensemble_score(
         logs, count = [], 0
         for c, ps in groups.items():
             score = per_pair(c)
-            stacked = jax.tree.map(lambda *x: jnp.stack(x), *ps) if len(ps) > 1 else None
+            together = jax.tree.map(lambda *x: jnp.stack(x), *ps) if len(ps) > 1 else None
             total = 0.0
             for i, of in views:
-                sub = subset_clouds(clouds, c, i, of)
-                if stacked is None:
+                sub = view_clouds(clouds, c, i, of)
+                if together is None:
                     total = total + score(ps[0], sub, poses)
                 else:
-                    each = jax.vmap(score, in_axes=(0, None, None))(stacked, sub, poses)
+                    each = jax.vmap(score, in_axes=(0, None, None))(together, sub, poses)
                     total = total + jnp.sum(each, axis=0)
             logs.append(total / subsets)
             count += len(ps)
@@ -771,7 +794,44 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
         )
         for v in views
     }  # fmt: skip
+    fused_rank = make_ensemble_score(
+        value_config if rank_configs is None else rank_configs, config.rank_with_value,
+        config.rank_subsets, stacked=views,
+    ) if config.rank_values and config.rank_subsets == 1 else None  # fmt: skip
     rule = config.select
+
+    def fused_views(params, k3, clouds, starts):
+        """Every view's and start's CEM as one CEM over V * B rows of S * K starts (each
+        start's key as in ``one_view``), then one ranking pass: per start {name: [B, V*K]}."""
+        b = clouds.object_points.shape[0]
+        names = config.starts
+        width = [starts[n].shape[1] for n in names]
+        keys = jnp.concatenate(
+            [jax.random.split(jax.random.fold_in(k3, i), b * w).reshape(b, w)
+             for i, w in zip(range(len(names)), width, strict=True)], axis=1,
+        )  # fmt: skip
+        tile = lambda x: jnp.concatenate([x] * len(views), axis=0)  # noqa: E731
+        subs = [subset_clouds(clouds, value_config, *v) for v in views]
+        small = jax.tree.map(lambda *x: jnp.concatenate(x, axis=0), *subs)  # [V*B, ...]
+        res = refine(params["value"], None, small,
+                     tile(jnp.concatenate([starts[n] for n in names], axis=1)), keys=tile(keys))  # fmt: skip
+        scores = res.scores
+        if config.rank_values:
+            extra = params["rank_values"]
+            if len(extra) != config.rank_values:
+                raise ValueError(f"params['rank_values'] holds {len(extra)} value "
+                                 f"networks, PipelineConfig.rank_values {config.rank_values}")  # fmt: skip
+            if fused_rank is None:  # rank_subsets > 1 (one view): averaged over subsets
+                scores = ranks[views[0]](scores, extra, clouds, res.poses)
+            else:
+                scores = fused_rank(scores, extra, clouds, res.poses)
+        cut = list(np.cumsum(width)[:-1])
+
+        def per_start(x):  # [V*B, S*K, ...] -> {name: [B, V*K, ...]}
+            parts = [jnp.split(v, cut, axis=1) for v in jnp.split(x, len(views), axis=0)]
+            return {n: jnp.concatenate([p[i] for p in parts], axis=1) for i, n in enumerate(names)}
+
+        return per_start(res.poses), per_start(scores), per_start(res.initial_scores)
 
     def one_view(params, k3, clouds, starts, view):
         """CEM and the ranking on one subsample: per start (poses, scores, initial)."""
@@ -802,12 +862,16 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
             k1, config.num_proposals, support_normals=clouds.support_normals,
         )  # fmt: skip
         starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
-        per_view = [one_view(params, k3, clouds, starts, v) for v in views]
-        # the views' candidates side by side: [B, V*K] per start
-        refined, scores, initial = (
-            {n: jnp.concatenate([pv[j][n] for pv in per_view], axis=1) for n in config.starts}
-            for j in range(3)
-        )
+        if config.fuse:
+            refined, scores, initial = fused_views(params, k3, clouds, starts)
+        else:
+            per_view = [one_view(params, k3, clouds, starts, v) for v in views]
+            # the views' candidates side by side: [B, V*K] per start
+            refined, scores, initial = (
+                {n: jnp.concatenate([pv[j][n] for pv in per_view], axis=1)
+                 for n in config.starts}
+                for j in range(3)
+            )  # fmt: skip
         best, keys_of = {}, {}
         for name in config.starts:
             final = scores[name]

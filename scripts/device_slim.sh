@@ -91,6 +91,12 @@ if [ -n "${MORE:-}" ]; then
     for f in results/paths*.json results/paths*.jsonl results/*_selection.json results/rerank_stage3_*.json \
         results/cross_engine*.json results/*judges* results/validation_pairs_all.jsonl \
         results/dataset_card.json results/stage3_train_chain; do LIST+=("$f"); done
+    # (twenty-seventh session: what the twenty-sixth session moved aside by hand: the completion
+    # and transit-NCE weights, the s22 ranker tables, the s26 records; read by no eval / val /
+    # bench call)
+    LIST+=(weights/completion_s25 weights/collision_s23_transit results/ranker_s22
+        results/hanging_success_stage3_s26_view4of8.pairs.jsonl.gz results/rank_subsets_s26)
+    for f in results/validation_where_s26/*.pairs.jsonl.gz; do LIST+=("$f"); done
 fi
 # PATHS=1 (twenty-fourth session; device_paths.sh): as NCE=1, and the best hybrid's selection
 # file stays too

@@ -301,3 +301,40 @@ def test_eval_stage3_refuses_a_bad_view(tmp_path, capsys):
         with pytest.raises(SystemExit):
             eval_stage3.main(["--out", str(tmp_path / "x.json"), "--view", bad])
         assert f"--view {bad}: expected J/T" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("views", [((0, 1),), ((0, 1), (1, 2))])
+def test_fused_pipeline_gives_the_sequential_pipelines_candidates(params, views):  # noqa: F811
+    """PipelineConfig.fuse: one CEM over every view and start and one ranking pass (two rankers,
+    one with near points) give the candidates, scores and answer of one CEM per view and start."""
+    import dataclasses
+
+    from omnihang_jax import selection
+    from omnihang_jax.stage1 import STAGE1_TINY
+    from omnihang_jax.stage2 import STAGE2_TINY
+    from tests.test_stage2_clearance_pipeline import PIPE, _plane_pairs
+
+    clouds = _plane_pairs(n=256, m=256)
+    near = dataclasses.replace(CFG, support_near=16, object_near=16)
+    rankers = [stage3.make_value(CFG).init(jax.random.key(7)),
+               stage3.make_value(near).init(jax.random.key(8))]  # fmt: skip
+    base = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=2,
+                               rank_with_value=False, views=views)  # fmt: skip
+    prm = {**params, "rank_values": rankers}
+    key = jax.random.key(5)
+    outs = {
+        fuse: jax.jit(stage3.make_hang_pipeline(
+            STAGE1_TINY, STAGE2_TINY, CFG, dataclasses.replace(base, fuse=fuse), [CFG, near]
+        ))(prm, key, clouds)
+        for fuse in (False, True)
+    }  # fmt: skip
+    seq, fused = outs[False], outs[True]
+    for name in base.starts:
+        assert fused.refined[name].shape == (2, len(views) * base.num_proposals, 7)
+        np.testing.assert_allclose(np.asarray(fused.refined[name]),
+                                   np.asarray(seq.refined[name]), atol=1e-5)  # fmt: skip
+        np.testing.assert_allclose(np.asarray(fused.scores[name]),
+                                   np.asarray(seq.scores[name]), atol=1e-4)  # fmt: skip
+        np.testing.assert_allclose(np.asarray(fused.initial_scores[name]),
+                                   np.asarray(seq.initial_scores[name]), atol=1e-4)  # fmt: skip
+    np.testing.assert_allclose(np.asarray(fused.pose), np.asarray(seq.pose), atol=1e-5)
