@@ -37,6 +37,9 @@ VIEWS = {
 # an answer name ending in SEQ runs each view's and start's CEM one after the other
 # (PipelineConfig.fuse = False, the pipeline before the twenty-seventh session)
 SEQ = "-seq"
+# an answer name ending in @K (e.g. views2@10) has K proposals (a view each: K x views refined
+# candidates per start), over --proposals
+AT = "@"
 
 
 def main(argv=None) -> dict:
@@ -64,8 +67,8 @@ def main(argv=None) -> dict:
         "the networks of --rank-value (the default pipeline), single = the same ranked by "
         "CEM's V alone, paper = Stage-2 starts, highest V, views1 / views2 / views3 = chosen "
         "on one / two / three subsamples (PipelineConfig.views); a name + '-seq' (e.g. "
-        "views2-seq): each view's and start's CEM in turn (PipelineConfig.fuse = False); the "
-        "first is the reference of the ratios",
+        "views2-seq): each view's and start's CEM in turn (PipelineConfig.fuse = False); "
+        "a name + '@K' (e.g. views2@10): K proposals; the first is the reference of the ratios",
     )  # fmt: skip
     parser.add_argument(
         "--rank-value", action="append", default=None, metavar="DIR",
@@ -74,7 +77,8 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     answers = args.answers.split(",")
     known = ("chosen", "single", "paper", *VIEWS)
-    bad = [a for a in answers if a.removesuffix(SEQ) not in known]
+    bad = [a for a in answers if a.partition(AT)[0].removesuffix(SEQ) not in known]
+    bad += [a for a in answers if AT in a and not a.partition(AT)[2].isdigit()]
     if bad:
         parser.error(f"unknown --answers {bad}; known: {', '.join(known)}")
     pred = load_predictor(args.weights)
@@ -86,12 +90,13 @@ def main(argv=None) -> dict:
               "rank_values": rank_params}  # fmt: skip
     configs, hangs = {}, {}
     for a in answers:
-        name = a.removesuffix(SEQ)
+        head, _, k_of = a.partition(AT)
+        name = head.removesuffix(SEQ)
         base = stage3.PipelineConfig() if name == "paper" else stage3.ANSWER_PIPELINE
         ranks = len(rank_dirs) if name == "chosen" or name in VIEWS else 0
-        k = args.proposals or base.num_proposals
+        k = int(k_of) if k_of else args.proposals or base.num_proposals
         configs[a] = dataclasses.replace(
-            base, num_proposals=k, rank_values=ranks, fuse=not a.endswith(SEQ),
+            base, num_proposals=k, rank_values=ranks, fuse=not head.endswith(SEQ),
             views=VIEWS.get(name, base.views),
         )  # fmt: skip
         hangs[a] = jax.jit(

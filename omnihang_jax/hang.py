@@ -699,8 +699,13 @@ VALUE_WEIGHTS = (
 # CEM refines the CEM_STARTS best-V Stage-1 proposals and as many Stage-2 proposals (as many
 # as stage3.ANSWER_PIPELINE refines of each: K = 16 since the fifteenth session; population x
 # iterations = 320 value-network states each), and the refined candidates are ranked by the
-# answer rule chosen on validation objects (omnihang_jax.selection.CHOSEN)
-CEM_STARTS = 16
+# answer rule chosen on validation objects (omnihang_jax.selection.CHOSEN); K = 10 since the
+# twenty-seventh session, on each of VIEWS
+CEM_STARTS = 10
+# the subsamples (j, T) of the clouds CEM and the ranking run on, as stage3.ANSWER_PIPELINE.views
+# (stage3.subset_clouds): every view refines the same starts with the same seed, each view's
+# candidates ranked on its own subsample, the answer the best of all of them
+VIEWS = ((0, 1), (1, 2))
 
 
 def find_value_weights(model: str | os.PathLike = DEFAULT_MODEL) -> Path | None:
@@ -721,7 +726,8 @@ class Stage3(NamedTuple):
     ``refine(clouds, starts [K, 7], seed) -> (poses [K, 7], scores [K])`` (CEM on V) and
     ``rank(clouds, poses [P, 7]) -> [P]``: the mean log V over V and the ranking networks
     (``stage3.RANK_VALUES``, as the pipeline's ``PipelineConfig.rank_values``; V alone when
-    there are none)."""
+    there are none). Each takes ``view=(j, T)``: the networks see that subsample of the clouds
+    (``stage3.subset_clouds``; default (0, 1), the pipeline's first view)."""
 
     folder: str
     score: Callable
@@ -757,23 +763,24 @@ def _load_stage3(folder: str, rank_folders: tuple = ()) -> Stage3:
     rank_jits = [jits[c] for c in rank_configs]
     refine_jit = jax.jit(stage3.make_refiner(config, stage3.CEMConfig()))
 
-    def clouds_of(obj: Body, sup: Body, of=config):
+    def clouds_of(obj: Body, sup: Body, of=config, view=(0, 1)):
         full = stage3.PairClouds(obj.points, obj.normals, sup.points, sup.normals)
-        return stage3.subsample_clouds(full, of)
+        return stage3.subset_clouds(full, of, *view)
 
-    def score(obj: Body, sup: Body, poses):
-        return np.asarray(score_jit(params, clouds_of(obj, sup), np.asarray(poses, np.float32)))
-
-    def rank(obj: Body, sup: Body, poses):
+    def score(obj: Body, sup: Body, poses, view=(0, 1)):
         poses = np.asarray(poses, np.float32)
-        logs = [np.asarray(fn(p, clouds_of(obj, sup, c), poses))
+        return np.asarray(score_jit(params, clouds_of(obj, sup, view=view), poses))
+
+    def rank(obj: Body, sup: Body, poses, view=(0, 1)):
+        poses = np.asarray(poses, np.float32)
+        logs = [np.asarray(fn(p, clouds_of(obj, sup, c, view), poses))
                 for fn, c, p in zip(rank_jits, rank_configs, extra, strict=True)]  # fmt: skip
         if stage3.RANK_WITH_CEM_VALUE or not extra:
-            logs.insert(0, np.asarray(score_jit(params, clouds_of(obj, sup), poses)))
+            logs.insert(0, score(obj, sup, poses, view))
         return np.mean(logs, axis=0)
 
-    def refine_fn(obj: Body, sup: Body, starts, seed: int):
-        small = jax.tree.map(lambda x: x[None], clouds_of(obj, sup))
+    def refine_fn(obj: Body, sup: Body, starts, seed: int, view=(0, 1)):
+        small = jax.tree.map(lambda x: x[None], clouds_of(obj, sup, view=view))
         out = refine_jit(params, jax.random.key(seed), small, np.asarray(starts, np.float32)[None])
         return np.asarray(out.poses[0], np.float64), np.asarray(out.scores[0], np.float64)
 
@@ -839,17 +846,28 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
             n = min(CEM_STARTS, k)
             starts = np.concatenate([np.argsort(-log_v[:k], kind="stable")[:n],
                                      k + np.argsort(-log_v[k:], kind="stable")[:n]])  # fmt: skip
-            refined, refined_v = stage3.refine(obj, sup, poses[starts], seed)
+            # every view refines the same starts (same seed) on its own subsample of the clouds
+            unrefined = poses
+            refined, refined_v = zip(*(stage3.refine(obj, sup, poses[starts], seed, view)
+                                       for view in VIEWS))  # fmt: skip
+            refined = np.concatenate(refined)
             refined[:, 3:] /= np.linalg.norm(refined[:, 3:], axis=1, keepdims=True)
             poses = np.concatenate([poses, refined])
-            stage = np.concatenate([stage, ["stage1_3"] * n + ["stage3"] * n])
-            proposal = np.concatenate([proposal, proposal[starts]])
+            stage = np.concatenate([stage, (["stage1_3"] * n + ["stage3"] * n) * len(VIEWS)])
+            proposal = np.concatenate([proposal, np.tile(proposal[starts], len(VIEWS))])
             inside = selection.inside_counts(
                 obj.points, sup.points, sup.normals, poses, rule.depth, rule.radius
             )
-            # the final ranking: V's mean log with the ranking networks (V alone without)
-            log_v = stage3.rank(obj, sup, poses) if stage3.rank_folders else np.concatenate(
-                [log_v, refined_v])  # fmt: skip
+            # the final ranking: V's mean log with the ranking networks (V alone without), each
+            # view's candidates on its own subsample, the unrefined ones on the first view's
+            if stage3.rank_folders:
+                log_v = np.concatenate(
+                    [stage3.rank(obj, sup, unrefined, VIEWS[0])]
+                    + [stage3.rank(obj, sup, refined[i * 2 * n:(i + 1) * 2 * n], view)
+                       for i, view in enumerate(VIEWS)]
+                )  # fmt: skip
+            else:
+                log_v = np.concatenate([log_v, *refined_v])
             key = selection.select_key(log_v.astype(np.float32), inside, rule)
             score = np.asarray(key, np.float64)
             name = "stage3_value_clear"

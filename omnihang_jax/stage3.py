@@ -536,8 +536,11 @@ class PipelineConfig:
     # stacked on the pair axis, each with the key it had in its own CEM) and one ranking pass
     # over every view: the same candidates as False, up to float rounding, with one sequence of
     # CEM iterations instead of one per view and start (latency at batch 1; peak memory grows
-    # with views x starts). False: each view and start its own CEM, one after the other
-    fuse: bool = True
+    # with views x starts). False: each view and start its own CEM, one after the other.
+    # None (default): fused on a GPU, one after the other on the CPU, where fusing measured
+    # slower (two views, batch 1 on the 2-core VM: 82.0 s fused against 66.3 s; on one H100
+    # 119.0 against 179.6 ms; docs/stage3.md "Twenty-seventh session")
+    fuse: bool | None = None
 
 
 # The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
@@ -550,12 +553,18 @@ class PipelineConfig:
 # (docs/stage3.md, "Fifteenth session"; latency in results/bench_stage3_k16_gpu.json).
 # PipelineConfig() keeps the paper's: K = 5, Stage-2 starts, highest V.
 # Since the twentieth session the answer is ranked by RANK_VALUES alone (RANK_WITH_CEM_VALUE).
+# Since the twenty-seventh session two views of the clouds (PipelineConfig.views; the answer the
+# best of both views' candidates) with K = 10 proposals each, fused (PipelineConfig.fuse):
+# validation objects 84.42 (one view, K = 16) -> 85.74 %, then held-out 81.38 -> 82.11 %; 85.5
+# ms per pair at batch 1 on one H100 against 75.0 ms for one view at K = 16, fused, side by
+# side (docs/stage3.md, "Twenty-seventh session").
 ANSWER_PIPELINE = PipelineConfig(
-    num_proposals=16,
+    num_proposals=10,
     starts=("stage2", "stage1"),
     select=selection.CHOSEN,
     pool_starts=True,
     rank_with_value=False,
+    views=((0, 1), (1, 2)),
 )
 # The V that CEM searches on in the default pipeline (fifteenth session): the fourteenth
 # session's fifth V (value_s15_hardneg) continued for 18 more hard-negative RL rounds on one warm
@@ -799,6 +808,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
         config.rank_subsets, stacked=views,
     ) if config.rank_values and config.rank_subsets == 1 else None  # fmt: skip
     rule = config.select
+    fuse = jax.default_backend() != "cpu" if config.fuse is None else config.fuse
 
     def fused_views(params, k3, clouds, starts):
         """Every view's and start's CEM as one CEM over V * B rows of S * K starts (each
@@ -862,7 +872,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
             k1, config.num_proposals, support_normals=clouds.support_normals,
         )  # fmt: skip
         starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
-        if config.fuse:
+        if fuse:
             refined, scores, initial = fused_views(params, k3, clouds, starts)
         else:
             per_view = [one_view(params, k3, clouds, starts, v) for v in views]

@@ -96,7 +96,12 @@ if [ -n "${MORE:-}" ]; then
     # bench call)
     LIST+=(weights/completion_s25 weights/collision_s23_transit results/ranker_s22
         results/hanging_success_stage3_s26_view4of8.pairs.jsonl.gz results/rank_subsets_s26)
-    for f in results/validation_where_s26/*.pairs.jsonl.gz; do LIST+=("$f"); done
+    # (twenty-seventh session: the two views' held-out and validation records, 23 MB)
+    LIST+=(results/hanging_success_stage3_s27_k10_view0.pairs.jsonl.gz
+        results/hanging_success_stage3_s27_k10_view1of2.pairs.jsonl.gz)
+    for f in results/validation_where_s26/*.pairs.jsonl.gz results/validation_where_s27/*.pairs.jsonl.gz; do
+        LIST+=("$f")
+    done
 fi
 # PATHS=1 (twenty-fourth session; device_paths.sh): as NCE=1, and the best hybrid's selection
 # file stays too

@@ -171,6 +171,7 @@ def test_hang_command_ranks_by_the_mean_log_v(tmp_path):
     # the command refines as many proposals of each stage as the evaluated pipeline (a constant
     # there: omnihang_jax.hang imports no jax at module level)
     assert stage3.ANSWER_PIPELINE.num_proposals == H.CEM_STARTS
+    assert stage3.ANSWER_PIPELINE.views == H.VIEWS  # and on the same subsamples of the clouds
     # and searches on the pipeline's CEM V first (the one the ranking networks were chosen with)
     assert H.VALUE_WEIGHTS[0] == stage3.CEM_VALUE
     poses = np.tile(np.asarray([[0, 0, 0.05, 1, 0, 0, 0]], np.float32), (3, 1))
