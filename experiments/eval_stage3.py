@@ -8,6 +8,16 @@ Example (after deriving held-out pairs and training V):
 
 ``--pairs-from results/hanging_success.pairs.jsonl`` evaluates exactly the pairs of an earlier
 run (the committed figures use the 1,814 pairs of results/hanging_success.json).
+
+One run evaluates the pipeline on one view of the clouds (``--view``). The default pipeline
+(``stage3.ANSWER_PIPELINE``, twenty-seventh session) answers with the best candidate of two
+views, (0, 1) and (1, 2): its figure is the union of two runs with the same key,
+
+    python -m experiments.eval_stage3 ... --out out/v0.json
+    python -m experiments.eval_stage3 ... --view 1/2 --out out/v1.json
+    python -m experiments.union_views --runs out/v0.pairs.jsonl out/v1.pairs.jsonl
+
+(every candidate of both views is simulated; the union picks as the fused pipeline does).
 """
 
 from __future__ import annotations
@@ -95,7 +105,9 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--view", default="0/1", metavar="J/T",
         help="CEM's V and the ranking networks see subset J of T evenly spaced subsets of the "
-        "clouds (stage3.subset_clouds; 0/1: the pipeline's own subsample)",
+        "clouds (stage3.subset_clouds; 0/1: the first view; the default pipeline answers on "
+        f"{list(stage3.ANSWER_PIPELINE.views)}: run each and join them with "
+        "experiments.union_views)",
     )  # fmt: skip
     parser.add_argument(
         "--seed", type=int, default=0,
