@@ -39,6 +39,12 @@ def union(runs: list[list[dict]]) -> dict:
     keys = np.concatenate([p[0] for p in parts], axis=1)
     stable = np.concatenate([p[1] for p in parts], axis=1)
     out["union"] = category_means(rows0, stable[np.arange(len(rows0)), keys.argmax(1)])
+    # Stages 1+3: the same rule over the Stage-1 starts' refined candidates alone (the first K
+    # of each run's 2K pooled candidates, rerank_stage3.pool_indices)
+    ks = [proposals_of(rows) for rows in runs]
+    keys1 = np.concatenate([p[0][:, :k] for p, k in zip(parts, ks, strict=True)], axis=1)
+    stable1 = np.concatenate([p[1][:, :k] for p, k in zip(parts, ks, strict=True)], axis=1)
+    out["union_stage1_3"] = category_means(rows0, stable1[np.arange(len(rows0)), keys1.argmax(1)])
     out["union_any_hangs"] = category_means(rows0, stable.any(1))["mean"]
     out["first_any_hangs"] = category_means(rows0, parts[0][1].any(1))["mean"]
     return out
@@ -54,6 +60,7 @@ def main(argv=None) -> dict:
     res = {"records": args.runs, **union([read_records(p) for p in args.runs])}
     for path, r in zip(args.runs, res["runs"], strict=True):
         print(f"{Path(path).name}: {r['mean']:.2f}")
+    print(f"union, Stages 1+3: {res['union_stage1_3']['mean']:.2f}")
     print(f"union: {res['union']['mean']:.2f} (some candidate hangs: {res['union_any_hangs']:.2f}, "
           f"first run alone {res['first_any_hangs']:.2f})")  # fmt: skip
     if args.out:

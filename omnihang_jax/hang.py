@@ -804,7 +804,8 @@ def stage3_scorer(config: HangConfig | None = None):
         s3 = load_stage3(folder)
         return s3, (
             f"Stage-3 value network {folder} (CEM from the best {CEM_STARTS} Stage-1 and "
-            f"{CEM_STARTS} Stage-2 proposals, the answer by the observed-cloud rule "
+            f"{CEM_STARTS} Stage-2 proposals on each of {len(VIEWS)} views of the clouds, "
+            "the answer by the observed-cloud rule "
             "selection.CHOSEN"
             + (
                 f", ranked by the mean log V with {', '.join(map(os.path.relpath, s3.rank_folders))}"
@@ -1382,8 +1383,9 @@ def hang(
             f"Stages 1-2 ({config.model}), {config.num_proposals} proposals + their Stage-2 "
             f"refinements"
             + (
-                f", the best {CEM_STARTS} of each refined by CEM on the Stage-3 value, the "
-                "refined ones ranked by the observed-cloud rule selection.CHOSEN"
+                f", the best {CEM_STARTS} of each refined by CEM on the Stage-3 value on each "
+                f"of {len(VIEWS)} views of the clouds, the refined ones ranked by the "
+                "observed-cloud rule selection.CHOSEN"
                 if scorer
                 else ", ranked by observed-cloud clearance"
             )

@@ -268,6 +268,9 @@ def test_union_of_runs_picks_each_pairs_best_candidate_by_its_own_ranking(tmp_pa
         want.append(bool(stable[i][2 * k - 1 if i != 1 else 0]))
     assert res["union"]["pair_mean"] == pytest.approx(100 * np.mean(want))
     assert res["union_any_hangs"] == pytest.approx(100 * float(stable.any(1).mean()))
+    # Stages 1+3: among the Stage-1 starts' candidates only, run 0's first wins on every pair
+    want1 = [bool(stable[i][0]) for i in range(3)]
+    assert res["union_stage1_3"]["pair_mean"] == pytest.approx(100 * np.mean(want1))
     with pytest.raises(ValueError, match="different pairs"):
         union_views.union([runs[0], runs[1][:2]])
 
