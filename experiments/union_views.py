@@ -30,7 +30,8 @@ def union(runs: list[list[dict]]) -> dict:
     for rows in runs[1:]:
         if [int(r["pair_index"]) for r in rows] != order:
             raise ValueError("the runs hold different pairs (or another order)")
-    parts = [rule_keys(rows, proposals_of(rows)) for rows in runs]
+    ks = [proposals_of(rows) for rows in runs]
+    parts = [rule_keys(rows, k) for rows, k in zip(runs, ks, strict=True)]
     rows0 = runs[0]
     out = {"runs": []}
     for keys, stable in parts:
@@ -41,7 +42,6 @@ def union(runs: list[list[dict]]) -> dict:
     out["union"] = category_means(rows0, stable[np.arange(len(rows0)), keys.argmax(1)])
     # Stages 1+3: the same rule over the Stage-1 starts' refined candidates alone (the first K
     # of each run's 2K pooled candidates, rerank_stage3.pool_indices)
-    ks = [proposals_of(rows) for rows in runs]
     keys1 = np.concatenate([p[0][:, :k] for p, k in zip(parts, ks, strict=True)], axis=1)
     stable1 = np.concatenate([p[1][:, :k] for p, k in zip(parts, ks, strict=True)], axis=1)
     out["union_stage1_3"] = category_means(rows0, stable1[np.arange(len(rows0)), keys1.argmax(1)])

@@ -74,6 +74,7 @@ __all__ = [
     "make_ensemble_score",
     "Refined",
     "make_refiner",
+    "cem_keys",
     "make_smoothed_value",
 ]
 
@@ -647,6 +648,12 @@ class Refined(NamedTuple):
     top_scores: Any = None
 
 
+def cem_keys(key, b: int, k: int):
+    """[B, K] the CEM key of each of K starts of B pairs that ``make_refiner``'s ``refine``
+    draws from ``key`` (the fused pipeline gives every start the key of its own CEM)."""
+    return jax.random.split(key, b * k).reshape(b, k)
+
+
 def make_refiner(
     value_config: ValueConfig, cem_config: CEMConfig = CEMConfig(), keep_top: int = 0
 ) -> Callable:
@@ -666,7 +673,7 @@ def make_refiner(
     def refine(value_params, key, clouds: PairClouds, starts, keys=None) -> Refined:
         b, k = starts.shape[:2]
         if keys is None:  # else: [B, K] the CEM's keys, one per start (key unused)
-            keys = jax.random.split(key, b * k).reshape(b, k)
+            keys = cem_keys(key, b, k)
         res = batched(keys, starts, clouds, value_params)
         return Refined(
             res.pose, res.score, res.initial_score, jnp.argmax(res.score, axis=1),
@@ -817,9 +824,8 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
         names = config.starts
         width = [starts[n].shape[1] for n in names]
         keys = jnp.concatenate(
-            [jax.random.split(jax.random.fold_in(k3, i), b * w).reshape(b, w)
-             for i, w in zip(range(len(names)), width, strict=True)], axis=1,
-        )  # fmt: skip
+            [cem_keys(jax.random.fold_in(k3, i), b, w) for i, w in enumerate(width)], axis=1
+        )
         tile = lambda x: jnp.concatenate([x] * len(views), axis=0)  # noqa: E731
         subs = [subset_clouds(clouds, value_config, *v) for v in views]
         small = jax.tree.map(lambda *x: jnp.concatenate(x, axis=0), *subs)  # [V*B, ...]
