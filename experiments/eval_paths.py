@@ -480,6 +480,24 @@ def add_completion(cases: list[PairCase], folder: str, carve_with: str | None = 
     return out
 
 
+def nce_clouds(case: PairCase, config: collision.NCEConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(object, support) clouds the NCE is given before its fixed subsets: the observed ones,
+    or for an NCE trained on completed clouds (``config.input_clouds``, twenty-eighth session)
+    ``completion.completed_cloud`` of each, as in its training (``train_collision
+    --completion``). Raises ``ValueError`` when that NCE has no predicted points to use."""
+    if config.input_clouds == "observed":
+        return case.object_points, case.support_points
+    if case.predicted_object is None or case.predicted_support is None:
+        raise ValueError(
+            f"pair {case.name}: this NCE was trained on completed clouds: pass --completion "
+            "FOLDER --completion-carve (the networks it was trained with)"
+        )
+    from omnihang_jax import completion
+
+    return (completion.completed_cloud(case.object_points, case.predicted_object),
+            completion.completed_cloud(case.support_points, case.predicted_support))  # fmt: skip
+
+
 def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METHODS) -> dict:
     """The checkers of one pair. The HCEs' support normals do not depend on the pose:
     predicted once per pair (``collision.hce_collides`` computes the same per call); nor does
@@ -492,11 +510,12 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
     if est.nce_far_threshold is not None:  # collision.goal_ball_collides
         weight = np.float32(planner.object_radius(case.scene))
         nce_params = (est.nce_params, np.asarray(case.goal, np.float32), weight)
+    nce_object, nce_support = nce_clouds(case, est.nce_config)
     nce = planner.EstimatorChecker(
         est.nce,
         nce_params,
-        sub(case.object_points, n_nce_obj, SUBSET_SEED_OBJECT),
-        sub(case.support_points, n_sup, SUBSET_SEED_SUPPORT),
+        sub(nce_object, n_nce_obj, SUBSET_SEED_OBJECT),
+        sub(nce_support, n_sup, SUBSET_SEED_SUPPORT),
     )
     h_sup = est.normal_config.points
     oc = sub(case.object_points, n_obj, SUBSET_SEED_OBJECT)
@@ -887,7 +906,8 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--completion-in", default="clear", metavar="WHERE",
         help="with --completion, comma- (or plus-) separated: clear (the returned path's clearing, "
-        "--clear-path), far (the clearance far from the goal, --far-clearance)",
+        "--clear-path), far (the clearance far from the goal, --far-clearance); none: neither "
+        "(the predicted points only for an NCE trained on completed clouds)",
     )  # fmt: skip
     parser.add_argument(
         "--completion-carve", action="store_true",
@@ -1007,7 +1027,7 @@ def main(argv=None) -> dict:
     if args.clear_path < 0 or args.clear_keep_ball < 0:
         parser.error("--clear-path and --clear-keep-ball must be >= 0")
     completion_in = (
-        tuple(x for x in args.completion_in.replace("+", ",").split(",") if x)
+        tuple(x for x in args.completion_in.replace("+", ",").split(",") if x and x != "none")
         if args.completion
         else ()
     )
@@ -1032,6 +1052,11 @@ def main(argv=None) -> dict:
         far_ball=args.far_ball if args.far_clearance > 0 else 0.0,
         completion_in=completion_in,
     )
+    if est.nce_config.input_clouds == "completed" and not (
+        args.completion and args.completion_carve
+    ):
+        parser.error(f"the NCE in {args.weights} was trained on completed, carved clouds: pass "
+                     "--completion FOLDER --completion-carve")  # fmt: skip
     records = read_answers(args.pairs_from) if args.pairs_from else None
     cases = load_pairs(
         args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer"

@@ -568,6 +568,83 @@ def load_collision_data(
     )
 
 
+def complete_collision_data(
+    data: CollisionData,
+    completion_folder: str | os.PathLike,
+    eyes: dict[int, tuple] | None,
+    cache_dir: str | os.PathLike | None = None,
+    progress: bool = False,
+) -> CollisionData:
+    """``data`` with each pair's clouds replaced by completed ones (twenty-eighth session: the
+    input of a completion-aware NCE, ``NCEConfig.input_clouds = "completed"``):
+    ``completion.completed_cloud`` of the observed cloud and the shape-completion networks'
+    prediction, carved with the pair's cameras (``eyes``: pair_index -> (object eye, support
+    eye), the dataset's records) so that only the hidden side is added; the planner builds the
+    same clouds (``eval_paths``). Normals of the predicted points are unknown (zero): the HCE's
+    normal net must not train on these clouds. ``cache_dir``: one small file per pair
+    (``<pair_index>.npz``), reused by a resumed call."""
+    from omnihang_jax import completion
+
+    cache = Path(cache_dir) if cache_dir is not None else None
+    if cache is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+    index = [int(m["pair_index"]) for m in data.meta]
+    obj, sup = data.object_points.copy(), data.support_points.copy()
+    obj_n, sup_n = data.object_normals.copy(), data.support_normals.copy()
+    todo = []
+    for i, p in enumerate(index):
+        path = cache / f"{p:05d}.npz" if cache is not None else None
+        if path is not None and path.exists():
+            with np.load(path) as f:
+                obj[i], sup[i] = f["object_points"], f["support_points"]
+        else:
+            todo.append(i)
+    if todo:
+        if eyes is not None:
+            missing = [index[i] for i in todo if index[i] not in eyes]
+            if missing:
+                raise ValueError(f"no camera (dataset record) for pairs {missing[:5]}")
+        nets = completion.load_nets(completion_folder)
+        bar = tqdm(total=len(todo), desc="completion", disable=not progress)
+        for start in range(0, len(todo), 1024):
+            part = todo[start : start + 1024]
+            pred = completion.predict_points_many(
+                nets, data.object_points[part], data.support_points[part],
+                None if eyes is None else [eyes[index[i]] for i in part],
+            )  # fmt: skip
+            for i, (po, ps) in zip(part, pred):
+                obj[i] = completion.completed_cloud(data.object_points[i], po)
+                sup[i] = completion.completed_cloud(data.support_points[i], ps)
+                if cache is not None:
+                    np.savez(cache / f"{index[i]:05d}.npz", object_points=obj[i],
+                             support_points=sup[i])  # fmt: skip
+            bar.update(len(part))
+        bar.close()
+    # the observed half keeps its normals (completed_cloud's first N - N // 2 rows are a fixed
+    # subset of the observed rows); the predicted half has none
+    n = data.object_points.shape[1]
+    keep = collision.subsample_indices(n, n - n // 2, 0)
+    for normals in (obj_n, sup_n):
+        normals[:, : n - n // 2] = normals[:, keep]
+        normals[:, n - n // 2 :] = 0.0
+    return dataclasses.replace(
+        data, object_points=obj, support_points=sup, object_normals=obj_n, support_normals=sup_n
+    )
+
+
+def record_eyes(data_dir: str | os.PathLike, pair_indices) -> dict[int, tuple]:
+    """pair_index -> (object eye [3] in the object frame, support eye [3]) of the dataset's
+    records (the cameras of the partial clouds)."""
+    from sim import dataset
+
+    want = {int(p) for p in pair_indices}
+    return {
+        int(r["pair_index"]): (np.asarray(r["object_eye"]), np.asarray(r["support_eye"]))
+        for r in dataset.load_records(data_dir)
+        if int(r["pair_index"]) in want
+    }
+
+
 # ----------------------------------------------------------------------------------------------
 # Training
 
@@ -1093,6 +1170,27 @@ def evaluate_only(
     return result
 
 
+def _completer(args, progress: bool):
+    """CollisionData -> CollisionData: with ``--completion`` the completed clouds
+    (:func:`complete_collision_data`, cached beside the pair files), else unchanged."""
+    if not args.completion:
+        return lambda data: data
+    cache = Path(args.derived_dir or os.path.join(args.data, DERIVED))
+    cache = cache / f"completed_{Path(args.completion).name}"
+
+    def completed(data: CollisionData) -> CollisionData:
+        index = [int(m["pair_index"]) for m in data.meta]
+        todo = [p for p in index if not (cache / f"{p:05d}.npz").exists()]
+        eyes = record_eyes(args.data, todo) if todo else {}
+        t0 = time.time()
+        out = complete_collision_data(data, args.completion, eyes, cache, progress)
+        print(f"completed clouds of {len(index)} pairs ({len(todo)} new) in "
+              f"{time.time() - t0:.0f} s", flush=True)  # fmt: skip
+        return out
+
+    return completed
+
+
 def _brief(result: dict) -> dict:
     """The headline numbers of evaluate_only's result."""
     out = {"threshold": result["threshold"]}
@@ -1268,11 +1366,25 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--compile-reserve-s", type=float, default=45.0, help="--deadline: per compilation"
     )
+    parser.add_argument(
+        "--completion",
+        default=None,
+        metavar="FOLDER",
+        help="train on completed clouds (twenty-eighth session): half observed, half the "
+        "shape-completion networks' carved prediction (FOLDER/object, FOLDER/support; "
+        "completion.completed_cloud); the NCE's config records input_clouds=completed so that "
+        "the planner builds the same clouds. Needs --time-budget normals=0",
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     progress = not args.no_progress
     budgets = _budgets(args.time_budget)
     train_normal_net = budgets["normals"] > 0
+    if args.completion and train_normal_net:
+        parser.error("--completion: the predicted points have no normals; pass --time-budget "
+                     "...,normals=0")  # fmt: skip
+    if args.completion and not (Path(args.completion) / "object" / "config.json").exists():
+        parser.error(f"--completion {args.completion}: no object/config.json there")
     phases: list = []
 
     def phase(name: str) -> None:  # wall-clock log of the phases (stdout, flushed)
@@ -1311,6 +1423,7 @@ def main(argv=None) -> dict:
             f"derived: {len(train_files)} train, {len(test_files)} test pairs in {derive_s:.0f} s"
         )
         return {"train_files": len(train_files), "test_files": len(test_files)}
+    completed = _completer(args, progress)
     if args.eval_only:
         val = None
         if args.val_every > 0 and args.eval_val_pairs > 0:
@@ -1318,9 +1431,9 @@ def main(argv=None) -> dict:
                 args.data, {"train": args.eval_val_pairs}, workers, progress,
                 out_dir=args.derived_dir, only=lambda i: i % args.val_every == 0,
             )["train"]  # fmt: skip
-            val = load_collision_data(val_files)
+            val = completed(load_collision_data(val_files))
         return evaluate_only(
-            out, load_collision_data(test_files), args.eval_labels, val, args.goal_pass
+            out, completed(load_collision_data(test_files)), args.eval_labels, val, args.goal_pass
         )
     train = load_collision_data(
         train_files,
@@ -1338,6 +1451,8 @@ def main(argv=None) -> dict:
         if val_files
         else None
     )
+    train, test = completed(train), completed(test)
+    val = completed(val) if val is not None else None
     held_out = {m["pair_index"] for m in test.meta}
     if val is not None:
         held_out |= {m["pair_index"] for m in val.meta}
@@ -1359,6 +1474,11 @@ def main(argv=None) -> dict:
     nce_params = normal_params = None
     if args.resume and (out / "nce" / "config.json").exists():
         nce_cfg, nce_params, _ = collision.load_estimator(out / "nce")
+    if args.completion:  # also a fine-tune of an NCE trained on observed clouds
+        nce_cfg = dataclasses.replace(nce_cfg, input_clouds="completed")
+    elif nce_cfg.input_clouds != "observed":
+        raise SystemExit(f"the NCE in {out} was trained on {nce_cfg.input_clouds} clouds: "
+                         "pass --completion")  # fmt: skip
     if args.resume and (out / "hce_normals" / "config.json").exists():
         normal_cfg, normal_params, _ = collision.load_estimator(out / "hce_normals")
 

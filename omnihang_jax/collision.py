@@ -127,6 +127,10 @@ class NCEConfig:
       balls) sees the L support points nearest the posed object and the L object points nearest
       those (:func:`contact_patch`), centred on the patch, each point with its offset to the
       nearest point of the other cloud as a feature. Both codes go to the head.
+    input_clouds: "observed" (the partial clouds as the cameras saw them) or "completed"
+      (twenty-eighth session: each cloud half observed, half the shape-completion networks'
+      carved prediction of its hidden side, ``completion.completed_cloud``; trained with
+      ``train_collision --completion``). It tells a planner which clouds to give the network.
     """
 
     pointnet: str = "small"
@@ -138,6 +142,13 @@ class NCEConfig:
     local_points: int = 0
     local_from: int = 2048
     local_pointnet: str = "local"
+    input_clouds: str = "observed"
+
+    def __post_init__(self):
+        if self.input_clouds not in ("observed", "completed"):
+            raise ValueError(
+                f"input_clouds must be observed or completed, got {self.input_clouds!r}"
+            )
 
     @property
     def support_input(self) -> int:

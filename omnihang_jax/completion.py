@@ -19,8 +19,9 @@ completed points are in the input cloud's frame. The planner uses ``observed + p
 Pure functions: ``make_completion(config) -> (init, apply)``; ``complete_fn(config)(params,
 clouds [B, N, 3]) -> [B, M, 3]``; ``chamfer`` / ``coverage`` are the loss and the metrics.
 ``train_completion`` is the host loop (validation curve, cosine schedule, resumable).
-For the planner: ``predict_points`` (optionally carved with the cameras, ``carve``) and
-``clearance_clouds`` (the clouds a clearance test on completed shapes uses).
+For the planner: ``predict_points`` (optionally carved with the cameras, ``carve``;
+``predict_points_many`` for a dataset's pairs), ``clearance_clouds`` (the clouds a clearance
+test on completed shapes uses) and ``completed_cloud`` (the input of a completion-aware NCE).
 """
 
 from __future__ import annotations
@@ -443,6 +444,73 @@ def predict_points(folder_or_nets, object_points, support_points, eyes=None, see
             pred = carve(pred, pts, eyes[i])[0]
         out.append(pred)
     return tuple(out)
+
+
+def predict_points_many(folder_or_nets, object_clouds, support_clouds, eyes=None,
+                        seed: int = 0, chunk: int = 256, workers: int = 8) -> list[tuple]:  # fmt: skip
+    """:func:`predict_points` for P pairs at once: object_clouds [P, N, 3], support_clouds
+    [P, N', 3], eyes None or P (object camera, support camera) -> P (predicted object,
+    predicted support). Each pair's network input is the same fixed subset as
+    :func:`predict_points`' (``seed``), the forward passes run ``chunk`` pairs at a time and
+    the carving in ``workers`` threads: the same points as one pair at a time, up to float
+    rounding of the batched forward pass."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    nets = load_nets(folder_or_nets)
+    clouds = {"object": np.asarray(object_clouds, np.float32),
+              "support": np.asarray(support_clouds, np.float32)}  # fmt: skip
+    predicted = {}
+    for kind, pts in clouds.items():
+        if pts.ndim != 3 or pts.shape[-1] != 3 or pts.shape[1] == 0:
+            raise ValueError(f"the {kind} clouds must be [P, N>0, 3], got {pts.shape}")
+        bad = np.flatnonzero(~np.all(np.isfinite(pts), axis=(1, 2)))
+        if len(bad):
+            raise ValueError(f"the {kind} clouds of pairs {bad[:5].tolist()} hold NaN or inf")
+        config, params = nets[kind]
+        rng = np.random.default_rng(seed)
+        pick = rng.choice(pts.shape[1], config.n_input, replace=pts.shape[1] < config.n_input)
+        fn = _complete_cached(config)
+        parts = []
+        for i in range(0, len(pts), chunk):
+            sub = pts[i : i + chunk, pick]
+            n = len(sub)
+            if n < chunk and len(pts) > chunk:  # one compiled shape
+                sub = np.concatenate([sub, np.repeat(sub[-1:], chunk - n, axis=0)])
+            parts.append(np.asarray(fn(params, sub))[:n])
+        predicted[kind] = np.concatenate(parts)
+    if eyes is None:
+        return list(zip(predicted["object"], predicted["support"]))
+
+    def carve_pair(i):
+        return tuple(
+            carve(predicted[kind][i], clouds[kind][i], eyes[i][j])[0]
+            for j, kind in enumerate(KINDS)
+        )
+
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(carve_pair, range(len(clouds["object"]))))
+
+
+def completed_cloud(observed, predicted, seed: int = 0) -> np.ndarray:
+    """The input of an NCE trained on completed clouds (``NCEConfig.input_clouds``): as many
+    points as ``observed`` [N, 3], a fixed subset of N - N // 2 observed points followed by a
+    fixed subset of N // 2 predicted ones (with replacement where fewer; observed ones
+    instead when carving left none). The same function builds the training clouds
+    (``experiments.train_collision --completion``) and the planner's (``eval_paths``, ``hang``),
+    so both see the same mixture."""
+    from omnihang_jax.collision import subsample_indices
+
+    obs = np.asarray(observed, np.float32)
+    pred = np.asarray(predicted, np.float32).reshape(-1, 3)
+    if obs.ndim != 2 or obs.shape[1] != 3 or len(obs) < 2:
+        raise ValueError(f"the observed cloud must be [N>1, 3], got {obs.shape}")
+    n = len(obs)
+    half = n // 2
+    keep = obs[subsample_indices(n, n - half, seed)]
+    if len(pred) == 0:
+        rest = np.setdiff1d(np.arange(n), subsample_indices(n, n - half, seed))
+        return np.concatenate([keep, obs[rest[:half]]])
+    return np.concatenate([keep, pred[subsample_indices(len(pred), half, seed + 1)]])
 
 
 def clearance_clouds(object_points, support_points, predicted_object, predicted_support,

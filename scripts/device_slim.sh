@@ -120,6 +120,13 @@ if [ -n "${NCE:-}" ]; then
     LIST+=(weights/where_small_paper weights/value_s20_ranker weights/value_s21_big1 weights/value_s21_near
         weights/value_s16_hardneg)
 fi
+# COMPLETION=1 (twenty-eighth session; device_nce.sh training the completion-aware NCE): the
+# shape-completion networks stay
+if [ -n "${COMPLETION:-}" ]; then
+    KEEP=()
+    for p in "${LIST[@]}"; do [ "$p" = weights/completion_s25 ] || KEEP+=("$p"); done
+    LIST=("${KEEP[@]}")
+fi
 # RANKER=1 (device_ranker.sh calls): the pipeline's weights but CEM's V (the ranker's init)
 [ -n "${RANKER:-}" ] && LIST+=(weights/where_small_paper weights/value_s20_ranker weights/value_s21_big1 weights/value_s21_near)
 case ${1:-} in
