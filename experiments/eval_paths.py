@@ -217,6 +217,11 @@ class Estimators(NamedTuple):
     # with --completion: where the completed clouds replace the observed ones ("clear": the
     # returned path's clearing, "far": the clearance far from the goal)
     completion_in: tuple[str, ...] = ()
+    # twenty-eighth session: a second NCE (config, params, jitted collides) asked only beyond
+    # far_nce_ball of the goal, after the hybrid (eval_paths --far-nce: the completion-aware
+    # NCE, which sees the hidden backs the transit collisions are made of)
+    far_nce: tuple | None = None
+    far_nce_ball: float = 0.0
 
 
 def load_estimators(
@@ -570,6 +575,21 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
         for name in ("nce", "nce_geometric"):
             if name in checkers:
                 checkers[name] = planner.CascadeChecker(clear, checkers[name])
+    if est.far_nce is not None:  # the second NCE far from the goal, on what the hybrid passes
+        far_cfg, far_params, far_fn = est.far_nce
+        far_object, far_support = nce_clouds(case, far_cfg)
+        far = planner.EstimatorChecker(
+            far_fn,
+            far_params,
+            sub(far_object, far_cfg.object_input, SUBSET_SEED_OBJECT),
+            sub(far_support, far_cfg.support_input, SUBSET_SEED_SUPPORT),
+        )
+        far = planner.ExemptNearGoal(
+            far, case.goal, est.far_nce_ball, planner.object_radius(case.scene)
+        )
+        for name in ("nce", "nce_geometric"):
+            if name in checkers:
+                checkers[name] = planner.CascadeChecker(checkers[name], far)
     for name in set(methods) - {"mesh"}:  # compiled outside the planning clock
         checkers[name].warm_up()
     return checkers
@@ -877,6 +897,20 @@ def main(argv=None) -> dict:
         "farther than R from the goal",
     )  # fmt: skip
     parser.add_argument(
+        "--far-nce", default=None, metavar="FOLDER",
+        help="a second NCE (FOLDER/nce; twenty-eighth session: weights/collision_s28_completed, "
+        "trained on completed clouds) asked after the NCE / hybrid, only farther than "
+        "--far-nce-ball from the goal",
+    )  # fmt: skip
+    parser.add_argument(
+        "--far-nce-threshold", type=float, default=None,
+        help="--far-nce's threshold (default: its own, chosen on its validation pairs)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--far-nce-ball", type=float, default=0.045, metavar="R",
+        help="m (planner metric): --far-nce is asked only farther than R from the goal",
+    )  # fmt: skip
+    parser.add_argument(
         "--retreat", default="", metavar="M,M,...",
         help="lengths (m) of a straight retreat from the goal tried first (planner."
         "plan_with_retreat: the first retreat the method's checker calls free, upward "
@@ -1052,11 +1086,18 @@ def main(argv=None) -> dict:
         far_ball=args.far_ball if args.far_clearance > 0 else 0.0,
         completion_in=completion_in,
     )
-    if est.nce_config.input_clouds == "completed" and not (
+    if args.far_nce:
+        far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
+        if args.far_nce_threshold is not None:
+            far_cfg = dataclasses.replace(far_cfg, threshold=args.far_nce_threshold)
+        est = est._replace(far_nce=(far_cfg, far_params, jax.jit(collision.nce_collides(far_cfg))),
+                           far_nce_ball=args.far_nce_ball)  # fmt: skip
+    completed_nces = [c for c in (est.nce_config, est.far_nce and est.far_nce[0]) if c]
+    if any(c.input_clouds == "completed" for c in completed_nces) and not (
         args.completion and args.completion_carve
     ):
-        parser.error(f"the NCE in {args.weights} was trained on completed, carved clouds: pass "
-                     "--completion FOLDER --completion-carve")  # fmt: skip
+        parser.error("an NCE given (--weights / --far-nce) was trained on completed, carved "
+                     "clouds: pass --completion FOLDER --completion-carve")  # fmt: skip
     records = read_answers(args.pairs_from) if args.pairs_from else None
     cases = load_pairs(
         args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer"
@@ -1120,6 +1161,11 @@ def main(argv=None) -> dict:
         completion=args.completion,
         completion_in=list(completion_in),
         completion_carve=bool(args.completion and args.completion_carve),
+        far_nce=None
+        if est.far_nce is None
+        else dict(
+            weights=args.far_nce, config=dataclasses.asdict(est.far_nce[0]), ball_m=est.far_nce_ball
+        ),
         retreat_lengths_m=list(config.retreat_lengths),
         clear_path=None if clearance is None else dataclasses.asdict(clearance),
         goal="first stable pose of each held-out pair"

@@ -122,3 +122,23 @@ def test_the_planner_gives_a_completion_nce_completed_clouds_or_a_clear_error():
     assert o.shape == obj.shape and s.shape == sup.shape
     with pytest.raises(ValueError, match="input_clouds"):
         collision.NCEConfig(input_clouds="both")
+
+
+def test_rerank_nce_auc_and_rules_on_a_made_up_pool():
+    from experiments.rerank_nce import auc, score_rules
+
+    rng = np.random.default_rng(5)
+    pos, neg = rng.normal(1.0, 1.0, 60), rng.normal(0.0, 1.0, 80)
+    brute = np.mean([(p > q) + 0.5 * (p == q) for p in pos for q in neg])
+    assert abs(auc(pos, neg) - brute) < 1e-12
+    assert auc(np.array([1.0, 1.0]), np.array([1.0])) == 0.5  # ties count half
+    # two pairs of one category, three candidates each: the rankers prefer candidate 0, which
+    # penetrates; the NCE calls it colliding, so every NCE rule strict enough picks candidate 1
+    rows = [{"category": "mug"}, {"category": "mug"}]
+    key = np.array([[-1.0, -2.0, -3.0], [-1.0, -2.0, -3.0]])
+    stable = np.array([[False, True, False], [False, True, True]])
+    prob = np.array([[0.95, 0.1, 0.2], [0.95, 0.1, 0.2]])
+    table = {t["rule"]: t["mean"] for t in score_rules(rows, key, stable, prob, 0.56)}
+    assert table["committed"] == 0.0
+    assert table["lex 0.56"] == table["lex 0.9"] == 100.0 and table["lex 0.99"] == 0.0
+    assert table["soft 1"] == 100.0  # log(0.05) = -3.0 puts candidate 0 below candidate 1
