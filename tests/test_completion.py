@@ -211,3 +211,23 @@ def test_the_hang_commands_far_test_on_completed_clouds(tmp_path):
     )
     assert none is None and "camera" in why["why"]
     assert hang.completed_far_test(obj, sup, goal, 0.05, folder=tmp_path / "nothing")[0] is None
+
+
+def test_carving_a_cloud_with_repeated_points_matches_its_distinct_points():
+    # a partial cloud drawn with replacement repeats points; its carving must not collapse
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=(6000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    eye = np.array([0.0, -0.5, 0.0])
+    seen = 0.05 * u[u[:, 1] < -0.05][:1500]
+    repeated = np.concatenate([seen, seen[: len(seen) * 3 // 4]])  # most points twice
+    pred = np.concatenate(
+        [0.05 * u[u[:, 1] > 0.05][:300], 0.05 * u[u[:, 1] > 0.05][:300] + [0.2, 0, 0]]
+    )
+    with np.errstate(all="raise"):  # no division by a zero cell
+        _, mask = completion.carve(pred, repeated, eye)
+    _, mask_distinct = completion.carve(pred, seen[::-1], eye)  # (order does not matter)
+    np.testing.assert_array_equal(mask, mask_distinct)
+    assert mask[:300].mean() > 0.9 and mask[300:].mean() < 0.05
+    with pytest.raises(ValueError, match="two distinct points"):
+        completion.carve(pred, np.repeat(seen[:1], 10, axis=0), eye)
