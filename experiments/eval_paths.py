@@ -70,6 +70,7 @@ from experiments.train_collision import (
     SUBSET_SEED_OBJECT,
     SUBSET_SEED_SUPPORT,
     derive_collision_pairs,
+    record_eyes,
 )
 from omnihang_jax import collision, planner
 
@@ -472,11 +473,7 @@ def add_completion(cases: list[PairCase], folder: str, carve_with: str | None = 
     nets = completion.load_nets(folder)
     eyes = {}
     if carve_with is not None:
-        from sim import dataset
-
-        want = {int(c.meta["pair_index"]) for c in cases}
-        eyes = {int(r["pair_index"]): (r["object_eye"], r["support_eye"])
-                for r in dataset.load_records(carve_with) if int(r["pair_index"]) in want}  # fmt: skip
+        eyes = record_eyes(carve_with, [c.meta["pair_index"] for c in cases])
     out = []
     for case in cases:
         po, ps = completion.predict_points(nets, case.object_points, case.support_points,
@@ -1092,8 +1089,8 @@ def main(argv=None) -> dict:
             far_cfg = dataclasses.replace(far_cfg, threshold=args.far_nce_threshold)
         est = est._replace(far_nce=(far_cfg, far_params, jax.jit(collision.nce_collides(far_cfg))),
                            far_nce_ball=args.far_nce_ball)  # fmt: skip
-    completed_nces = [c for c in (est.nce_config, est.far_nce and est.far_nce[0]) if c]
-    if any(c.input_clouds == "completed" for c in completed_nces) and not (
+    nce_configs = [est.nce_config] + ([est.far_nce[0]] if est.far_nce else [])
+    if any(c.input_clouds == "completed" for c in nce_configs) and not (
         args.completion and args.completion_carve
     ):
         parser.error("an NCE given (--weights / --far-nce) was trained on completed, carved "

@@ -109,16 +109,13 @@ def pooled(paths: list[str], data: Path, weights: str, cache_dir: Path | None, p
 
 
 def auc(pos: np.ndarray, neg: np.ndarray) -> float:
-    """P(a positive scores above a negative), ties half."""
+    """P(a positive scores above a negative), ties half (the Mann-Whitney U over n+ n-)."""
+    from scipy.stats import rankdata
+
     if not len(pos) or not len(neg):
         return float("nan")
-    allv = np.concatenate([pos, neg])
-    ranks = np.argsort(np.argsort(allv, kind="stable"), kind="stable").astype(float)
-    # average ranks of ties
-    for v in np.unique(allv[np.r_[False, np.diff(np.sort(allv)) == 0]]):
-        m = allv == v
-        ranks[m] = ranks[m].mean()
-    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) - 1) / 2) / (len(pos) * len(neg)))
+    ranks = rankdata(np.concatenate([pos, neg]))  # average ranks of ties, from 1
+    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
 
 
 def score_rules(rows, key, stable, prob, nce_threshold: float) -> list[dict]:
@@ -140,7 +137,7 @@ def score_rules(rows, key, stable, prob, nce_threshold: float) -> list[dict]:
 def separation(key, stable, prob, status) -> dict:
     """How the NCE's P separates the pooled candidates: AUC penetrating vs stable (clear ones
     only: the inside test already ranks the others last), and the shares above thresholds."""
-    clear = key > -1e3
+    clear = key > -1e3  # rule_keys: log P >= -28, minus 1e4 per inside point over the limit
     pen = prob[(status == "penetrating") & clear]
     st = prob[stable & clear]
     out = dict(

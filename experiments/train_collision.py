@@ -620,13 +620,11 @@ def complete_collision_data(
                              support_points=sup[i])  # fmt: skip
             bar.update(len(part))
         bar.close()
-    # the observed half keeps its normals (completed_cloud's first N - N // 2 rows are a fixed
-    # subset of the observed rows); the predicted half has none
-    n = data.object_points.shape[1]
-    keep = collision.subsample_indices(n, n - n // 2, 0)
+    # the observed rows keep their normals; the predicted points have none
+    keep = completion.completed_observed_rows(data.object_points.shape[1])
     for normals in (obj_n, sup_n):
-        normals[:, : n - n // 2] = normals[:, keep]
-        normals[:, n - n // 2 :] = 0.0
+        normals[:, : len(keep)] = normals[:, keep]
+        normals[:, len(keep) :] = 0.0
     return dataclasses.replace(
         data, object_points=obj, support_points=sup, object_normals=obj_n, support_normals=sup_n
     )
@@ -1179,13 +1177,10 @@ def _completer(args, progress: bool):
     cache = cache / f"completed_{Path(args.completion).name}"
 
     def completed(data: CollisionData) -> CollisionData:
-        index = [int(m["pair_index"]) for m in data.meta]
-        todo = [p for p in index if not (cache / f"{p:05d}.npz").exists()]
-        eyes = record_eyes(args.data, todo) if todo else {}
         t0 = time.time()
+        eyes = record_eyes(args.data, [m["pair_index"] for m in data.meta])
         out = complete_collision_data(data, args.completion, eyes, cache, progress)
-        print(f"completed clouds of {len(index)} pairs ({len(todo)} new) in "
-              f"{time.time() - t0:.0f} s", flush=True)  # fmt: skip
+        print(f"completed clouds of {len(data.meta)} pairs in {time.time() - t0:.0f} s", flush=True)
         return out
 
     return completed

@@ -491,12 +491,20 @@ def predict_points_many(folder_or_nets, object_clouds, support_clouds, eyes=None
         return list(pool.map(carve_pair, range(len(clouds["object"]))))
 
 
+def completed_observed_rows(n: int, seed: int = 0) -> np.ndarray:
+    """The observed rows :func:`completed_cloud` keeps of an N-row cloud, in its first N - N // 2
+    rows (so that per-point arrays, e.g. normals, can follow them)."""
+    from omnihang_jax.collision import subsample_indices
+
+    return subsample_indices(n, n - n // 2, seed)
+
+
 def completed_cloud(observed, predicted, seed: int = 0) -> np.ndarray:
     """The input of an NCE trained on completed clouds (``NCEConfig.input_clouds``): as many
-    points as ``observed`` [N, 3], a fixed subset of N - N // 2 observed points followed by a
-    fixed subset of N // 2 predicted ones (with replacement where fewer; observed ones
-    instead when carving left none). The same function builds the training clouds
-    (``experiments.train_collision --completion``) and the planner's (``eval_paths``, ``hang``),
+    points as ``observed`` [N, 3], the observed rows :func:`completed_observed_rows` followed by
+    a fixed subset of N // 2 predicted points (with replacement where fewer; the other observed
+    rows instead when carving left none). The same function builds the training clouds
+    (``experiments.train_collision --completion``) and the planner's (``experiments.eval_paths``),
     so both see the same mixture."""
     from omnihang_jax.collision import subsample_indices
 
@@ -504,13 +512,11 @@ def completed_cloud(observed, predicted, seed: int = 0) -> np.ndarray:
     pred = np.asarray(predicted, np.float32).reshape(-1, 3)
     if obs.ndim != 2 or obs.shape[1] != 3 or len(obs) < 2:
         raise ValueError(f"the observed cloud must be [N>1, 3], got {obs.shape}")
-    n = len(obs)
-    half = n // 2
-    keep = obs[subsample_indices(n, n - half, seed)]
+    rows = completed_observed_rows(len(obs), seed)
+    half = len(obs) // 2
     if len(pred) == 0:
-        rest = np.setdiff1d(np.arange(n), subsample_indices(n, n - half, seed))
-        return np.concatenate([keep, obs[rest[:half]]])
-    return np.concatenate([keep, pred[subsample_indices(len(pred), half, seed + 1)]])
+        return np.concatenate([obs[rows], np.delete(obs, rows, axis=0)])
+    return np.concatenate([obs[rows], pred[subsample_indices(len(pred), half, seed + 1)]])
 
 
 def clearance_clouds(object_points, support_points, predicted_object, predicted_support,

@@ -1153,6 +1153,11 @@ def _nce(folder: str):
     from omnihang_jax import collision
 
     cfg, params, _ = collision.load_estimator(folder)
+    if cfg.input_clouds != "observed":  # the hang command gives the observed clouds
+        raise ValueError(
+            f"{folder}: an NCE trained on {cfg.input_clouds} clouds; the hang command plans "
+            "with one trained on observed clouds (experiments.eval_paths --completion takes it)"
+        )
     return cfg, params, jax.jit(collision.nce_collides(cfg))
 
 

@@ -358,6 +358,9 @@ def hybrid_checker(
     / support frame, with the support's outward normals."""
     from omnihang_jax import collision
 
+    if nce_config.input_clouds != "observed":
+        raise ValueError(f"hybrid_checker gives the NCE observed clouds; this one was trained on "
+                         f"{nce_config.input_clouds} clouds")  # fmt: skip
     sub = collision.subsample_cloud
     geo = settings.geometric
     grid = collision.support_grid(support_points, support_normals, geo.voxel, geo.max_voxels,

@@ -142,3 +142,17 @@ def test_rerank_nce_auc_and_rules_on_a_made_up_pool():
     assert table["committed"] == 0.0
     assert table["lex 0.56"] == table["lex 0.9"] == 100.0 and table["lex 0.99"] == 0.0
     assert table["soft 1"] == 100.0  # log(0.05) = -3.0 puts candidate 0 below candidate 1
+
+
+def test_the_hang_commands_checkers_refuse_an_nce_on_completed_clouds():
+    # the hang command and planner.hybrid_checker give observed clouds: a completion-aware NCE
+    # there would be fed the wrong input silently
+    from omnihang_jax import hang, planner
+
+    with pytest.raises(ValueError, match="completed clouds"):
+        hang._nce("weights/collision_s28_completed/nce")
+    cfg = collision.NCEConfig(input_clouds="completed")
+    with pytest.raises(ValueError, match="observed clouds"):
+        planner.hybrid_checker(cfg, None, np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((8, 3)),
+                               None, np.zeros(7), 0.1)  # fmt: skip
+    assert hang._nce("weights/collision_s18_contact/nce")[0].input_clouds == "observed"
