@@ -70,12 +70,16 @@ from experiments.train_collision import (
     SUBSET_SEED_OBJECT,
     SUBSET_SEED_SUPPORT,
     derive_collision_pairs,
+    observed_gap,
     record_eyes,
 )
 from omnihang_jax import collision, planner
 
 METHODS = ("nce", "hce", "hce_true_normals", "mesh")  # the default run
 ALL_METHODS = (*METHODS, "nce_geometric", "geometric")
+VAL_EVERY = 20  # train_collision --val-every: training pairs kept for the NCE's validation
+MINE_GAP = 0.03  # m: mined states whose observed clouds come closer than this are kept
+MINE_VERSION = 1
 
 
 class PairCase(NamedTuple):
@@ -138,21 +142,29 @@ def load_pairs(
     progress: bool = False,
     records: dict | None = None,
     answer_goals: bool = False,
+    split: str = "test",
 ) -> list[PairCase]:
     """``n`` held-out pairs (derived on demand) with their scenes, drawn among the pairs of
     ``records`` (:func:`read_answers`) when given; goal = the pair's first stable pose, or with
     ``answer_goals`` the pipeline's answer in ``records`` (``meta["goal_status"]``: its
-    simulated status)."""
+    simulated status). ``split="train"``: training pairs instead (``--mine``), never one of
+    the NCE's validation pairs (``pair_index % VAL_EVERY == 0``) nor a record's."""
     if answer_goals and records is None:
         raise ValueError("answer goals need the pipeline's records")
+    if split not in ("test", "train"):
+        raise ValueError(f"split must be 'test' or 'train', got {split!r}")
+    if split == "train" and records is not None:
+        raise ValueError("--pairs-from records are held-out runs: not with training pairs")
     from omnihang_jax import dataset_bridge
     from sim.library import build_library
     from sim.scene import build_scene
 
     # a seeded random sample of the held-out pairs, round robin over object categories
     only = None if records is None else records.__contains__
-    files = derive_collision_pairs(data, {"test": n}, workers, progress, shuffle_seed=0, only=only)[
-        "test"
+    if split == "train":
+        only = lambda i: i % VAL_EVERY != 0  # noqa: E731
+    files = derive_collision_pairs(data, {split: n}, workers, progress, shuffle_seed=0, only=only)[
+        split
     ]
     config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(data))
     library = build_library(config.library, progress=False)
@@ -166,8 +178,8 @@ def load_pairs(
         with np.load(path) as f:
             meta = {k: f[k].item() for k in ("pair_index", "object_name", "support_name")}
             meta |= {k: f[k].item() for k in ("object_category", "support_family", "split")}
-            if meta["split"] != "test":
-                raise RuntimeError(f"{path} is not a held-out pair")
+            if meta["split"] != split:
+                raise RuntimeError(f"{path} is not a {split}-split pair")
             obj = library.objects[meta["object_name"]]
             sup = library.supports[meta["support_name"]]
             goal = f["stable_poses"][0].astype(float)
@@ -598,8 +610,12 @@ def evaluate_pair(
     config: planner.PlannerConfig,
     methods,
     clearance: planner.ClearanceConfig | None = None,
+    mine: tuple[Path, int] | None = None,
 ):
     """Plan with each method and densely check what comes back. Returns (rows, paths).
+    ``mine`` = (folder, cap): the estimator methods' checkers are recorded
+    (``planner.RecordingChecker``) and what they judged near the support, with the returned
+    path's dense states, is labelled by the meshes into ``folder`` (:func:`save_mined`).
     ``clearance``: each estimator's returned path is moved away from the observed support
     (``planner.clear_path`` with that method's checker) and the moved path is the one
     returned; the path as planned is checked too (the row's ``raw_*`` keys)."""
@@ -621,6 +637,10 @@ def evaluate_pair(
     rows, paths = [], {}
     for name in methods:
         check = checkers[name]
+        if mine is not None and name != "mesh":
+            check = planner.RecordingChecker(
+                check, cap=20 * mine[1], seed=int(case.meta["pair_index"])
+            )
         res, retreat = planner.plan_with_retreat(check, start, goal, bounds, weight, config)
         row = dict(
             base,
@@ -669,8 +689,68 @@ def evaluate_pair(
             paths[name] = res.path
         else:
             row |= dict(collision_free=False)
+        if mine is not None and name != "mesh":
+            row["mined"] = save_mined(case, check, mesh, res.path, name, config, mine)
         rows.append(row)
     return rows, paths
+
+
+def save_mined(case: PairCase, recorder, mesh, path, method: str, config, mine) -> dict:
+    """The states a planner's checker judged on a (training) pair, labelled by the meshes:
+    hard examples for the NCE from where the planner actually goes (twenty-ninth session).
+    Kept: the recorded states whose observed clouds come within ``MINE_GAP`` (elsewhere
+    nothing is near), at most ``cap`` of them, half called colliding and half called free
+    where there are that many, plus every dense state (``config.dense_resolution``) of the
+    returned path within the gap. Written to ``folder/<pair file>.npz`` (``poses`` [K, 7],
+    ``penetration`` [K] m by :class:`planner.MeshChecker`, ``called`` [K] the checker's
+    verdict, ``gap`` [K] m, ``goal_distance`` [K] (planner metric), ``source`` [K] 0
+    recorded / 1 returned path). Returns counts for the row."""
+    from sim import atomic
+
+    folder, cap = mine
+    rng = np.random.default_rng(int(case.meta["pair_index"]))
+    weight = planner.object_radius(case.scene)
+    poses, called = recorder.poses.astype(float), recorder.called
+    gap = observed_gap(case.object_points, case.support_points, poses, MINE_GAP)
+    near = np.flatnonzero(gap < MINE_GAP)
+    pick = []
+    for verdict in (True, False):
+        rows = near[called[near] == verdict]
+        other = len(near) - len(rows)
+        n = min(len(rows), max(cap // 2, cap - other))
+        pick.append(rng.choice(rows, n, replace=False) if n < len(rows) else rows)
+    pick = np.sort(np.concatenate(pick)).astype(int)
+    poses, called, gap = poses[pick], called[pick], gap[pick]
+    source = np.zeros(len(pick), np.int8)
+    if path is not None:
+        dense = planner.interpolate_path(path, config.dense_resolution, weight)
+        d_gap = observed_gap(case.object_points, case.support_points, dense, MINE_GAP)
+        keep = d_gap < MINE_GAP
+        d_called = np.asarray(recorder.checker(dense[keep]), bool)
+        poses = np.concatenate([poses, dense[keep]])
+        called = np.concatenate([called, d_called])
+        gap = np.concatenate([gap, d_gap[keep]])
+        source = np.concatenate([source, np.ones(int(keep.sum()), np.int8)])
+    penetration = mesh.penetration(poses) if len(poses) else np.zeros(0)
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic.savez(
+        folder / f"{case.name}.npz",
+        poses=poses.astype(np.float32),
+        penetration=penetration.astype(np.float32),
+        called=called.astype(bool),
+        gap=gap.astype(np.float32),
+        goal_distance=planner.goal_distances(poses, case.goal, weight).astype(np.float32),
+        source=source,
+        method=np.array(method),
+        mine_version=np.array(MINE_VERSION),
+        **{k: np.array(v) for k, v in case.meta.items()},
+    )
+    colliding = penetration > config.penetration_tolerance
+    return dict(
+        recorded=int(recorder.seen), kept=int(len(poses)),
+        colliding=int(colliding.sum()), missed=int((colliding & ~called).sum()),
+        false_alarms=int((~colliding & called).sum()),
+    )  # fmt: skip
 
 
 def summarise(rows: list[dict], methods=METHODS) -> dict:
@@ -997,8 +1077,27 @@ def main(argv=None) -> dict:
         "no summary: N processes plan one run together (scripts/device_paths.sh); a run "
         "without --shard afterwards plans nothing new and writes the summary",
     )  # fmt: skip
+    parser.add_argument(
+        "--split", default="test", choices=("test", "train"),
+        help="plan on held-out pairs (the evaluation) or on training pairs (with --mine; never "
+        "the NCE's validation pairs, pair_index %% 20 == 0)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--mine", default=None, metavar="DIR",
+        help="record the states each estimator's checker judged, label those near the support "
+        "with the meshes and write DIR/<pair>.npz (hard examples for train_collision --mined)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--mine-cap", type=int, default=6000,
+        help="recorded states kept a pair (half called colliding, half free), besides the "
+        "returned path's",
+    )  # fmt: skip
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    if args.split == "train" and not args.mine:
+        parser.error("--split train is for --mine: the evaluation plans on held-out pairs")
+    if args.mine_cap < 2:
+        parser.error("--mine-cap must be >= 2")
     geo = collision.GeometricConfig()
     if args.geometric:
         chosen = json.loads(Path(args.geometric).read_text())["chosen"]
@@ -1097,8 +1196,9 @@ def main(argv=None) -> dict:
                      "clouds: pass --completion FOLDER --completion-carve")  # fmt: skip
     records = read_answers(args.pairs_from) if args.pairs_from else None
     cases = load_pairs(
-        args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer"
-    )
+        args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer",
+        split=args.split,
+    )  # fmt: skip
     if args.completion:
         cases = add_completion(cases, args.completion, args.data if args.completion_carve else None)
     jsonl = out / "pairs.jsonl"
@@ -1116,7 +1216,8 @@ def main(argv=None) -> dict:
         todo = [m for m in methods if (case.name, m) not in done]
         if not todo:
             continue
-        new_rows, paths = evaluate_pair(case, est, config, todo, clearance)
+        mined = None if not args.mine else (Path(args.mine), args.mine_cap)
+        new_rows, paths = evaluate_pair(case, est, config, todo, clearance, mined)
         for row in new_rows:
             row["goal_kind"] = kind
         with open(jsonl, "a") as f:

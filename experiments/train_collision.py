@@ -439,6 +439,7 @@ class CollisionData:
     far_labels: np.ndarray | None = None  # [F] bool (True = colliding; near poses only)
     far_near: np.ndarray | None = None  # [F] bool: the row is a near-contact pose (--near-share)
     far_transit: np.ndarray | None = None  # [F] bool: ... and a transit pose (--transit-share)
+    far_mined: np.ndarray | None = None  # [F] bool: a state the planner's checker judged (--mined)
     # near-contact poses of the pairs (near_contact_poses; files derived with them), labelled
     # by the planner's ground truth (penetration > NEAR_TOLERANCE on the full meshes)
     near_pair: np.ndarray | None = None  # [K] int32
@@ -474,6 +475,7 @@ def load_collision_data(
     near_train: bool = False,
     planner_labels: bool = False,
     transit_train: bool = True,
+    mined_dir: str | os.PathLike | None = None,
 ) -> CollisionData:
     """Clouds and labels of the pair files; ``far_per_pair`` far free poses per pair
     (:func:`far_free_poses`), with ``stable_free`` the pair's stable poses as free labels and
@@ -486,12 +488,28 @@ def load_collision_data(
     truth instead (deepest mesh penetration ``collision_penetration`` > NEAR_TOLERANCE, where
     the file has it): the dataset calls any touch colliding, the planner and its evaluation
     allow 1 mm, and the stable poses (free labels) rest in contact, so without this the NCE
-    is taught both sides of the same millimetre."""
+    is taught both sides of the same millimetre.
+
+    ``mined_dir`` (twenty-ninth session): a folder of ``eval_paths --mine`` files; a pair with
+    one gets its mined states as training rows (``far_mined``; labels: mesh penetration >
+    NEAR_TOLERANCE, the planner's ground truth), drawn with ``train_nce``'s ``mined_share``."""
     if not files:
         raise ValueError("no pair files to load")
+    if mined_dir is not None and not Path(mined_dir).is_dir():
+        raise FileNotFoundError(f"--mined {mined_dir}: no such folder")
     rng = np.random.default_rng(seed)
     cache: dict = {} if recipe_library is None else {"library": recipe_library}
-    far_pair, far_poses, far_labels, far_near, far_transit = [], [], [], [], []
+    far: dict[str, list] = {k: [] for k in ("pair", "poses", "labels", "near", "transit", "mined")}
+
+    def add_far(i, poses_, labels_, near_=False, transit_=None, mined_=False):
+        n = len(poses_)
+        far["pair"].append(np.full(n, i, np.int32))
+        far["poses"].append(np.asarray(poses_, np.float32))
+        far["labels"].append(np.asarray(labels_, bool))
+        far["near"].append(np.full(n, near_, bool))
+        far["transit"].append(np.zeros(n, bool) if transit_ is None else transit_)
+        far["mined"].append(np.full(n, mined_, bool))
+
     near: dict[str, list] = {"pair": [], "poses": [], "kind": [], "labels": [], "gap": []}
     keys = ("object_points", "object_normals", "support_points", "support_normals")
     clouds: dict[str, list] = {k: [] for k in keys}
@@ -515,26 +533,17 @@ def load_collision_data(
         meta.append({k: f[k].item() for k in dataset_bridge.META_KEYS})
         if far_per_pair:
             g = _geometry_of(f, meta[-1], cache)
-            far_poses.append(
-                far_free_poses(
-                    rng,
-                    float(g["object_half_diagonal"]),
-                    g["support_bounds"],
-                    float(g["wall_y"]),
-                    far_per_pair,
-                )
+            free = far_free_poses(
+                rng,
+                float(g["object_half_diagonal"]),
+                g["support_bounds"],
+                float(g["wall_y"]),
+                far_per_pair,
             )
-            far_pair.append(np.full(far_per_pair, i, np.int32))
-            far_labels.append(np.zeros(far_per_pair, bool))
-            far_near.append(np.zeros(far_per_pair, bool))
-            far_transit.append(np.zeros(far_per_pair, bool))
+            add_far(i, free, np.zeros(far_per_pair, bool))
         if stable_free:
             stable = f["stable_poses"].astype(np.float32)
-            far_poses.append(stable)
-            far_pair.append(np.full(len(stable), i, np.int32))
-            far_labels.append(np.zeros(len(stable), bool))
-            far_near.append(np.zeros(len(stable), bool))
-            far_transit.append(np.zeros(len(stable), bool))
+            add_far(i, stable, np.zeros(len(stable), bool))
         if "near_poses" in f.files:
             kind = f["near_kind"]
             label = f["near_penetration"] > NEAR_TOLERANCE
@@ -548,22 +557,20 @@ def load_collision_data(
                 moved = kind != NEAR_STABLE
                 if not transit_train:
                     moved &= kind != NEAR_TRANSIT
-                far_poses.append(f["near_poses"][moved].astype(np.float32))
-                far_pair.append(np.full(int(moved.sum()), i, np.int32))
-                far_labels.append(label[moved])
-                far_near.append(np.ones(int(moved.sum()), bool))
-                far_transit.append(kind[moved] == NEAR_TRANSIT)
+                add_far(i, f["near_poses"][moved], label[moved], True, kind[moved] == NEAR_TRANSIT)
+        mined = None if mined_dir is None else Path(mined_dir) / f"{Path(files[i]).stem}.npz"
+        if mined is not None and mined.exists():
+            with np.load(mined) as m:
+                if int(m["pair_index"]) != int(meta[-1]["pair_index"]):
+                    raise ValueError(f"{mined}: pair {int(m['pair_index'])}, not {meta[-1]}")
+                add_far(i, m["poses"], m["penetration"] > NEAR_TOLERANCE, mined_=True)
     return CollisionData(
         *(np.stack(clouds[k]) for k in keys),
         pair=np.concatenate(pair),
         poses=np.concatenate(poses).astype(np.float32),
         labels=np.concatenate(labels),
         meta=meta,
-        far_pair=np.concatenate(far_pair) if far_pair else None,
-        far_poses=np.concatenate(far_poses) if far_poses else None,
-        far_labels=np.concatenate(far_labels) if far_labels else None,
-        far_near=np.concatenate(far_near) if far_near else None,
-        far_transit=np.concatenate(far_transit) if far_transit else None,
+        **{f"far_{k}": np.concatenate(v) if v else None for k, v in far.items()},
         **{f"near_{k}": np.concatenate(v) if v else None for k, v in near.items()},
     )
 
@@ -667,6 +674,7 @@ def train_nce(
     near_share: float = 0.0,
     schedule: str = "constant",
     transit_share: float = 0.0,
+    mined_share: float = 0.0,
     val: CollisionData | None = None,
     val_every: int = 0,
     val_labels: int = 8192,
@@ -678,7 +686,8 @@ def train_nce(
     ``near_share``: this fraction of every batch is drawn from the near-contact training poses
     (``CollisionData.far_near``; the rest uniformly from all rows), so that the millimetres
     around the goals, where the planner's last edges run, get more of the training;
-    ``transit_share``: this fraction more from the transit poses alone (``far_transit``).
+    ``transit_share``: this fraction more from the transit poses alone (``far_transit``);
+    ``mined_share``: this fraction more from the planner's mined states (``far_mined``).
     ``schedule``: "constant" (the paper's Adam at ``learning_rate``) or "cosine" (a linear
     warm-up over the first 3 % of the time budget, then cosine decay to 5 % of the rate at
     its end: the budget, not a step count, is what a device call fixes).
@@ -695,12 +704,14 @@ def train_nce(
     obj_clouds = jnp.asarray(data.object_points)
     sup_clouds = jnp.asarray(data.support_points)
     pair, poses, labels = data.pair, data.poses, data.labels
-    near_rows = transit_rows = np.zeros(0, np.int64)
+    near_rows = transit_rows = mined_rows = np.zeros(0, np.int64)
     if data.far_poses is not None:  # far / stable (free) and near-contact poses
         if data.far_near is not None:
             near_rows = len(pair) + np.flatnonzero(data.far_near)
         if data.far_transit is not None:
             transit_rows = len(pair) + np.flatnonzero(data.far_transit)
+        if data.far_mined is not None:
+            mined_rows = len(pair) + np.flatnonzero(data.far_mined)
         pair = np.concatenate([pair, data.far_pair])
         poses = np.concatenate([poses, data.far_poses])
         labels = np.concatenate([labels, data.far_labels])
@@ -711,9 +722,15 @@ def train_nce(
     n_transit = int(round(transit_share * batch)) if len(transit_rows) else 0
     if transit_share > 0 and not n_transit:
         print("warning: --transit-share without transit training poses: none drawn")
-    if n_near + n_transit > batch:
-        raise ValueError(f"near share + transit share > 1 ({n_near} + {n_transit} > {batch})")
+    n_mined = int(round(mined_share * batch)) if len(mined_rows) else 0
+    if mined_share > 0 and not n_mined:
+        print("warning: --mined-share without mined training states: none drawn")
+    if n_near + n_transit + n_mined > batch:
+        raise ValueError(
+            f"near + transit + mined shares > 1 ({n_near} + {n_transit} + {n_mined} > {batch})"
+        )
     transit_rows = jnp.asarray(transit_rows if n_transit else np.zeros(1, np.int64))
+    mined_rows = jnp.asarray(mined_rows if n_mined else np.zeros(1, np.int64))
     pair, poses = jnp.asarray(pair), jnp.asarray(poses)
     labels = jnp.asarray(labels, jnp.float32)
 
@@ -721,13 +738,18 @@ def train_nce(
     def step(params, opt_state, key):
         k_pick, k_near, k_obj, k_sup = jax.random.split(key, 4)
         k_transit = jax.random.fold_in(k_near, 1)  # the earlier draws stay as they were
-        pick = jax.random.randint(k_pick, (batch - n_near - n_transit,), 0, labels.shape[0])
+        k_mined = jax.random.fold_in(k_near, 2)
+        n_uniform = batch - n_near - n_transit - n_mined
+        pick = jax.random.randint(k_pick, (n_uniform,), 0, labels.shape[0])
         if n_near:
             near = near_rows[jax.random.randint(k_near, (n_near,), 0, near_rows.shape[0])]
             pick = jnp.concatenate([pick, near])
         if n_transit:
             draw = jax.random.randint(k_transit, (n_transit,), 0, transit_rows.shape[0])
             pick = jnp.concatenate([pick, transit_rows[draw]])
+        if n_mined:
+            draw = jax.random.randint(k_mined, (n_mined,), 0, mined_rows.shape[0])
+            pick = jnp.concatenate([pick, mined_rows[draw]])
         p = pair[pick]
         obj = _sample_points(k_obj, obj_clouds[p], config.object_input)
         sup = _sample_points(k_sup, sup_clouds[p], config.support_input)
@@ -756,6 +778,8 @@ def train_nce(
     log |= dict(
         near_share=n_near / batch,
         transit_share=n_transit / batch,
+        mined_share=n_mined / batch,
+        mined_rows=int(len(mined_rows)) if n_mined else 0,
         schedule=schedule,
         peak_lr=learning_rate,
     )
@@ -1266,6 +1290,15 @@ def main(argv=None) -> dict:
         "--near-share; files of near version 2, --transit 1)",
     )
     parser.add_argument(
+        "--mined", default=None, metavar="DIR",
+        help="NCE: the planner's own states on training pairs, labelled by the meshes "
+        "(eval_paths --split train --mine DIR), as training rows of the pairs they belong to",
+    )  # fmt: skip
+    parser.add_argument(
+        "--mined-share", type=float, default=0.0,
+        help="NCE: fraction of each batch drawn from the --mined states alone",
+    )  # fmt: skip
+    parser.add_argument(
         "--planner-labels",
         type=int,
         default=0,
@@ -1437,7 +1470,17 @@ def main(argv=None) -> dict:
         near_train=bool(args.near),
         planner_labels=bool(args.planner_labels),
         transit_train=bool(args.transit),
+        mined_dir=args.mined,
     )
+    if args.mined:
+        n_mined = 0 if train.far_mined is None else int(train.far_mined.sum())
+        n_pairs = 0 if train.far_mined is None else len(np.unique(train.far_pair[train.far_mined]))
+        print(f"mined: {n_mined} states of {n_pairs} training pairs from {args.mined}")
+        if args.mined_share > 0 and not n_mined:
+            raise SystemExit(
+                f"--mined {args.mined}: none of its files is a training pair loaded here "
+                "(derive those pairs first)"
+            )
     test = load_collision_data(test_files)
     # the validation curve measures the training objective: the same labels as training
     # (the threshold and the metrics below read the near-contact poses, labelled either way)
@@ -1496,7 +1539,7 @@ def main(argv=None) -> dict:
         progress=progress,
         stop_at=args.deadline - after if args.deadline else None,
         near_share=args.near_share, schedule=args.lr_schedule,
-        transit_share=args.transit_share,
+        transit_share=args.transit_share, mined_share=args.mined_share,
         val=val if args.val_curve_every > 0 else None, val_every=args.val_curve_every,
     )  # fmt: skip
     collision.save_estimator(out / "nce", nce_cfg, nce_params, train=nce_log, evaluated=False)
@@ -1540,6 +1583,8 @@ def main(argv=None) -> dict:
         near_training=bool(args.near),
         transit_training=bool(args.near and args.transit),
         transit_share=args.transit_share,
+        mined=args.mined,
+        mined_share=args.mined_share,
         near_share=args.near_share,
         planner_labels=bool(args.planner_labels),
         lr=args.lr,

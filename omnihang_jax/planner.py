@@ -224,6 +224,54 @@ class CascadeChecker:
         return any_colliding(self.second, poses)
 
 
+class RecordingChecker:
+    """``checker``, recording what it was asked and what it answered (twenty-ninth session,
+    ``eval_paths --mine``): the states a planner's own checker judges are where its errors
+    matter. Per call the poses [B, 7] and verdicts [B] (True = called colliding); an edge
+    asked through :meth:`any_colliding` is recorded only when it comes back free (then every
+    state was called free; a blocked edge's verdicts per state are unknown). At most
+    ``cap`` states are kept, a uniform reservoir over everything asked (seeded: the same
+    plan records the same states)."""
+
+    def __init__(self, checker: Callable, cap: int = 200_000, seed: int = 0):
+        if cap < 1:
+            raise ValueError(f"cap must be >= 1, got {cap}")
+        self.checker, self.cap = checker, cap
+        self.rng = np.random.default_rng(seed)
+        self.poses = np.zeros((0, 7), np.float32)
+        self.called = np.zeros(0, bool)
+        self.seen = 0
+
+    def warm_up(self, largest: int = 144) -> None:
+        if hasattr(self.checker, "warm_up"):
+            self.checker.warm_up(largest)
+
+    def _keep(self, poses: np.ndarray, called: np.ndarray) -> None:
+        poses = np.asarray(poses, np.float32).reshape(-1, 7)
+        n = len(poses)
+        room = self.cap - len(self.poses)
+        take = min(room, n)
+        if take:
+            self.poses = np.concatenate([self.poses, poses[:take]])
+            self.called = np.concatenate([self.called, called[:take]])
+        for i in range(take, n):  # reservoir sampling (Algorithm R) for the rest
+            j = int(self.rng.integers(0, self.seen + i + 1))
+            if j < self.cap:
+                self.poses[j], self.called[j] = poses[i], called[i]
+        self.seen += n
+
+    def __call__(self, poses: np.ndarray) -> np.ndarray:
+        out = np.asarray(self.checker(poses), bool)
+        self._keep(poses, out)
+        return out
+
+    def any_colliding(self, poses: np.ndarray) -> bool:
+        hit = any_colliding(self.checker, poses)
+        if not hit:
+            self._keep(poses, np.zeros(len(np.asarray(poses).reshape(-1, 7)), bool))
+        return hit
+
+
 class AnalyticChecker:
     """Exact checker for tests: a sphere of ``radius`` at the pose's position against
     axis-aligned boxes ``[(low [3], high [3]), ...]`` (rotation does not matter)."""
