@@ -28,6 +28,15 @@ if [ -n "${SEED_FROM:-}" ] && [ ! -f "$C/nce/run/nce/config.json" ]; then
     done
     log "both slots seeded from $SEED_FROM"
 fi
+# PAIRS_IN=<folder of derived training-pair files> (twenty-ninth session): copied into the
+# derive's folder first, so that those pairs (e.g. the ones eval_paths --mine planned on, whose
+# mined states BASE_EXTRA / CROP_EXTRA="--mined DIR --mined-share S" train on) are there
+# whatever the derive reaches in the call
+if [ -n "${PAIRS_IN:-}" ]; then
+    mkdir -p "$C/nce/derived/train"
+    cp -n "$PAIRS_IN"/*.npz "$C/nce/derived/train/" 2>/dev/null
+    log "copied $(ls "$PAIRS_IN" | wc -l) derived training pairs from $PAIRS_IN"
+fi
 NEW="--planner-labels 1 --near-share 0.3 --lr-schedule cosine --val-curve-every 2000"
 [ -f "$C/nce/run/nce/config.json" ] && NEW="$NEW --lr ${NCE_LR2:-5e-4}"
 log "derived so far: $(ls $C/nce/derived/train 2>/dev/null | wc -l) training pairs"
