@@ -95,6 +95,7 @@ class PairCase(NamedTuple):
     # body (object frame / support frame), None without
     predicted_object: np.ndarray | None = None
     predicted_support: np.ndarray | None = None
+    wall_y: float | None = None  # the wall's front plane y = wall_y (None: free-standing)
 
 
 class Answer(NamedTuple):
@@ -201,9 +202,17 @@ def load_pairs(
                     support_points=f["support_points"],
                     support_normals=f["support_normals"],
                     goal=goal,
+                    wall_y=_wall_of(f),
                 )
             )
     return cases
+
+
+def _wall_of(f) -> float | None:
+    """A pair file's wall plane y, None for a free-standing support (stored as NaN)."""
+    if "wall_y" not in f.files or not np.isfinite(float(f["wall_y"])):
+        return None
+    return float(f["wall_y"])
 
 
 class Estimators(NamedTuple):
@@ -235,6 +244,9 @@ class Estimators(NamedTuple):
     # NCE, which sees the hidden backs the transit collisions are made of)
     far_nce: tuple | None = None
     far_nce_ball: float = 0.0
+    # twenty-ninth session: the observed object cloud kept this far in front of the known wall
+    # plane (planner.WallChecker, first in the cascade); None: the wall is not checked
+    wall_margin: float | None = None
 
 
 def load_estimators(
@@ -463,6 +475,7 @@ def select_geometric(
     return out
 
 
+WALL_POINTS = 512  # object points of planner.WallChecker (--wall-margin)
 FAR_CLEARANCE_POINTS = 512  # object points of planner.ClearanceFarFromGoal (--far-clearance)
 
 
@@ -599,6 +612,13 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
         for name in ("nce", "nce_geometric"):
             if name in checkers:
                 checkers[name] = planner.CascadeChecker(checkers[name], far)
+    if est.wall_margin is not None and case.wall_y is not None:  # the known wall, first
+        wall = planner.WallChecker(
+            sub(case.object_points, WALL_POINTS, SUBSET_SEED_OBJECT), case.wall_y, est.wall_margin
+        )
+        for name in ("nce", "nce_geometric"):
+            if name in checkers:
+                checkers[name] = planner.CascadeChecker(wall, checkers[name])
     for name in set(methods) - {"mesh"}:  # compiled outside the planning clock
         checkers[name].warm_up()
     return checkers
@@ -1078,6 +1098,12 @@ def main(argv=None) -> dict:
         "without --shard afterwards plans nothing new and writes the summary",
     )  # fmt: skip
     parser.add_argument(
+        "--wall-margin", type=float, default=None, metavar="M",
+        help="the estimators' checkers also call a state colliding where an observed object "
+        "point comes closer than M (m; 0: behind it) to the known wall plane (planner.WallChecker); "
+        "default: the wall is not checked",
+    )  # fmt: skip
+    parser.add_argument(
         "--split", default="test", choices=("test", "train"),
         help="plan on held-out pairs (the evaluation) or on training pairs (with --mine; never "
         "the NCE's validation pairs, pair_index %% 20 == 0)",
@@ -1098,6 +1124,8 @@ def main(argv=None) -> dict:
         parser.error("--split train is for --mine: the evaluation plans on held-out pairs")
     if args.mine_cap < 2:
         parser.error("--mine-cap must be >= 2")
+    if args.wall_margin is not None and not args.wall_margin >= 0:
+        parser.error("--wall-margin must be >= 0")
     geo = collision.GeometricConfig()
     if args.geometric:
         chosen = json.loads(Path(args.geometric).read_text())["chosen"]
@@ -1181,6 +1209,7 @@ def main(argv=None) -> dict:
         far_clearance=args.far_clearance,
         far_ball=args.far_ball if args.far_clearance > 0 else 0.0,
         completion_in=completion_in,
+        wall_margin=args.wall_margin,
     )
     if args.far_nce:
         far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
@@ -1259,6 +1288,7 @@ def main(argv=None) -> dict:
         completion=args.completion,
         completion_in=list(completion_in),
         completion_carve=bool(args.completion and args.completion_carve),
+        wall_margin_m=est.wall_margin,
         far_nce=None
         if est.far_nce is None
         else dict(

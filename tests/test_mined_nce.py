@@ -174,3 +174,33 @@ def test_nce_mined_share_draws_the_mined_rows_and_learns_them():
     assert accuracy > 0.6, accuracy
     with pytest.raises(ValueError, match="shares"):
         train_nce(train, cfg, steps=1, time_budget=10, batch=32, progress=False, mined_share=1.25)
+
+
+def test_wall_checker_flags_observed_points_behind_the_wall_plane():
+    """planner.WallChecker: the mug pushed into the wall behind the hook collides with the wall
+    in MuJoCo and is flagged; the same pose a few centimetres in front is neither; a margin
+    flags what comes closer than it; eval_paths reads a free-standing support's NaN as no wall."""
+    from experiments.eval_paths import _wall_of
+    from sim.assets.base import build_support
+
+    case, _ = _mug_case()
+    wall_y = build_support("single_rod_hook", 0).wall_y
+    assert wall_y is not None, "the single-rod hook is wall-mounted"
+    mesh = planner.MeshChecker(case.scene)
+    wall = planner.WallChecker(case.object_points, wall_y)
+    back = float(case.object_points[:, 1].min())  # object frame: the cloud's side toward the wall
+    # the observed back 1 cm into the wall, 40 cm up (clear of the hook, in front of the wall)
+    into = np.array([0.0, wall_y - back - 0.01, 0.4, 1, 0, 0, 0])
+    front = into.copy()
+    front[1] += 0.05
+    assert mesh(into[None])[0] and not mesh(front[None])[0]
+    assert wall(np.stack([into, front])).tolist() == [True, False]
+    assert planner.WallChecker(case.object_points, wall_y, margin=0.06)(front[None])[0]
+    with pytest.raises(ValueError, match="finite"):
+        planner.WallChecker(case.object_points, float("nan"))
+
+    class F(dict):
+        files = property(lambda self: list(self))
+
+    assert _wall_of(F(wall_y=np.float32(np.nan))) is None and _wall_of(F()) is None
+    assert _wall_of(F(wall_y=np.float32(0.25))) == 0.25
