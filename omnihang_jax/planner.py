@@ -240,9 +240,19 @@ class RecordingChecker:
             raise ValueError(f"cap must be >= 1, got {cap}")
         self.checker, self.cap = checker, cap
         self.rng = np.random.default_rng(seed)
-        self.poses = np.zeros((0, 7), np.float32)
-        self.called = np.zeros(0, bool)
+        self._poses = np.zeros((cap, 7), np.float32)  # filled in place: no copy per call
+        self._called = np.zeros(cap, bool)
         self.seen = 0
+
+    @property
+    def poses(self) -> np.ndarray:
+        """[K, 7] the states kept (K = min(seen, cap))."""
+        return self._poses[: min(self.seen, self.cap)]
+
+    @property
+    def called(self) -> np.ndarray:
+        """[K] their verdicts (True = called colliding)."""
+        return self._called[: min(self.seen, self.cap)]
 
     def warm_up(self, largest: int = 144) -> None:
         if hasattr(self.checker, "warm_up"):
@@ -250,16 +260,14 @@ class RecordingChecker:
 
     def _keep(self, poses: np.ndarray, called: np.ndarray) -> None:
         poses = np.asarray(poses, np.float32).reshape(-1, 7)
-        n = len(poses)
-        room = self.cap - len(self.poses)
-        take = min(room, n)
-        if take:
-            self.poses = np.concatenate([self.poses, poses[:take]])
-            self.called = np.concatenate([self.called, called[:take]])
+        n, filled = len(poses), min(self.seen, self.cap)
+        take = min(self.cap - filled, n)
+        self._poses[filled : filled + take] = poses[:take]
+        self._called[filled : filled + take] = called[:take]
         for i in range(take, n):  # reservoir sampling (Algorithm R) for the rest
             j = int(self.rng.integers(0, self.seen + i + 1))
             if j < self.cap:
-                self.poses[j], self.called[j] = poses[i], called[i]
+                self._poses[j], self._called[j] = poses[i], called[i]
         self.seen += n
 
     def __call__(self, poses: np.ndarray) -> np.ndarray:
