@@ -247,6 +247,29 @@ class Estimators(NamedTuple):
     # twenty-ninth session: the observed object cloud kept this far in front of the known wall
     # plane (planner.WallChecker, first in the cascade); None: the wall is not checked
     wall_margin: float | None = None
+    # thirtieth session: when a plan times out, plan again for fallback_time s with the NCE's
+    # far threshold (beyond nce_goal_ball) raised to fallback_far_threshold (nce_fallback: the
+    # jitted collision.goal_ball_collides with it); None: no second plan
+    fallback_far_threshold: float | None = None
+    fallback_time: float = 0.0
+    nce_fallback: object = None
+
+
+def with_fallback(est: Estimators, far_threshold: float, seconds: float) -> Estimators:
+    """``est`` with a second plan after a time-out: the NCE beyond its goal ball at
+    ``far_threshold`` (laxer than ``est.nce_far_threshold``) for ``seconds``. Thirtieth
+    session: the time-outs' true paths are blocked far from the goal by NCE calls of 0.6-0.9
+    (scripts/probe_timeouts.py)."""
+    if est.nce_far_threshold is None:
+        raise ValueError("a fallback far threshold needs the goal-ball NCE (--nce-goal-ball > 0)")
+    if not (far_threshold > est.nce_far_threshold and seconds > 0):
+        raise ValueError(
+            f"the fallback's far threshold ({far_threshold}) must be laxer than the plan's "
+            f"({est.nce_far_threshold}) and its time > 0 (got {seconds})"
+        )
+    fn = collision.goal_ball_collides(est.nce_config, far_threshold, est.nce_goal_ball)
+    return est._replace(fallback_far_threshold=float(far_threshold),
+                        fallback_time=float(seconds), nce_fallback=jax.jit(fn))  # fmt: skip
 
 
 def load_estimators(
@@ -646,6 +669,12 @@ def evaluate_pair(
     start = planner.start_pose(scene, goal)
     mesh = planner.MeshChecker(scene, config.penetration_tolerance)
     checkers = checkers_for(case, est, config.penetration_tolerance, methods)
+    fallbacks = {}
+    if est.nce_fallback is not None:  # built (and compiled) outside the planning clock
+        lax = est._replace(nce=est.nce_fallback, nce_fallback=None)
+        names = tuple(m for m in methods if m in ("nce", "nce_geometric"))
+        if names:
+            fallbacks = checkers_for(case, lax, config.penetration_tolerance, names)
     base = dict(
         pair=case.name,
         **case.meta,
@@ -662,6 +691,23 @@ def evaluate_pair(
                 check, cap=20 * mine[1], seed=int(case.meta["pair_index"])
             )
         res, retreat = planner.plan_with_retreat(check, start, goal, bounds, weight, config)
+        start_colliding = bool(check(start[None])[0])
+        goal_colliding = bool(check(goal[None])[0])
+        fallback = None
+        if res.path is None and name in fallbacks:  # the second plan, laxer far from the goal
+            lax_check = fallbacks[name]
+            second = planner.plan(lax_check, start, goal, bounds, weight,
+                                  dataclasses.replace(config, time_limit=est.fallback_time))  # fmt: skip
+            fallback = dict(far_threshold=est.fallback_far_threshold, status=second.status,
+                            planning_s=round(second.planning_s, 3),
+                            returned=second.path is not None)  # fmt: skip
+            res = second._replace(
+                planning_s=res.planning_s + second.planning_s,
+                states_checked=res.states_checked + second.states_checked,
+                checker_calls=res.checker_calls + second.checker_calls,
+            )
+            if second.path is not None:
+                check = lax_check  # its clearing keeps to what the fallback's checker allows
         row = dict(
             base,
             method=name,
@@ -669,10 +715,12 @@ def evaluate_pair(
             planning_s=round(res.planning_s, 3),
             states_checked=res.states_checked,
             checker_calls=res.checker_calls,
-            start_called_colliding=bool(check(start[None])[0]),
-            goal_called_colliding=bool(check(goal[None])[0]),
+            start_called_colliding=start_colliding,
+            goal_called_colliding=goal_colliding,
             returned=res.path is not None,
         )
+        if fallback is not None:
+            row["fallback"] = fallback
         if config.retreat_lengths:
             row["retreat"] = None if retreat is None else dict(
                 direction=retreat.direction.round(3).tolist(), length_m=retreat.length,
@@ -841,6 +889,22 @@ def summarise(rows: list[dict], methods=METHODS) -> dict:
                 median_gap_before_m=float(np.median([r["clear_gap_before_m"] for r in moved])),
                 median_gap_after_m=float(np.median([r["clear_gap_after_m"] for r in moved])),
                 median_s=float(np.median([r["clear_s"] for r in moved])),
+            )
+        tried = [r for r in mine if r.get("fallback")]
+        if tried:  # --fallback-far-threshold: the second plans after a time-out
+            entry["fallback"] = dict(
+                tried=len(tried),
+                returned=sum(r["fallback"]["returned"] for r in tried),
+                collision_free=sum(
+                    r["fallback"]["returned"] and r["collision_free"] for r in tried
+                ),
+                # the same run with the first plans alone (each fallback pair a time-out)
+                without=prf(
+                    [
+                        r | dict(returned=False, collision_free=False) if r.get("fallback") else r
+                        for r in mine
+                    ]
+                ),  # fmt: skip
             )
         bad = [r for r in mine if r["returned"] and not r["collision_free"]]
         if bad and all("estimator_dense_flags" in r for r in bad):
@@ -1118,8 +1182,18 @@ def main(argv=None) -> dict:
         help="recorded states kept a pair (half called colliding, half free), besides the "
         "returned path's",
     )  # fmt: skip
+    parser.add_argument(
+        "--fallback-far-threshold", type=float, default=None, metavar="T",
+        help="nce / nce_geometric with --nce-goal-ball: when a plan times out, plan again for "
+        "--fallback-time s with the NCE's threshold beyond the goal ball raised to T (laxer); "
+        "default: no second plan",
+    )  # fmt: skip
+    parser.add_argument("--fallback-time", type=float, default=15.0, metavar="S",
+                        help="s: the second plan's time limit")  # fmt: skip
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    if args.fallback_far_threshold is not None and args.mine:
+        parser.error("--fallback-far-threshold is for the evaluation, not with --mine")
     if args.split == "train" and not args.mine:
         parser.error("--split train is for --mine: the evaluation plans on held-out pairs")
     if args.mine_cap < 2:
@@ -1211,6 +1285,11 @@ def main(argv=None) -> dict:
         completion_in=completion_in,
         wall_margin=args.wall_margin,
     )
+    if args.fallback_far_threshold is not None:
+        try:
+            est = with_fallback(est, args.fallback_far_threshold, args.fallback_time)
+        except ValueError as e:
+            parser.error(str(e))
     if args.far_nce:
         far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
         if args.far_nce_threshold is not None:
@@ -1289,6 +1368,9 @@ def main(argv=None) -> dict:
         completion_in=list(completion_in),
         completion_carve=bool(args.completion and args.completion_carve),
         wall_margin_m=est.wall_margin,
+        fallback=None
+        if est.fallback_far_threshold is None
+        else dict(far_threshold=est.fallback_far_threshold, seconds=est.fallback_time),
         far_nce=None
         if est.far_nce is None
         else dict(

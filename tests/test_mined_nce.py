@@ -204,3 +204,55 @@ def test_wall_checker_flags_observed_points_behind_the_wall_plane():
 
     assert _wall_of(F(wall_y=np.float32(np.nan))) is None and _wall_of(F()) is None
     assert _wall_of(F(wall_y=np.float32(0.25))) == 0.25
+
+
+def test_fallback_plans_again_with_the_lax_checker_after_a_time_out(monkeypatch):
+    """Thirtieth session: ``eval_paths --fallback-far-threshold``. The first plan (a checker
+    that blocks everything but the start) times out; the second, with the fallback's checker
+    (everything free), returns a path; the row says so and the summary's ``fallback.without``
+    is the run with the first plans alone."""
+    from experiments import eval_paths
+
+    case, through = _mug_case()
+    case = case._replace(goal=np.array([*through, 1.0, 0, 0, 0]))  # on the rod (goal exempt)
+    start = planner.start_pose(case.scene, case.goal)
+    assert np.linalg.norm(start[:3] - case.goal[:3]) > 0.05
+
+    def blocked(poses):
+        p = np.asarray(poses, float).reshape(-1, 7)
+        return np.linalg.norm(p[:, :3] - start[:3], axis=1) > 0.01
+
+    def free(poses):
+        return np.zeros(len(np.asarray(poses).reshape(-1, 7)), bool)
+
+    def fake_checkers(case, est, tolerance, methods):  # the lax estimators' NCE: "lax"
+        return {"nce_geometric": free if est.nce == "lax" else blocked}
+
+    monkeypatch.setattr(eval_paths, "checkers_for", fake_checkers)
+    est = eval_paths.Estimators(*[None] * 8)._replace(
+        nce_fallback="lax", fallback_far_threshold=0.9, fallback_time=2.0
+    )
+    config = planner.PlannerConfig(time_limit=0.3)
+    rows, paths = eval_paths.evaluate_pair(case, est, config, ("nce_geometric",))
+    (row,) = rows
+    assert row["fallback"]["returned"] and row["fallback"]["far_threshold"] == 0.9
+    assert row["returned"] and row["status"] == "Exact solution"
+    assert row["planning_s"] >= 0.3 and "nce_geometric" in paths
+    assert row["start_called_colliding"] is False  # judged by the first plan's checker
+    summary = eval_paths.summarise([row], ("nce_geometric",))["nce_geometric"]
+    assert summary["fallback"]["tried"] == 1 and summary["fallback"]["returned"] == 1
+    assert summary["fallback"]["without"]["returned"] == 0 and summary["returned"] == 1
+    # without a fallback the same pair is a time-out
+    rows, _ = eval_paths.evaluate_pair(case, est._replace(nce_fallback=None), config,
+                                       ("nce_geometric",))  # fmt: skip
+    assert not rows[0]["returned"] and "fallback" not in rows[0]
+
+
+def test_with_fallback_refuses_a_stricter_threshold():
+    from experiments import eval_paths
+
+    est = eval_paths.Estimators(*[None] * 8)._replace(nce_far_threshold=0.56, nce_goal_ball=0.02)
+    with pytest.raises(ValueError, match="laxer"):
+        eval_paths.with_fallback(est, 0.5, 10.0)
+    with pytest.raises(ValueError, match="goal-ball"):
+        eval_paths.with_fallback(est._replace(nce_far_threshold=None), 0.9, 10.0)
