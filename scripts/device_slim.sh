@@ -76,6 +76,12 @@ LIST=(
     results/hanging_success_stage3_s20_ranker_seed1.pairs.jsonl.gz
     # (twenty-second session: the three rankers' held-out records, 13 MB, read by no device call)
     results/hanging_success_stage3_s22_rankset.pairs.jsonl.gz
+    # (thirtieth session: the default's held-out records under keys 1 and 2, 34 MB, read by no
+    # device call)
+    results/hanging_success_stage3_s30_k10_view0_seed1.pairs.jsonl.gz
+    results/hanging_success_stage3_s30_k10_view1of2_seed1.pairs.jsonl.gz
+    results/hanging_success_stage3_s30_k10_view0_seed2.pairs.jsonl.gz
+    results/hanging_success_stage3_s30_k10_view1of2_seed2.pairs.jsonl.gz
 )
 # MORE=1 (twenty-second session): with three rankers (13.5 MB) the eval call's tree is ~59 MiB;
 # these are read by no device_full.sh eval / bench call either (the ranker's scores and pair
@@ -102,6 +108,10 @@ if [ -n "${MORE:-}" ]; then
     for f in results/validation_where_s26/*.pairs.jsonl.gz results/validation_where_s27/*.pairs.jsonl.gz; do
         LIST+=("$f")
     done
+    # (thirtieth session: the NCE variants of the twenty-eighth and twenty-ninth sessions, moved
+    # by hand until now; read by no eval / val / bench / paths call)
+    LIST+=(weights/collision_s28_control weights/collision_s28_completed weights/collision_s29_mined
+        weights/collision_s29_mined30)
 fi
 # PATHS=1 (twenty-fourth session; device_paths.sh): as NCE=1, and the best hybrid's selection
 # file stays too
