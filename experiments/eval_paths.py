@@ -669,6 +669,9 @@ def evaluate_pair(
     start = planner.start_pose(scene, goal)
     mesh = planner.MeshChecker(scene, config.penetration_tolerance)
     checkers = checkers_for(case, est, config.penetration_tolerance, methods)
+    if mine is not None and est.nce_fallback is not None:
+        raise ValueError("a fallback plan is for the evaluation: mining records the first plan's "
+                         "checker only")  # fmt: skip
     fallbacks = {}
     if est.nce_fallback is not None:  # built (and compiled) outside the planning clock
         lax = est._replace(nce=est.nce_fallback, nce_fallback=None)

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from probe_nce_paths import scores_of  # scripts/ (this script's folder) is on sys.path
 
 from experiments import eval_paths
 from omnihang_jax import collision, planner
@@ -101,17 +102,12 @@ def main(argv=None) -> dict:
             keep = d > cfg.goal_radius  # the goal itself is exempt, as in the planner
             dense, d = dense[keep], d[keep]
             geo_flag = np.asarray(ch["geometric"](dense), bool)
-            nce_flag = np.asarray(ch["nce"](dense), bool)
-            p = np.concatenate(
-                [
-                    np.asarray(
-                        prob(est.nce_params, oc, sc, np.asarray(dense[a : a + 64], np.float32))
-                    )
-                    for a in range(0, len(dense), 64)
-                ]  # fmt: skip
-            )
-            hyb = geo_flag | nce_flag
+            # one NCE pass (padded chunks: one compiled shape): its probability, and the
+            # hybrid's NCE verdict from it by the goal-ball rule (collision.goal_ball_collides)
+            p = scores_of(prob, est.nce_params, oc, sc, dense)
             near = d <= args.nce_goal_ball
+            nce_flag = p > np.where(near, args.nce_threshold, args.nce_far_threshold)
+            hyb = geo_flag | nce_flag
             item = dict(states=len(dense), free_for_hybrid=bool(not hyb.any()),
                         geometric_flags=int(geo_flag.sum()), nce_flags=int(nce_flag.sum()),
                         max_p_near=round(float(p[near].max()), 4) if near.any() else 0.0,
@@ -143,16 +139,16 @@ def main(argv=None) -> dict:
         print(f"{case.name}: {len(paths)} true paths, free for the hybrid "
               f"{sum(p['free_for_hybrid'] for p in paths)}, blocks by "
               f"{[p.get('by') for p in paths]}, nearest block {nb} m", flush=True)  # fmt: skip
-    firsts = [p for r in out_pairs for p in r["paths"] if not p["free_for_hybrid"]]
+    blocked = [p for r in out_pairs for p in r["paths"] if not p["free_for_hybrid"]]
     summary = dict(
         run=args.run, method=args.method, timeouts=len(timeouts), probed=len(out_pairs),
         pairs_with_a_true_path_free_for_the_hybrid=sum(r["some_true_path_free"] for r in out_pairs),
         goal_called_colliding=sum(r["goal_called_colliding"] for r in out_pairs),
         true_paths=sum(r["mesh_paths"] for r in out_pairs),
-        blocked_true_paths=len(firsts),
-        blocked_by={k: sum(p["by"] == k for p in firsts) for k in ("geometric", "nce", "both")},
-        nearest_block_band={b: sum(band_of(p["nearest_block_m"]) == b for p in firsts)
-                            for b in sorted({band_of(p["nearest_block_m"]) for p in firsts})},  # fmt: skip
+        blocked_true_paths=len(blocked),
+        blocked_by={k: sum(p["by"] == k for p in blocked) for k in ("geometric", "nce", "both")},
+        nearest_block_band={b: sum(band_of(p["nearest_block_m"]) == b for p in blocked)
+                            for b in sorted({band_of(p["nearest_block_m"]) for p in blocked})},  # fmt: skip
         # would a laxer NCE beyond the goal ball free some true path (the test and the near
         # threshold as they are)? pairs with such a path, per far threshold
         pairs_free_at_far_threshold={

@@ -246,6 +246,8 @@ def test_fallback_plans_again_with_the_lax_checker_after_a_time_out(monkeypatch)
     rows, _ = eval_paths.evaluate_pair(case, est._replace(nce_fallback=None), config,
                                        ("nce_geometric",))  # fmt: skip
     assert not rows[0]["returned"] and "fallback" not in rows[0]
+    with pytest.raises(ValueError, match="evaluation"):  # mining records the first plan only
+        eval_paths.evaluate_pair(case, est, config, ("nce_geometric",), mine=("unused", 10))
 
 
 def test_with_fallback_refuses_a_stricter_threshold():
