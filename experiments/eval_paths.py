@@ -370,6 +370,68 @@ def _geometric_grid(
     return out
 
 
+def hce_goal_pass_thresholds(
+    data: str, weights: str, val_pairs: int = 60, goal_pass: float = 0.95
+) -> dict:
+    """The two HCEs' thresholds chosen by the NCE's own rule (thirty-first session): on the
+    TRAINING validation pairs of :func:`select_geometric` (``pair_index % 20 == 0``, never
+    trained on), the lowest score at which at least ``goal_pass`` of the dataset's stable
+    poses are called free (``train_collision.goal_pass_threshold``'s rule; the contact NCE's
+    0.56 came from it). The default HCE thresholds maximise balanced accuracy on labels that
+    are ~80 % colliding, and a stable hang touches the support, so they call most goals
+    colliding (27-32 of 40 held-out goals, sixteenth session) and the planner cannot finish:
+    the baseline would be judged on a threshold no planner could use.
+
+    Returns per method (``hce``, ``hce_true_normals``) the chosen and the balanced threshold
+    with, at each, the goal pass and the near-contact recall / precision / free precision of
+    the moved near poses (mesh labels, deeper than 1 mm)."""
+    from experiments.train_collision import (
+        NEAR_STABLE,
+        NEAR_TRANSIT,
+        hce_score_fn,
+        load_collision_data,
+        score_poses,
+        true_normals_score_fn,
+    )
+
+    if not 0.0 < goal_pass <= 1.0:
+        raise ValueError(f"goal_pass must be in (0, 1], got {goal_pass}")
+    files = derive_collision_pairs(
+        data, {"train": val_pairs}, 1, False, only=lambda i: i % 20 == 0
+    )["train"]
+    val = load_collision_data(files)
+    if any(m["split"] != "train" or m["pair_index"] % 20 for m in val.meta):
+        raise RuntimeError("validation pairs must be training-split pairs with index % 20 == 0")
+    if val.near_poses is None:
+        raise RuntimeError("the validation pairs hold no near-contact poses (derive them again)")
+    est = load_estimators(weights)
+    nce_cfg = est.nce_config
+    n_obj, n_sup = nce_cfg.object_points, est.normal_config.points
+    stable = val.near_kind == NEAR_STABLE
+    moved = ~stable & (val.near_kind != NEAR_TRANSIT)
+    fns = {
+        "hce": (hce_score_fn(est.normal_config, est.normal_params), est.normal_config.threshold),
+        "hce_true_normals": (true_normals_score_fn(val, n_sup), est.true_threshold),
+    }
+    out = dict(validation_pairs=len(val.meta), stable_poses=int(stable.sum()),
+               near_poses=int(moved.sum()), goal_pass_target=goal_pass)  # fmt: skip
+    for name, (fn, balanced) in fns.items():
+        s = score_poses(val, val.near_pair, val.near_poses, fn, n_obj, n_sup)
+        if not np.all(np.isfinite(s)):
+            raise RuntimeError(f"{name}: non-finite heuristic scores on the validation poses")
+        chosen = float(np.quantile(s[stable], goal_pass, method="higher"))
+
+        def at(t, s=s):
+            called = s > t
+            m = collision.binary_metrics(called[moved], val.near_labels[moved])
+            return dict(threshold=float(t), goal_pass=float(np.mean(~called[stable])),
+                        near_recall=m["recall"], near_precision=m["precision"],
+                        free_precision=m["free_precision"])  # fmt: skip
+
+        out[name] = dict(chosen=at(chosen), balanced=at(balanced))
+    return out
+
+
 def select_geometric(
     data: str,
     weights: str,
@@ -1125,6 +1187,12 @@ def main(argv=None) -> dict:
         help="--select-geometric: the hybrid goal pass the chosen setting must keep",
     )  # fmt: skip
     parser.add_argument(
+        "--hce-goal-pass", type=float, default=None, metavar="P",
+        help="choose both HCE thresholds as the NCE's was: the lowest score that calls at "
+        "least P of the validation pairs' stable poses free (hce_goal_pass_thresholds); "
+        "default: the balanced-accuracy thresholds saved with the weights",
+    )  # fmt: skip
+    parser.add_argument(
         "--select-nce-thresholds", default=None, metavar="T1,T2,...",
         help="--select-geometric: search the NCE's threshold too, jointly with the test",
     )  # fmt: skip
@@ -1288,6 +1356,20 @@ def main(argv=None) -> dict:
         completion_in=completion_in,
         wall_margin=args.wall_margin,
     )
+    hce_selection = None
+    if args.hce_goal_pass is not None:
+        if not 0.0 < args.hce_goal_pass <= 1.0:
+            parser.error("--hce-goal-pass must be in (0, 1]")
+        hce_selection = hce_goal_pass_thresholds(
+            args.data, args.weights, args.val_pairs, args.hce_goal_pass
+        )
+        est = est._replace(
+            normal_config=dataclasses.replace(
+                est.normal_config, threshold=hce_selection["hce"]["chosen"]["threshold"]
+            ),
+            true_threshold=hce_selection["hce_true_normals"]["chosen"]["threshold"],
+        )
+        print(json.dumps({k: v for k, v in hce_selection.items()}, indent=1))
     if args.fallback_far_threshold is not None:
         try:
             est = with_fallback(est, args.fallback_far_threshold, args.fallback_time)
@@ -1358,6 +1440,7 @@ def main(argv=None) -> dict:
         nce_config=est.nce_config.__dict__,
         normal_config=est.normal_config.__dict__,
         hce_true_normals_threshold=est.true_threshold,
+        hce_goal_pass_selection=hce_selection,
         geometric=dataclasses.asdict(est.geometric)
         if {"nce_geometric", "geometric"} & set(methods)
         else None,

@@ -112,6 +112,8 @@ if [ -n "${MORE:-}" ]; then
     # by hand until now; read by no eval / val / bench / paths call)
     LIST+=(weights/collision_s28_control weights/collision_s28_completed weights/collision_s29_mined
         weights/collision_s29_mined30)
+    # (thirty-first session: the third view's held-out records, 8.5 MB, and the ranker study)
+    LIST+=(results/hanging_success_stage3_s31_k10_view3of4.pairs.jsonl.gz results/ranker_s31)
 fi
 # PATHS=1 (twenty-fourth session; device_paths.sh): as NCE=1, and the best hybrid's selection
 # file stays too

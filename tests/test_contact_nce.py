@@ -7,6 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from omnihang_jax import collision
 
@@ -108,3 +109,21 @@ def test_joint_selection_of_the_nce_threshold_and_the_observed_cloud_test():
         assert chosen["goal_pass"] >= 0.8 and chosen["nce_threshold"] in (0.3, 0.9)
         assert chosen["free_precision"] == max(r["free_precision"] for r in qualifying)
     assert sel["nce"]["threshold"] == 0.56  # the NCE's own row at its own threshold
+
+
+def test_hce_thresholds_chosen_by_the_nces_goal_pass_rule():
+    """``eval_paths --hce-goal-pass``: both HCE thresholds are the lowest scores that keep the
+    target share of the validation pairs' stable poses free; the balanced-accuracy threshold
+    saved with the weights is reported beside it, and a laxer threshold never detects more."""
+    from experiments.eval_paths import hce_goal_pass_thresholds
+
+    with pytest.raises(ValueError, match="goal_pass"):
+        hce_goal_pass_thresholds("datasets/paper", "weights/collision_s18_contact", 2, 0.0)
+    sel = hce_goal_pass_thresholds("datasets/paper", "weights/collision_s18_contact", 2, 0.9)
+    assert sel["validation_pairs"] == 2 and sel["stable_poses"] > 0
+    for name in ("hce", "hce_true_normals"):
+        chosen, balanced = sel[name]["chosen"], sel[name]["balanced"]
+        assert chosen["goal_pass"] >= 0.9
+        if balanced["goal_pass"] < 0.9:  # the balanced threshold blocks goals: chosen is laxer
+            assert chosen["threshold"] > balanced["threshold"]
+            assert chosen["near_recall"] <= balanced["near_recall"]
