@@ -370,6 +370,21 @@ def _geometric_grid(
     return out
 
 
+def collision_validation_pairs(data: str, val_pairs: int):
+    """The planner's TRAINING validation pairs (``pair_index % 20 == 0``, never trained on;
+    ``train_collision --val-every 20``) with their near-contact poses and mesh labels, derived
+    if missing: where :func:`select_geometric` and :func:`hce_goal_pass_thresholds` choose."""
+    from experiments.train_collision import load_collision_data
+
+    files = derive_collision_pairs(
+        data, {"train": val_pairs}, 1, False, only=lambda i: i % 20 == 0
+    )["train"]
+    val = load_collision_data(files)
+    if any(m["split"] != "train" or m["pair_index"] % 20 for m in val.meta):
+        raise RuntimeError("validation pairs must be training-split pairs with index % 20 == 0")
+    return val
+
+
 def hce_goal_pass_thresholds(
     data: str, weights: str, val_pairs: int = 60, goal_pass: float = 0.95
 ) -> dict:
@@ -389,19 +404,13 @@ def hce_goal_pass_thresholds(
         NEAR_STABLE,
         NEAR_TRANSIT,
         hce_score_fn,
-        load_collision_data,
         score_poses,
         true_normals_score_fn,
     )
 
     if not 0.0 < goal_pass <= 1.0:
         raise ValueError(f"goal_pass must be in (0, 1], got {goal_pass}")
-    files = derive_collision_pairs(
-        data, {"train": val_pairs}, 1, False, only=lambda i: i % 20 == 0
-    )["train"]
-    val = load_collision_data(files)
-    if any(m["split"] != "train" or m["pair_index"] % 20 for m in val.meta):
-        raise RuntimeError("validation pairs must be training-split pairs with index % 20 == 0")
+    val = collision_validation_pairs(data, val_pairs)
     if val.near_poses is None:
         raise RuntimeError("the validation pairs hold no near-contact poses (derive them again)")
     est = load_estimators(weights)
@@ -465,17 +474,11 @@ def select_geometric(
         NEAR_LIFT,
         NEAR_STABLE,
         NEAR_TRANSIT,
-        load_collision_data,
         nce_score_fn,
         score_poses,
     )
 
-    files = derive_collision_pairs(
-        data, {"train": val_pairs}, 1, False, only=lambda i: i % 20 == 0
-    )["train"]
-    val = load_collision_data(files)
-    if any(m["split"] != "train" or m["pair_index"] % 20 for m in val.meta):
-        raise RuntimeError("validation pairs must be training-split pairs with index % 20 == 0")
+    val = collision_validation_pairs(data, val_pairs)
     t0 = time.time()
     cfg, params, _ = collision.load_estimator(Path(weights, "nce"))
     nce_fn = nce_score_fn(cfg, params)
