@@ -437,3 +437,13 @@ def test_stage1_mix_splits_the_proposals_over_the_networks(trained_dir, tmp_path
     assert np.abs(a.stage1_poses[:, 3:] - b.stage1_poses).max() > 1e-4
     with pytest.raises(FileNotFoundError, match="stage1"):
         predict.load_predictor(f"{trained_dir}+{tmp_path / 'missing'}")
+
+
+def test_view_set_parses_subsamples_and_refuses_bad_ones():
+    """``predict_where --view-set``: the thirty-first session's third view (0/1,1/2,3/4) as
+    ``PipelineConfig.views``; a shift outside the stride, a repeat (0/1 is 0/2) or junk is refused."""
+    assert predict_where.parse_view_set("0/1,1/2,3/4") == ((0, 1), (1, 2), (3, 4))
+    assert predict_where.parse_view_set(" 0/1 , 1/2 ") == ((0, 1), (1, 2))
+    for bad in ("", "2/2", "0/1,0/2", "1/2,2/4", "a/b", "1"):
+        with pytest.raises(ValueError):
+            predict_where.parse_view_set(bad)
