@@ -1363,6 +1363,8 @@ def main(argv=None) -> dict:
     if args.hce_goal_pass is not None:
         if not 0.0 < args.hce_goal_pass <= 1.0:
             parser.error("--hce-goal-pass must be in (0, 1]")
+        if not {"hce", "hce_true_normals"} & set(methods):
+            parser.error("--hce-goal-pass needs --methods with hce or hce_true_normals")
         hce_selection = hce_goal_pass_thresholds(
             args.data, args.weights, args.val_pairs, args.hce_goal_pass
         )
@@ -1372,7 +1374,7 @@ def main(argv=None) -> dict:
             ),
             true_threshold=hce_selection["hce_true_normals"]["chosen"]["threshold"],
         )
-        print(json.dumps({k: v for k, v in hce_selection.items()}, indent=1))
+        print(json.dumps(hce_selection, indent=1))
     if args.fallback_far_threshold is not None:
         try:
             est = with_fallback(est, args.fallback_far_threshold, args.fallback_time)

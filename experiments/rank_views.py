@@ -30,24 +30,27 @@ import argparse
 import itertools
 import json
 import time
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
 from experiments import _cli
-from experiments.rerank_stage3 import pool_indices, proposals_of, read_records, rule_keys
+from experiments.rerank_stage3 import (
+    category_means,
+    pool_indices,
+    proposals_of,
+    read_records,
+    rule_keys,
+)
+from omnihang_jax import selection
 
 COMMITTED = ("s20", "big1", "near")  # stage3.RANK_VALUES, in v_rank's order
 VIEWS = 2
-# an inside-point penalty (selection._INSIDE_WEIGHT = 1e4 a point) puts every non-clear
-# candidate's key far below any clear one's (log P >= log 1e-12 = -27.6)
-CLEAR_ABOVE = -1000.0
 
 
 def load_key(runs: list[str]) -> dict:
-    """The two view runs of one key -> arrays over the pooled candidates: keys / stable
-    [N, V, 2K], poses [N, V, 2K, 7], ranks [N, V, R, 2K] (the committed rankers' recorded P),
+    """The two view runs of one key -> arrays over the pooled candidates: keys / clear /
+    stable [N, V, 2K], poses [N, V, 2K, 7], ranks [N, V, R, 2K] (the committed rankers' recorded P),
     category, files."""
     if len(runs) != VIEWS:
         raise ValueError(f"a key needs its {VIEWS} view runs (view 0, view 1/2), got {len(runs)}")
@@ -58,8 +61,13 @@ def load_key(runs: list[str]) -> dict:
     k = proposals_of(rows[0])
     idx = pool_indices(k, "stage1_2")
     parts = [rule_keys(rr, k) for rr in rows]
+    grid = selection.grid_key(selection.CHOSEN.depth, selection.CHOSEN.radius)
+    counts = np.stack(
+        [np.asarray([np.asarray(r["inside_counts"][grid])[idx] for r in rr]) for rr in rows], 1
+    )
     return dict(
         keys=np.stack([p[0] for p in parts], 1),
+        clear=counts <= selection.CHOSEN.max_points,  # the rule ranks these by log P
         stable=np.stack([p[1] for p in parts], 1),
         poses=np.stack(
             [np.asarray([np.asarray(r["poses_all"])[idx] for r in rr], np.float32) for rr in rows],
@@ -74,17 +82,15 @@ def load_key(runs: list[str]) -> dict:
 
 
 def category_mean(category, ok) -> float:
-    by = defaultdict(list)
-    for c, o in zip(category, ok, strict=True):
-        by[c].append(bool(o))
-    return 100.0 * float(np.mean([np.mean(v) for v in by.values()]))
+    """The figure everywhere: the mean over object categories (percent)."""
+    return category_means([{"category": c} for c in category], ok)["mean"]
 
 
 def answer(d: dict, score: np.ndarray) -> float:
     """The rule's success (mean over categories) with ``score`` [N, V, 2K] (log P) ranking the
     clear candidates; the non-clear ones keep their recorded key."""
     n = len(d["category"])
-    key = np.where(d["keys"] > CLEAR_ABOVE, score, d["keys"]).reshape(n, -1)
+    key = np.where(d["clear"], score, d["keys"]).reshape(n, -1)
     return category_mean(d["category"], d["stable"].reshape(n, -1)[np.arange(n), key.argmax(1)])
 
 
@@ -99,10 +105,10 @@ def committed_scores(d: dict) -> dict:
 
 def score(ranker: str, d: dict, clouds_dir: str, batch: int = 8) -> np.ndarray:
     """[N, V, 2K] log P(hang) of every pooled candidate by the ranker in ``ranker``."""
-    import jax.numpy as jnp
+    from types import SimpleNamespace
 
     from experiments.rank_subsets import load_clouds
-    from experiments.train_ranker import make_scorer
+    from experiments.train_ranker import make_scorer, score_table
     from omnihang_jax import refine, stage3
     from omnihang_jax.stage3 import PairClouds
 
@@ -111,17 +117,12 @@ def score(ranker: str, d: dict, clouds_dir: str, batch: int = 8) -> np.ndarray:
     config, params = refine.load_value(ranker)
     scorer = make_scorer(config)
     out = np.zeros(d["poses"].shape[:3], np.float32)
-    n = len(d["files"])
     for v in range(VIEWS):
-        clouds = stage3.subset_clouds(stacked, config, v, VIEWS)
+        bank = SimpleNamespace(clouds=stage3.subset_clouds(stacked, config, v, VIEWS))
         t0 = time.time()
-        for i in range(0, n, batch):
-            sl = np.arange(i, min(i + batch, n))
-            m = len(sl)
-            sl = np.concatenate([sl, np.repeat(sl[:1], batch - m)])  # one compiled shape
-            c = PairClouds(*(jnp.asarray(np.asarray(x)[sl]) for x in clouds))
-            out[i : i + m, v] = np.asarray(scorer(params, c, jnp.asarray(d["poses"][sl, v])))[:m]
-        print(f"view {v}/{VIEWS}: {n} pairs in {time.time() - t0:.0f} s", flush=True)
+        table = {"files": d["files"], "poses": d["poses"][:, v]}
+        out[:, v] = score_table(scorer, params, bank, table, batch)
+        print(f"view {v}/{VIEWS}: {len(d['files'])} pairs in {time.time() - t0:.0f} s", flush=True)
     if not np.all(np.isfinite(out)):
         raise RuntimeError(f"{ranker}: non-finite scores")
     return out
