@@ -12,6 +12,7 @@ holds B x K x 32 states per iteration; the reported pairs/s includes that split)
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import platform
@@ -40,6 +41,22 @@ SEQ = "-seq"
 # an answer name ending in @K (e.g. views2@10) has K proposals (a view each: K x views refined
 # candidates per start), over --proposals
 AT = "@"
+# an answer name ending in BF16 (before any @K, e.g. views3-bf16@10) runs with bfloat16 matmuls
+# (jax.default_matmul_precision("bfloat16"), traced and called inside it): the latency a
+# lower-precision V would have, not its answers (thirty-second session)
+BF16 = "-bf16"
+
+
+def _base_name(answer: str) -> str:
+    """'views3-bf16@10' -> 'views3' (a known pipeline name)."""
+    return answer.partition(AT)[0].removesuffix(BF16).removesuffix(SEQ)
+
+
+def _precision(answer: str):
+    """The matmul-precision context an answer is traced and timed in."""
+    if BF16 in answer.partition(AT)[0]:
+        return jax.default_matmul_precision("bfloat16")
+    return contextlib.nullcontext()
 
 
 def main(argv=None) -> dict:
@@ -68,6 +85,7 @@ def main(argv=None) -> dict:
         "CEM's V alone, paper = Stage-2 starts, highest V, views1 / views2 / views3 = chosen "
         "on one / two / three subsamples (PipelineConfig.views); a name + '-seq' (e.g. "
         "views2-seq): each view's and start's CEM in turn (PipelineConfig.fuse = False); "
+        "a name + '-bf16' (e.g. views3-bf16@10): bfloat16 matmul precision; "
         "a name + '@K' (e.g. views2@10): K proposals; the first is the reference of the ratios",
     )  # fmt: skip
     parser.add_argument(
@@ -77,7 +95,7 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     answers = args.answers.split(",")
     known = ("chosen", "single", "paper", *VIEWS)
-    bad = [a for a in answers if a.partition(AT)[0].removesuffix(SEQ) not in known]
+    bad = [a for a in answers if _base_name(a) not in known]
     bad += [a for a in answers if AT in a and not a.partition(AT)[2].isdigit()]
     if bad:
         parser.error(f"unknown --answers {bad}; known: {', '.join(known)}")
@@ -91,6 +109,7 @@ def main(argv=None) -> dict:
     configs, hangs = {}, {}
     for a in answers:
         head, _, k_of = a.partition(AT)
+        head = head.removesuffix(BF16)
         name = head.removesuffix(SEQ)
         base = stage3.PipelineConfig() if name == "paper" else stage3.ANSWER_PIPELINE
         ranks = len(rank_dirs) if name == "chosen" or name in VIEWS else 0
@@ -120,14 +139,16 @@ def main(argv=None) -> dict:
         first, times = {}, {a: [] for a in answers}
         for a in answers:
             t = time.perf_counter()
-            jax.block_until_ready(hangs[a](params, jax.random.key(0), clouds))
+            with _precision(a):
+                jax.block_until_ready(hangs[a](params, jax.random.key(0), clouds))
             first[a] = time.perf_counter() - t
         for r in range(args.repeat):
             for a in answers:  # interleaved: both see the same machine load
                 t = time.perf_counter()
-                for c in range(calls):
-                    out = hangs[a](params, jax.random.key(r * 1000 + c), clouds)
-                jax.block_until_ready(out)
+                with _precision(a):
+                    for c in range(calls):
+                        out = hangs[a](params, jax.random.key(r * 1000 + c), clouds)
+                    jax.block_until_ready(out)
                 times[a].append(time.perf_counter() - t)
         for a in answers:
             ms = np.asarray(times[a]) * 1000
@@ -154,6 +175,7 @@ def main(argv=None) -> dict:
                 "proposals": configs[a].num_proposals,
                 "views": [list(v) for v in configs[a].views],
                 "fuse": configs[a].fuse,
+                "matmul_precision": "bfloat16" if BF16 in a else "default",
             }
             for a in answers
         },  # fmt: skip

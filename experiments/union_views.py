@@ -2,6 +2,8 @@
 
     python -m experiments.union_views --runs RUN_VIEW0.pairs.jsonl.gz RUN_VIEW4of8.pairs.jsonl.gz \\
         --out results/views_s26_heldout.json
+    python -m experiments.union_views --keys UNION_KEY0.json UNION_KEY1.json UNION_KEY2.json \
+        --out results/views_s32_heldout_views3_keys3.json
 
 Twenty-sixth session (issue 12). ``eval_stage3 --view J/T`` runs the whole pipeline (CEM's V and
 the ranking networks) on another evenly spaced subsample of the clouds. Runs of the same pairs
@@ -50,11 +52,46 @@ def union(runs: list[list[dict]]) -> dict:
     return out
 
 
+def keys_summary(unions: list[dict]) -> dict:
+    """Several unions of one pipeline under different CEM keys (this module's JSONs) -> the
+    mean and spread over keys of the answer's success (all stages and Stages 1+3), of "some
+    candidate hangs", and the per-category success averaged over keys."""
+    out = {}
+    for field in ("union", "union_stage1_3"):
+        means = [u[field]["mean"] for u in unions]
+        cats = unions[0][field]["per_category"]
+        out[field] = {
+            "per_key": means, "mean": float(np.mean(means)), "std": float(np.std(means)),
+            "per_category": {c: float(np.mean([u[field]["per_category"][c] for u in unions]))
+                             for c in cats},
+        }  # fmt: skip
+    anyh = [u["union_any_hangs"] for u in unions]
+    out["union_any_hangs"] = {"per_key": anyh, "mean": float(np.mean(anyh))}
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--runs", nargs="+", required=True, help="eval_stage3 records, same pairs")
+    group = ap.add_mutually_exclusive_group(required=True)
+    group.add_argument("--runs", nargs="+", help="eval_stage3 records, same pairs")
+    group.add_argument(
+        "--keys", nargs="+", metavar="UNION_JSON",
+        help="instead: this module's JSONs of one pipeline under different CEM keys -> their "
+        "mean and spread (keys_summary)",
+    )  # fmt: skip
     ap.add_argument("--out", default=None, help="JSON")
     args = ap.parse_args(argv)
+    if args.keys:
+        res = {"unions": args.keys,
+               **keys_summary([json.loads(Path(p).read_text()) for p in args.keys])}  # fmt: skip
+        print(f"over {len(args.keys)} keys: {res['union']['mean']:.2f} +- {res['union']['std']:.2f}"
+              f" (per key {', '.join(f'{m:.2f}' for m in res['union']['per_key'])}); Stages 1+3 "
+              f"{res['union_stage1_3']['mean']:.2f}; some candidate hangs "
+              f"{res['union_any_hangs']['mean']:.2f}")  # fmt: skip
+        if args.out:
+            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+        return res
     if len(args.runs) < 2:
         raise ValueError("--runs needs two runs or more")
     res = {"records": args.runs, **union([read_records(p) for p in args.runs])}

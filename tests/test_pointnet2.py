@@ -77,6 +77,15 @@ def test_fps_matches_numpy(clouds, num_samples):
         assert len(set(got[b].tolist())) == num_samples  # no repeats on distinct points
 
 
+@pytest.mark.parametrize("unroll", [3, 8, 64])
+def test_fps_unrolled_gives_the_same_indices(clouds, unroll):
+    # FPS_UNROLL (thirty-second session): steps per loop iteration change the loop, not the
+    # indices, also when the step count is no multiple of it
+    want = [fps_numpy(clouds[b], 17) for b in range(3)]
+    fps = jax.jit(farthest_point_sample, static_argnums=(1, 2))
+    np.testing.assert_array_equal(np.asarray(fps(clouds, 17, unroll)), np.stack(want))
+
+
 @pytest.mark.parametrize("method", ["cumsum", "top_k"])
 @pytest.mark.parametrize("radius,nsample", [(0.01, 8), (0.03, 16), (0.2, 32), (1e-4, 4)])
 def test_ball_query_matches_numpy(clouds, radius, nsample, method):

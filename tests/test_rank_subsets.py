@@ -342,3 +342,23 @@ def test_fused_pipeline_gives_the_sequential_pipelines_candidates(params):  # no
         np.testing.assert_allclose(np.asarray(fused.initial_scores[name]),
                                    np.asarray(seq.initial_scores[name]), atol=1e-4)  # fmt: skip
     np.testing.assert_allclose(np.asarray(fused.pose), np.asarray(seq.pose), atol=1e-5)
+
+
+def test_keys_summary_averages_unions_over_keys(tmp_path):
+    from experiments import union_views
+
+    def one(mean, s13, anyh):
+        cat = lambda m: {"mean": m, "per_category": {"bag": m - 1, "mug": m + 1}}  # noqa: E731
+        return {"union": cat(mean), "union_stage1_3": cat(s13), "union_any_hangs": anyh}
+
+    files = []
+    for i, (m, s13, a) in enumerate([(80.0, 70.0, 90.0), (82.0, 72.0, 94.0)]):
+        files.append(tmp_path / f"k{i}.json")
+        files[-1].write_text(json.dumps(one(m, s13, a)))
+    res = union_views.main(["--keys", *map(str, files), "--out", str(tmp_path / "s.json")])
+    assert res["union"]["per_key"] == [80.0, 82.0]
+    assert res["union"]["mean"] == pytest.approx(81.0) and res["union"]["std"] == pytest.approx(1.0)
+    assert res["union"]["per_category"] == {"bag": 80.0, "mug": 82.0}
+    assert res["union_stage1_3"]["mean"] == pytest.approx(71.0)
+    assert res["union_any_hangs"]["mean"] == pytest.approx(92.0)
+    assert json.loads((tmp_path / "s.json").read_text())["unions"] == list(map(str, files))
