@@ -16,14 +16,16 @@ import contextlib
 import dataclasses
 import json
 import platform
+import re
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from experiments import _cli
-from omnihang_jax import refine, stage3
+from omnihang_jax import pointnet2, refine, stage3
 from omnihang_jax.predict import load_predictor, load_rank_values
 
 # the subsamples of the "viewsN" pipelines (PipelineConfig.views, twenty-sixth session): the
@@ -35,28 +37,47 @@ VIEWS = {
     "views3": ((0, 1), (1, 2), (1, 4)),
     "views4": ((0, 1), (1, 2), (1, 4), (3, 4)),
 }
-# an answer name ending in SEQ runs each view's and start's CEM one after the other
-# (PipelineConfig.fuse = False, the pipeline before the twenty-seventh session)
-SEQ = "-seq"
-# an answer name ending in @K (e.g. views2@10) has K proposals (a view each: K x views refined
-# candidates per start), over --proposals
-AT = "@"
-# an answer name ending in BF16 (before any @K, e.g. views3-bf16@10) runs with bfloat16 matmuls
-# (jax.default_matmul_precision("bfloat16"), traced and called inside it): the latency a
-# lower-precision V would have, not its answers (thirty-second session)
-BF16 = "-bf16"
+# An answer is NAME[-seq][-bf16][-fpsU][@K]:
+# -seq: each view's and start's CEM one after the other (PipelineConfig.fuse = False, the
+#   pipeline before the twenty-seventh session);
+# -bf16: traced and called inside jax.default_matmul_precision("bfloat16"): the latency a
+#   lower-precision V would have, not its answers (thirty-second session);
+# -fpsU: traced with U steps per loop iteration of farthest-point sampling
+#   (pointnet2.FPS_UNROLL; the same answers, another loop; thirty-second session);
+# @K: K proposals (a view each: K x views refined candidates per start), over --proposals.
+ANSWER = re.compile(r"^(?P<name>[a-z0-9]+)(?P<seq>-seq)?(?P<bf16>-bf16)?(?:-fps(?P<fps>[1-9][0-9]*))?"
+                    r"(?:@(?P<k>[1-9][0-9]*))?$")  # fmt: skip
 
 
-def _base_name(answer: str) -> str:
-    """'views3-bf16@10' -> 'views3' (a known pipeline name)."""
-    return answer.partition(AT)[0].removesuffix(BF16).removesuffix(SEQ)
+class Answer(NamedTuple):
+    name: str
+    seq: bool
+    bf16: bool
+    fps_unroll: int | None
+    proposals: int | None
 
 
-def _precision(answer: str):
-    """The matmul-precision context an answer is traced and timed in."""
-    if BF16 in answer.partition(AT)[0]:
-        return jax.default_matmul_precision("bfloat16")
-    return contextlib.nullcontext()
+def parse_answer(text: str) -> Answer | None:
+    """'views3-fps8@10' -> Answer('views3', False, False, 8, 10); None if malformed."""
+    m = ANSWER.match(text)
+    if m is None:
+        return None
+    fps, k = m["fps"], m["k"]
+    return Answer(m["name"], bool(m["seq"]), bool(m["bf16"]), fps and int(fps), k and int(k))
+
+
+@contextlib.contextmanager
+def _context(answer: Answer):
+    """What an answer is traced and timed in: its matmul precision and FPS unroll."""
+    before = pointnet2.FPS_UNROLL
+    bf16 = jax.default_matmul_precision("bfloat16") if answer.bf16 else contextlib.nullcontext()
+    with bf16:
+        try:
+            if answer.fps_unroll is not None:
+                pointnet2.FPS_UNROLL = answer.fps_unroll
+            yield
+        finally:
+            pointnet2.FPS_UNROLL = before
 
 
 def main(argv=None) -> dict:
@@ -85,7 +106,8 @@ def main(argv=None) -> dict:
         "CEM's V alone, paper = Stage-2 starts, highest V, views1 / views2 / views3 = chosen "
         "on one / two / three subsamples (PipelineConfig.views); a name + '-seq' (e.g. "
         "views2-seq): each view's and start's CEM in turn (PipelineConfig.fuse = False); "
-        "a name + '-bf16' (e.g. views3-bf16@10): bfloat16 matmul precision; "
+        "a name + '-bf16' (e.g. views3-bf16@10): bfloat16 matmul precision; a name + '-fpsU' "
+        "(e.g. views3-fps8@10): farthest-point sampling unrolled U steps a loop iteration; "
         "a name + '@K' (e.g. views2@10): K proposals; the first is the reference of the ratios",
     )  # fmt: skip
     parser.add_argument(
@@ -95,8 +117,8 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     answers = args.answers.split(",")
     known = ("chosen", "single", "paper", *VIEWS)
-    bad = [a for a in answers if _base_name(a) not in known]
-    bad += [a for a in answers if AT in a and not a.partition(AT)[2].isdigit()]
+    parsed = {a: parse_answer(a) for a in answers}
+    bad = [a for a, p in parsed.items() if p is None or p.name not in known]
     if bad:
         parser.error(f"unknown --answers {bad}; known: {', '.join(known)}")
     pred = load_predictor(args.weights)
@@ -108,14 +130,12 @@ def main(argv=None) -> dict:
               "rank_values": rank_params}  # fmt: skip
     configs, hangs = {}, {}
     for a in answers:
-        head, _, k_of = a.partition(AT)
-        head = head.removesuffix(BF16)
-        name = head.removesuffix(SEQ)
+        name, seq, _, _, k_of = parsed[a]
         base = stage3.PipelineConfig() if name == "paper" else stage3.ANSWER_PIPELINE
         ranks = len(rank_dirs) if name == "chosen" or name in VIEWS else 0
-        k = int(k_of) if k_of else args.proposals or base.num_proposals
+        k = k_of or args.proposals or base.num_proposals
         configs[a] = dataclasses.replace(
-            base, num_proposals=k, rank_values=ranks, fuse=not head.endswith(SEQ),
+            base, num_proposals=k, rank_values=ranks, fuse=not seq,
             views=VIEWS.get(name, base.views),
         )  # fmt: skip
         hangs[a] = jax.jit(
@@ -139,13 +159,13 @@ def main(argv=None) -> dict:
         first, times = {}, {a: [] for a in answers}
         for a in answers:
             t = time.perf_counter()
-            with _precision(a):
+            with _context(parsed[a]):
                 jax.block_until_ready(hangs[a](params, jax.random.key(0), clouds))
             first[a] = time.perf_counter() - t
         for r in range(args.repeat):
             for a in answers:  # interleaved: both see the same machine load
                 t = time.perf_counter()
-                with _precision(a):
+                with _context(parsed[a]):
                     for c in range(calls):
                         out = hangs[a](params, jax.random.key(r * 1000 + c), clouds)
                     jax.block_until_ready(out)
@@ -175,7 +195,8 @@ def main(argv=None) -> dict:
                 "proposals": configs[a].num_proposals,
                 "views": [list(v) for v in configs[a].views],
                 "fuse": configs[a].fuse,
-                "matmul_precision": "bfloat16" if BF16 in a else "default",
+                "matmul_precision": "bfloat16" if parsed[a].bf16 else "default",
+                "fps_unroll": parsed[a].fps_unroll or pointnet2.FPS_UNROLL,
             }
             for a in answers
         },  # fmt: skip

@@ -162,20 +162,23 @@ def gather_points(values: jax.Array, idx: jax.Array) -> jax.Array:
     return jax.vmap(lambda v, i: v[i])(values, idx)
 
 
-# FPS is S - 1 sequential steps: on a GPU at batch 1 each step costs a loop iteration's
-# overhead more than its arithmetic (the value network's first level: 1.75 ms for 127 steps over
-# 1,920 states on one H200, results/profile_views3.json). ``unroll`` steps per loop iteration
-# (lax.fori_loop's unroll: the same operations, the same indices) cuts that overhead.
+# FPS is S - 1 sequential steps: on a GPU at batch 1 a step costs about as much at 1,280 as at
+# 1,920 states (the value network's first level, 127 steps: 1.60 / 1.75 ms on one H200,
+# results/profile_stage3_s32_views{2,3}_h200.json), so a loop iteration's overhead, not its
+# arithmetic, sets it. ``unroll`` steps per loop iteration (lax.fori_loop's unroll: the same
+# operations, the same indices) may cut that overhead; it lengthens compilation (the answer
+# pipeline on the CPU: 13.6 s at 1, 22.8 s at 8). 1 until a GPU bench of the whole pipeline
+# says otherwise (bench_stage3's "-fpsU" answers, thirty-second session).
 FPS_UNROLL = 1
 
 
 def farthest_point_sample(
-    points: jax.Array, num_samples: int, unroll: int = FPS_UNROLL
+    points: jax.Array, num_samples: int, unroll: int | None = None
 ) -> jax.Array:
     """Farthest point sampling, deterministic start at index 0 (as the original CUDA kernel).
 
     points: [B, N, 3] float32, metres. num_samples: static S <= N. unroll: steps per loop
-    iteration (``FPS_UNROLL``; any value gives the same indices).
+    iteration (None: ``FPS_UNROLL`` when traced; any value gives the same indices).
     Returns idx: [B, S] int32; idx[:, 0] == 0 and each next index maximises the distance to the
     already chosen set (ties broken by the lowest index).
     """
@@ -193,6 +196,7 @@ def farthest_point_sample(
     idx = jnp.zeros((batch, num_samples), jnp.int32)
     min_d2 = jnp.full((batch, n), 1e10, points.dtype)
     last = jnp.zeros((batch,), jnp.int32)
+    unroll = FPS_UNROLL if unroll is None else unroll
     idx, _, _ = jax.lax.fori_loop(
         1, num_samples, body, (idx, min_d2, last), unroll=max(1, min(unroll, num_samples - 1))
     )
