@@ -22,14 +22,12 @@ everywhere.
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 
 import numpy as np
 
 from experiments import _cli
 from experiments.rerank_stage3 import category_means, pool_indices, proposals_of, read_records
-from omnihang_jax import selection
+from omnihang_jax import refine, selection
 
 LEXICOGRAPHIC = 1e4  # selection._INSIDE_WEIGHT: no clear candidate loses to an inside one
 
@@ -130,8 +128,7 @@ def main(argv=None) -> dict:
         print(f"held-out: default {res['held_out']['default']['mean']:.2f}, chosen "
               f"{res['held_out']['chosen']['mean']:.2f}")  # fmt: skip
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+        refine.write_json(args.out, res)
     return res
 
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from experiments import _cli
 from experiments.rerank_stage3 import category_means, proposals_of, read_records, rule_keys
+from omnihang_jax import refine
 
 
 def union(runs: list[list[dict]]) -> dict:
@@ -89,8 +90,7 @@ def main(argv=None) -> dict:
               f"{res['union_stage1_3']['mean']:.2f}; some candidate hangs "
               f"{res['union_any_hangs']['mean']:.2f}")  # fmt: skip
         if args.out:
-            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+            refine.write_json(args.out, res)
         return res
     if len(args.runs) < 2:
         raise ValueError("--runs needs two runs or more")
@@ -101,8 +101,7 @@ def main(argv=None) -> dict:
     print(f"union: {res['union']['mean']:.2f} (some candidate hangs: {res['union_any_hangs']:.2f}, "
           f"first run alone {res['first_any_hangs']:.2f})")  # fmt: skip
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+        refine.write_json(args.out, res)
     return res
 
 
