@@ -111,6 +111,14 @@ class HangInputError(ValueError):
     """Bad user input; the message names the file (or argument) and the problem."""
 
 
+# the subsamples (j, T) of the clouds CEM and the ranking run on, as stage3.ANSWER_PIPELINE.views
+# (stage3.subset_clouds): every view refines the same starts with the same seed, each view's
+# candidates ranked on its own subsample, the answer the best of all of them (HangConfig.views,
+# --views: e.g. ((0, 1), (1, 2), (3, 4)), held-out 82.90 % against 81.88 over three CEM keys at
+# ~1.3x the time, docs/stage3.md "Thirty-second session")
+VIEWS = ((0, 1), (1, 2))
+
+
 @dataclasses.dataclass(frozen=True)
 class HangConfig:
     """Settings of :func:`hang`; every field has a CLI flag of the same name."""
@@ -141,6 +149,8 @@ class HangConfig:
     # m: Stage 2 moves its pose this far along the observed support normal at its chosen
     # contacts (Stage2Config.clearance); None: the model's own
     stage2_clearance: float | None = None
+    # the subsamples (j, T) of the clouds Stage 3 runs on (VIEWS)
+    views: tuple[tuple[int, int], ...] = VIEWS
 
     def scale_of(self, kind: str) -> float | None:
         own = self.object_scale if kind == "object" else self.support_scale
@@ -702,10 +712,6 @@ VALUE_WEIGHTS = (
 # answer rule chosen on validation objects (omnihang_jax.selection.CHOSEN); K = 10 since the
 # twenty-seventh session, on each of VIEWS
 CEM_STARTS = 10
-# the subsamples (j, T) of the clouds CEM and the ranking run on, as stage3.ANSWER_PIPELINE.views
-# (stage3.subset_clouds): every view refines the same starts with the same seed, each view's
-# candidates ranked on its own subsample, the answer the best of all of them
-VIEWS = ((0, 1), (1, 2))
 
 
 def find_value_weights(model: str | os.PathLike = DEFAULT_MODEL) -> Path | None:
@@ -804,7 +810,8 @@ def stage3_scorer(config: HangConfig | None = None):
         s3 = load_stage3(folder)
         return s3, (
             f"Stage-3 value network {folder} (CEM from the best {CEM_STARTS} Stage-1 and "
-            f"{CEM_STARTS} Stage-2 proposals on each of {len(VIEWS)} views of the clouds, "
+            f"{CEM_STARTS} Stage-2 proposals on each of {len(config.views)} views of the clouds "
+            f"{', '.join(f'{j}/{t}' for j, t in config.views)}, "
             "the answer by the observed-cloud rule "
             "selection.CHOSEN"
             + (
@@ -818,7 +825,9 @@ def stage3_scorer(config: HangConfig | None = None):
         return None, f"Stage-3 weights {folder} not loadable ({type(exc).__name__}: {exc})"
 
 
-def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) -> WhereFn:
+def stages_where(
+    predictor, num_proposals: int, stage3: Stage3 | None = None, views=VIEWS
+) -> WhereFn:
     """The where-to-hang step on the committed networks: K Stage-1 proposals and their
     Stage-2 refinements (2K candidates). With ``stage3``: the CEM_STARTS best-V candidates of
     each stage refined by CEM on the value network (stage "stage1_3" from Stage 1, "stage3"
@@ -826,8 +835,13 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
     pipeline picks its answer: the refined candidates first, by
     ``selection.select_key`` of ``selection.CHOSEN`` (log V, minus 1e4 per object point more
     than 0.5 mm inside the observed support), then the unrefined ones by the same key; without:
-    ranked by the observed-cloud clearance."""
+    ranked by the observed-cloud clearance. ``views``: the subsamples of the clouds CEM and
+    the ranking run on (``HangConfig.views``)."""
     import jax
+
+    views = tuple(tuple(v) for v in views)
+    if not views:
+        raise ValueError("stages_where: no views")
 
     def where(obj: Body, sup: Body, seed: int) -> Candidates:
         out = predictor(
@@ -850,12 +864,12 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
             # every view refines the same starts (same seed) on its own subsample of the clouds
             unrefined = poses
             refined, refined_v = zip(*(stage3.refine(obj, sup, poses[starts], seed, view)
-                                       for view in VIEWS))  # fmt: skip
+                                       for view in views))  # fmt: skip
             refined = np.concatenate(refined)
             refined[:, 3:] /= np.linalg.norm(refined[:, 3:], axis=1, keepdims=True)
             poses = np.concatenate([poses, refined])
-            stage = np.concatenate([stage, (["stage1_3"] * n + ["stage3"] * n) * len(VIEWS)])
-            proposal = np.concatenate([proposal, np.tile(proposal[starts], len(VIEWS))])
+            stage = np.concatenate([stage, (["stage1_3"] * n + ["stage3"] * n) * len(views)])
+            proposal = np.concatenate([proposal, np.tile(proposal[starts], len(views))])
             inside = selection.inside_counts(
                 obj.points, sup.points, sup.normals, poses, rule.depth, rule.radius
             )
@@ -863,9 +877,9 @@ def stages_where(predictor, num_proposals: int, stage3: Stage3 | None = None) ->
             # view's candidates on its own subsample, the unrefined ones on the first view's
             if stage3.rank_folders:
                 log_v = np.concatenate(
-                    [stage3.rank(obj, sup, unrefined, VIEWS[0])]
+                    [stage3.rank(obj, sup, unrefined, views[0])]
                     + [stage3.rank(obj, sup, refined[i * 2 * n:(i + 1) * 2 * n], view)
-                       for i, view in enumerate(VIEWS)]
+                       for i, view in enumerate(views)]
                 )  # fmt: skip
             else:
                 log_v = np.concatenate([log_v, *refined_v])
@@ -1383,13 +1397,13 @@ def hang(
     t = time.perf_counter()
     if where is None:
         scorer, steps["stage3"] = stage3_scorer(config)
-        where = stages_where(predictor, config.num_proposals, scorer)
+        where = stages_where(predictor, config.num_proposals, scorer, config.views)
         steps["where"] = (
             f"Stages 1-2 ({config.model}), {config.num_proposals} proposals + their Stage-2 "
             f"refinements"
             + (
                 f", the best {CEM_STARTS} of each refined by CEM on the Stage-3 value on each "
-                f"of {len(VIEWS)} views of the clouds, the refined ones ranked by the "
+                f"of {len(config.views)} views of the clouds, the refined ones ranked by the "
                 "observed-cloud rule selection.CHOSEN"
                 if scorer
                 else ", ranked by observed-cloud clearance"

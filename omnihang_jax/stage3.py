@@ -67,6 +67,7 @@ __all__ = [
     "contact_pivot",
     "make_cem",
     "PipelineConfig",
+    "parse_view_set",
     "ANSWER_PIPELINE",
     "RANK_VALUES",
     "HangOutput",
@@ -542,6 +543,27 @@ class PipelineConfig:
     # slower (two views, batch 1 on the 2-core VM: 82.0 s fused against 66.3 s; on one H100
     # 119.0 against 179.6 ms; docs/stage3.md "Twenty-seventh session")
     fuse: bool | None = None
+
+
+def parse_view_set(text: str) -> tuple[tuple[int, int], ...]:
+    """``"0/1,1/2,3/4"`` -> ``((0, 1), (1, 2), (3, 4))`` (``stage3.PipelineConfig.views``:
+    subset J of T of the clouds); refuses J outside [0, T), repeats and empty sets."""
+    views = []
+    for item in filter(None, (x.strip() for x in text.split(","))):
+        j, sep, t = item.partition("/")
+        if not sep or not j.isdigit() or not t.isdigit():
+            raise ValueError(f"{item!r} is not J/T")
+        j, t = int(j), int(t)
+        if not 0 <= j < t:
+            raise ValueError(f"{item!r}: need 0 <= J < T")
+        views.append((j, t))
+    if not views:
+        raise ValueError("no views given")
+    if len({j / t for j, t in views}) < len(views):
+        raise ValueError(
+            f"{text!r} names the same subsample twice (J/T is a shift of J/T of a stride)"
+        )
+    return tuple(views)
 
 
 # The pipeline's default answer (tenth session): both starts refined (2K candidates) and the

@@ -312,3 +312,51 @@ def test_evaluate_pipeline_stage1_rounds_change_only_the_stage1_starts(monkeypat
     np.testing.assert_array_equal(one[: 2 * k], two[: 2 * k])  # the proposals themselves
     np.testing.assert_array_equal(one[3 * k : 4 * k], two[3 * k : 4 * k])  # Stage-2 starts
     assert not np.allclose(one[2 * k : 3 * k], two[2 * k : 3 * k])  # Stage-1 starts moved
+
+
+def test_hang_views_reach_stage3_and_the_cli(monkeypatch):
+    """``HangConfig.views`` / ``--views`` (thirty-second session): every view refines the same
+    best-V starts on its own subsample (``view`` handed to refine and rank), so three views give
+    three times the refined candidates; a bad --views is refused before anything runs."""
+    from experiments import hang as hang_cli
+    from omnihang_jax import hang as H
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_hang(obj, sup, support_name, config, log=None, **kw):
+        seen["config"] = config
+        raise Stop
+
+    monkeypatch.setattr(H, "hang", fake_hang)
+    for argv, want in (([], H.VIEWS), (["--views", "0/1,1/2,3/4"], ((0, 1), (1, 2), (3, 4)))):
+        with pytest.raises(Stop):
+            hang_cli.main(argv + ["--quiet"])
+        assert seen["config"].views == want
+    with pytest.raises(SystemExit):
+        hang_cli.main(["--views", "0/1,0/2", "--quiet"])  # the same subsample twice
+
+    def predictor(obj, sup, key=None, num_proposals=None, support_normals=None):
+        pose = np.tile(np.float32([0, 0, 0.05, 1, 0, 0, 0]), (1, num_proposals, 1))
+        return predict.Prediction(pose, pose, None, None, None, None)
+
+    views_seen = []
+
+    def refine_fn(obj, sup, starts, seed, view=(0, 1)):
+        views_seen.append(tuple(view))
+        return np.asarray(starts, np.float64), np.zeros(len(starts))
+
+    def rank(obj, sup, poses, view=(0, 1)):
+        return np.zeros(len(poses))
+
+    s3 = H.Stage3("fake", lambda obj, sup, poses: np.zeros(len(poses)), refine_fn, rank, ("r",))
+    obj, sup = _cloud_bodies(64, 0.02)
+    k = 3
+    views = ((0, 1), (1, 2), (3, 4))
+    cands = H.stages_where(predictor, k, s3, views)(obj, sup, 0)
+    assert views_seen == list(views)
+    n = 2 * min(H.CEM_STARTS, k)
+    assert len(cands.poses) == 2 * k + n * len(views)
+    assert (np.isin(cands.stage, ["stage1_3", "stage3"])).sum() == n * len(views)
