@@ -39,6 +39,7 @@ PARTS = (
     "cem_iteration_ball_query_level0",
 )
 FPS_UNROLLS = (1, 2, 4, 8, 16, 32, 128)  # fps_unroll_U parts
+# ball_query_M parts: the first level's ball query by each method (the same indices)
 
 
 def _views(text: str) -> tuple[tuple[int, int], ...]:
@@ -58,11 +59,13 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--parts", default=None,
         help="comma-separated parts to time (default all); fps_unroll_U (e.g. fps_unroll_1): "
-        "the first level's farthest-point sampling with U steps per loop iteration",
+        "the first level's farthest-point sampling with U steps per loop iteration; "
+        "ball_query_M (cumsum, count, top_k): its ball query by method M",
     )  # fmt: skip
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
-    known = PARTS + tuple(f"fps_unroll_{u}" for u in FPS_UNROLLS)
+    known = (PARTS + tuple(f"fps_unroll_{u}" for u in FPS_UNROLLS)
+             + tuple(f"ball_query_{m}" for m in pointnet2.BALL_QUERY_METHODS))  # fmt: skip
     wanted = args.parts.split(",") if args.parts else list(known)
     if unknown := [p for p in wanted if p not in known]:
         parser.error(f"unknown --parts {unknown}; known: {', '.join(known)}")
@@ -157,6 +160,11 @@ def main(argv=None) -> dict:
         parts[f"fps_unroll_{u}"] = (
             lambda x, u=u: pointnet2.farthest_point_sample(x, level.npoint, unroll=u),
             (points,),
+        )
+    for m in pointnet2.BALL_QUERY_METHODS:
+        parts[f"ball_query_{m}"] = (
+            lambda x, c, m=m: pointnet2.ball_query(x, c, level.radius, level.nsample, method=m),
+            (points, centroids),
         )
     parts = {name: parts[name] for name in wanted}
     jitted = {name: jax.jit(f) for name, (f, _) in parts.items()}

@@ -203,7 +203,7 @@ def farthest_point_sample(
     return jax.lax.stop_gradient(idx)
 
 
-BALL_QUERY_METHODS = ("cumsum", "top_k")
+BALL_QUERY_METHODS = ("cumsum", "count", "top_k")
 
 
 def ball_query(
@@ -218,7 +218,10 @@ def ball_query(
 
     method: how the first ``nsample`` hits are found (same answer): "cumsum" = the running
     count of hits along N, then a binary search for counts 1..nsample (memory-bound, fast on
-    a GPU), or "top_k" = the ``nsample`` smallest hit indices (``jax.lax.top_k``; the first
+    a GPU), "count" = the same running count, the j-th hit's position read as the number of
+    indices whose count is below j (a compare-and-sum instead of the binary search; thirty-second
+    session, for the GPU profile of ``experiments.profile_stage3``), or "top_k" = the
+    ``nsample`` smallest hit indices (``jax.lax.top_k``; the first
     implementation, kept for the side-by-side benchmark in ``experiments.profile_where``).
     """
     n = points.shape[1]
@@ -231,6 +234,10 @@ def ball_query(
         # position of the j-th hit = first index whose running count reaches j (N if none)
         first = jax.vmap(jax.vmap(lambda c: jnp.searchsorted(c, targets, side="left")))(count)
         first = first.astype(jnp.int32)
+    elif method == "count":
+        count = jnp.cumsum(within, axis=-1, dtype=jnp.int32)
+        targets = jnp.arange(1, k + 1, dtype=jnp.int32)
+        first = jnp.sum(count[..., :, None] < targets, axis=-2, dtype=jnp.int32)
     elif method == "top_k":
         candidates = jnp.where(within, jnp.arange(n, dtype=jnp.int32), n)
         first = -jax.lax.top_k(-candidates, k)[0]  # k smallest candidates, ascending

@@ -86,7 +86,7 @@ def test_fps_unrolled_gives_the_same_indices(clouds, unroll):
     np.testing.assert_array_equal(np.asarray(fps(clouds, 17, unroll)), np.stack(want))
 
 
-@pytest.mark.parametrize("method", ["cumsum", "top_k"])
+@pytest.mark.parametrize("method", ["cumsum", "count", "top_k"])
 @pytest.mark.parametrize("radius,nsample", [(0.01, 8), (0.03, 16), (0.2, 32), (1e-4, 4)])
 def test_ball_query_matches_numpy(clouds, radius, nsample, method):
     # Centroids: FPS points (always have a hit) plus off-cloud points (may have none -> nearest).
@@ -102,7 +102,7 @@ def test_ball_query_matches_numpy(clouds, radius, nsample, method):
         )
 
 
-@pytest.mark.parametrize("method", ["cumsum", "top_k"])
+@pytest.mark.parametrize("method", ["cumsum", "count", "top_k"])
 def test_ball_query_nsample_larger_than_cloud(method):
     pts = np.random.default_rng(2).uniform(size=(1, 5, 3)).astype(np.float32)
     got = np.asarray(ball_query(pts, pts[:, :2], 10.0, 8, method=method))

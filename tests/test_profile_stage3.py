@@ -13,9 +13,12 @@ def test_profile_times_the_parts_asked_for(tmp_path):
     out = tmp_path / "p.json"
     res = profile_stage3.main([
         "--proposals", "1", "--views", "0/1", "--points", "1024", "--repeat", "2",
-        "--parts", "cem_iteration_state,fps_unroll_1,fps_unroll_4", "--out", str(out),
+        "--parts", "cem_iteration_state,fps_unroll_1,fps_unroll_4,ball_query_count",
+        "--out", str(out),
     ])  # fmt: skip
-    assert list(res["parts"]) == ["cem_iteration_state", "fps_unroll_1", "fps_unroll_4"]
+    assert list(res["parts"]) == [
+        "cem_iteration_state", "fps_unroll_1", "fps_unroll_4", "ball_query_count",
+    ]  # fmt: skip
     for row in res["parts"].values():
         assert row["median_ms"] > 0 and row["p10_ms"] <= row["p90_ms"]
     # one view x 2 starts (Stage 1 and 2) x K = 1 x the CEM's population
