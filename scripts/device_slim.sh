@@ -114,6 +114,11 @@ if [ -n "${MORE:-}" ]; then
         weights/collision_s29_mined30)
     # (thirty-first session: the third view's held-out records, 8.5 MB, and the ranker study)
     LIST+=(results/hanging_success_stage3_s31_k10_view3of4.pairs.jsonl.gz results/ranker_s31)
+    # (thirty-second session: the third view's held-out records under keys 1 and 2, 17 MB, and
+    # the answer-rule studies; read by no device call)
+    LIST+=(results/hanging_success_stage3_s32_k10_view3of4_seed1.pairs.jsonl.gz
+        results/hanging_success_stage3_s32_k10_view3of4_seed2.pairs.jsonl.gz
+        results/union_rules_s32_views2.json results/union_rules_s32_views3.json)
 fi
 # PATHS=1 (twenty-fourth session; device_paths.sh): as NCE=1, and the best hybrid's selection
 # file stays too
