@@ -49,6 +49,27 @@ def union(runs: list[list[dict]]) -> dict:
     stable1 = np.concatenate([p[1][:, :k] for p, k in zip(parts, ks, strict=True)], axis=1)
     out["union_stage1_3"] = category_means(rows0, stable1[np.arange(len(rows0)), keys1.argmax(1)])
     out["union_any_hangs"] = category_means(rows0, stable.any(1))["mean"]
+    # why the union's answer fails (thirty-second session): its simulated status, split by
+    # whether another candidate of the union hangs (a ranking loss) or none does (a search loss)
+    # (records without statuses: "stable" / "failed" from the simulated outcome)
+    statuses = np.concatenate([
+        np.asarray([r["all_stages"]["statuses"] if "statuses" in r.get("all_stages", {})
+                    else np.where(part, "stable", "failed") for r, part in zip(rows, p[1], strict=True)])
+        for rows, p in zip(runs, parts, strict=True)
+    ], axis=1)  # fmt: skip
+    pick = keys.argmax(1)
+    answer = statuses[np.arange(len(rows0)), pick]
+    fails = ~stable[np.arange(len(rows0)), pick]
+    breakdown = {"another_hangs": {}, "none_hangs": {}}
+    for i in np.flatnonzero(fails):
+        side = "another_hangs" if stable[i].any() else "none_hangs"
+        cat = breakdown[side].setdefault(str(answer[i]), {})
+        cat[rows0[i]["category"]] = cat.get(rows0[i]["category"], 0) + 1
+    out["failures"] = {
+        side: {status: {"pairs": sum(c.values()), "per_category": dict(sorted(c.items()))}
+               for status, c in sorted(d.items())}
+        for side, d in breakdown.items()
+    }  # fmt: skip
     out["first_any_hangs"] = category_means(rows0, parts[0][1].any(1))["mean"]
     return out
 
@@ -100,6 +121,9 @@ def main(argv=None) -> dict:
     print(f"union, Stages 1+3: {res['union_stage1_3']['mean']:.2f}")
     print(f"union: {res['union']['mean']:.2f} (some candidate hangs: {res['union_any_hangs']:.2f}, "
           f"first run alone {res['first_any_hangs']:.2f})")  # fmt: skip
+    for side, d in res["failures"].items():
+        print(f"failing answers, {side.replace('_', ' ')}: "
+              + (", ".join(f"{s} {v['pairs']}" for s, v in d.items()) or "none"))  # fmt: skip
     if args.out:
         refine.write_json(args.out, res)
     return res

@@ -271,6 +271,11 @@ def test_union_of_runs_picks_each_pairs_best_candidate_by_its_own_ranking(tmp_pa
     # Stages 1+3: among the Stage-1 starts' candidates only, run 0's first wins on every pair
     want1 = [bool(stable[i][0]) for i in range(3)]
     assert res["union_stage1_3"]["pair_mean"] == pytest.approx(100 * np.mean(want1))
+    # every failing answer is in the breakdown once, on the side of whether another one hangs
+    fails = res["failures"]
+    n_fail = sum(v["pairs"] for d in fails.values() for v in d.values())
+    assert n_fail == 3 - sum(want)
+    assert sum(v["pairs"] for v in fails["none_hangs"].values()) == int((~stable.any(1)).sum())
     with pytest.raises(ValueError, match="different pairs"):
         union_views.union([runs[0], runs[1][:2]])
 
