@@ -9,6 +9,7 @@ import pytest
 from experiments import profile_stage3
 
 
+@pytest.mark.slow  # 25-45 s on 2 cores (thirty-second session: the default suite neared 20 min)
 def test_profile_times_the_parts_asked_for(tmp_path):
     out = tmp_path / "p.json"
     res = profile_stage3.main([

@@ -196,6 +196,7 @@ def test_candidate_counts_on_completed_clouds_have_one_row_per_setting():
     assert out["object"][:, 1].sum() == 0
 
 
+@pytest.mark.slow  # 25-45 s on 2 cores (thirty-second session: the default suite neared 20 min)
 def test_two_view_pipeline_picks_among_both_views_candidates(params):  # noqa: F811
     """PipelineConfig.views = ((0, 1), (1, 2)): CEM and the ranking run on each subsample with
     the same keys; each view's candidates equal a one-view pipeline's on that subsample, and the

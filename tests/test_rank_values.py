@@ -28,6 +28,7 @@ CLEAR = selection.SelectConfig("value_clear", depth=0.001, radius=0.003, max_poi
 V2 = stage3.make_value(stage3.VALUE_TINY).init(jax.random.key(7))  # a second, different V
 
 
+@pytest.mark.slow  # 25-45 s on 2 cores (thirty-second session: the default suite neared 20 min)
 def test_pipeline_ranks_by_the_mean_log_v(params):  # noqa: F811
     """Same key: CEM is unchanged by a ranking V; the final scores are the mean of the CEM's
     log V and the second V's on the refined poses; the picks follow the rule on them; a copy of

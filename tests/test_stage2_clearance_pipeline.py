@@ -186,6 +186,7 @@ def _fake_pair(path):
     return sample, meta
 
 
+@pytest.mark.slow  # 25-45 s on 2 cores (thirty-second session: the default suite neared 20 min)
 def test_eval_stage3_stage2_clearance_reaches_the_predictor(monkeypatch, tmp_path):
     """--stage2-clearance M: load_predictor gets {"clearance": M}, the predictor the pairs'
     support normals; Stage-1 poses stay, Stage-2 poses move by M; the summary records M."""

@@ -190,6 +190,7 @@ def test_load_table_refuses_non_finite_poses(tmp_path):
         train_ranker.load_table(rec)
 
 
+@pytest.mark.slow  # 25-45 s on 2 cores (thirty-second session: the default suite neared 20 min)
 def test_pipeline_ranks_by_the_ranker_alone(params):  # noqa: F811
     """rank_with_value=False: the final scores are the ranking network's log V alone; CEM is
     unchanged."""
@@ -218,6 +219,7 @@ def test_pipeline_ranks_by_the_ranker_alone(params):  # noqa: F811
     assert stage3.ANSWER_PIPELINE.rank_with_value is stage3.RANK_WITH_CEM_VALUE
 
 
+@pytest.mark.slow  # 25-45 s on 2 cores (thirty-second session: the default suite neared 20 min)
 def test_pipeline_ranks_with_a_near_point_ranker(params):  # noqa: F811
     """Ranking networks of different configs (``make_hang_pipeline(..., rank_configs)``): a
     plain one and one with near points, each on its own subsample of the clouds; the final
