@@ -113,8 +113,8 @@ def main(argv=None) -> dict:
     centroids = pointnet2.gather_points(
         points, pointnet2.farthest_point_sample(points, level.npoint)
     )
-    candidates = jnp.concatenate([vstarts] * 1, axis=1)
-    cand_scores = jnp.zeros(candidates.shape[:2])
+    # the ranking scores every view's starts as its candidates ([V, 2K], view-major, as fused)
+    cand_scores = jnp.zeros(vstarts.shape[:2])
 
     parts = {
         "pipeline": (hang, (params, key, clouds)),
@@ -133,7 +133,7 @@ def main(argv=None) -> dict:
         "cem": (lambda p, c, s: refiner(p["value"], key, c, s), (params, small, vstarts)),
         "ranking": (
             lambda p, c, s, x: rank(s, p["rank_values"], c, x),
-            (params, clouds, cand_scores, candidates),
+            (params, clouds, cand_scores, vstarts),
         ),
         "cem_iteration_value": (
             lambda p, c, x: value.logits(p["value"], c, x),
