@@ -30,23 +30,26 @@ from omnihang_jax.predict import load_predictor, load_rank_values
 
 # the subsamples of the "viewsN" pipelines (PipelineConfig.views, twenty-sixth session): the
 # quarters of the evenly spaced part's stride in bit-reversed order, each set holding the last
-# ((1, 2) is subset 2 of 4)
+# ((1, 2) is subset 2 of 4); views3 is the one evaluated (0, 1/2, 3/4: thirty-first and
+# thirty-second sessions; 1/4 in its place before the thirty-third, the same shapes and time)
 VIEWS = {
     "views1": ((0, 1),),
     "views2": ((0, 1), (1, 2)),
-    "views3": ((0, 1), (1, 2), (1, 4)),
+    "views3": ((0, 1), (1, 2), (3, 4)),
     "views4": ((0, 1), (1, 2), (1, 4), (3, 4)),
 }
-# An answer is NAME[-seq][-bf16][-fpsU][@K]:
+# An answer is NAME[-seq][-bf16][-fpsU][-bqM][@K]:
 # -seq: each view's and start's CEM one after the other (PipelineConfig.fuse = False, the
 #   pipeline before the twenty-seventh session);
 # -bf16: traced and called inside jax.default_matmul_precision("bfloat16"): the latency a
 #   lower-precision V would have, not its answers (thirty-second session);
 # -fpsU: traced with U steps per loop iteration of farthest-point sampling
 #   (pointnet2.FPS_UNROLL; the same answers, another loop; thirty-second session);
+# -bqM: traced with ball-query method M (cumsum, count, top_k: pointnet2.BALL_QUERY_METHOD; the
+#   same answers; thirty-third session);
 # @K: K proposals (a view each: K x views refined candidates per start), over --proposals.
 ANSWER = re.compile(r"^(?P<name>[a-z0-9]+)(?P<seq>-seq)?(?P<bf16>-bf16)?(?:-fps(?P<fps>[1-9][0-9]*))?"
-                    r"(?:@(?P<k>[1-9][0-9]*))?$")  # fmt: skip
+                    r"(?:-bq(?P<bq>cumsum|count|top_k))?(?:@(?P<k>[1-9][0-9]*))?$")  # fmt: skip
 
 
 class Answer(NamedTuple):
@@ -55,29 +58,35 @@ class Answer(NamedTuple):
     bf16: bool
     fps_unroll: int | None
     proposals: int | None
+    ball_query: str | None = None
 
 
 def parse_answer(text: str) -> Answer | None:
-    """'views3-fps8@10' -> Answer('views3', False, False, 8, 10); None if malformed."""
+    """'views3-fps8-bqcount@10' -> Answer('views3', False, False, 8, 10, 'count'); None if
+    malformed."""
     m = ANSWER.match(text)
     if m is None:
         return None
     fps, k = m["fps"], m["k"]
-    return Answer(m["name"], bool(m["seq"]), bool(m["bf16"]), fps and int(fps), k and int(k))
+    return Answer(
+        m["name"], bool(m["seq"]), bool(m["bf16"]), fps and int(fps), k and int(k), m["bq"]
+    )
 
 
 @contextlib.contextmanager
 def _context(answer: Answer):
-    """What an answer is traced and timed in: its matmul precision and FPS unroll."""
-    before = pointnet2.FPS_UNROLL
+    """What an answer is traced and timed in: its matmul precision, FPS unroll and ball query."""
+    before = pointnet2.FPS_UNROLL, pointnet2.BALL_QUERY_METHOD
     bf16 = jax.default_matmul_precision("bfloat16") if answer.bf16 else contextlib.nullcontext()
     with bf16:
         try:
             if answer.fps_unroll is not None:
                 pointnet2.FPS_UNROLL = answer.fps_unroll
+            if answer.ball_query is not None:
+                pointnet2.BALL_QUERY_METHOD = answer.ball_query
             yield
         finally:
-            pointnet2.FPS_UNROLL = before
+            pointnet2.FPS_UNROLL, pointnet2.BALL_QUERY_METHOD = before
 
 
 def main(argv=None) -> dict:
@@ -130,7 +139,7 @@ def main(argv=None) -> dict:
               "rank_values": rank_params}  # fmt: skip
     configs, hangs = {}, {}
     for a in answers:
-        name, seq, _, _, k_of = parsed[a]
+        name, seq, k_of = parsed[a].name, parsed[a].seq, parsed[a].proposals
         base = stage3.PipelineConfig() if name == "paper" else stage3.ANSWER_PIPELINE
         ranks = len(rank_dirs) if name == "chosen" or name in VIEWS else 0
         k = k_of or args.proposals or base.num_proposals
@@ -196,7 +205,8 @@ def main(argv=None) -> dict:
                 "views": [list(v) for v in configs[a].views],
                 "fuse": configs[a].fuse,
                 "matmul_precision": "bfloat16" if parsed[a].bf16 else "default",
-                "fps_unroll": parsed[a].fps_unroll or pointnet2.FPS_UNROLL,
+                "fps_unroll": parsed[a].fps_unroll or pointnet2.fps_unroll(),
+                "ball_query": parsed[a].ball_query or pointnet2.BALL_QUERY_METHOD,
             }
             for a in answers
         },  # fmt: skip

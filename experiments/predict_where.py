@@ -81,18 +81,18 @@ def main(argv=None) -> dict:
         "the whole pipeline as one jitted call; adds stage3_poses, stage3_scores, answer",
     )
     parser.add_argument(
-        "--views", type=int, default=len(stage3.ANSWER_PIPELINE.views), metavar="N",
+        "--views", type=int, default=None, metavar="N",
         help="with --value: run CEM and the ranking on N evenly spaced subsamples of the clouds "
-        "and answer with the best of all their candidates (stage3.PipelineConfig.views; default "
-        f"{len(stage3.ANSWER_PIPELINE.views)}, the answer pipeline's: held-out 82.1 %% against "
-        "81.4 for one view, twenty-seventh session)",
+        "(shifts 0, 1/N, ...) and answer with the best of all their candidates "
+        "(stage3.PipelineConfig.views; default: the answer pipeline's own "
+        f"{','.join(f'{j}/{t}' for j, t in stage3.ANSWER_PIPELINE.views)}: held-out 82.90 %% "
+        "against 81.88 for 0/1,1/2 over three CEM keys, thirty-second session)",
     )  # fmt: skip
     parser.add_argument(
         "--view-set", default=None, metavar="J/T,...",
         help="with --value: the subsamples themselves, e.g. 0/1,1/2,3/4 (subset J of T; "
-        "overrides --views). Thirty-second session: 0/1,1/2,3/4 held-out 82.90 %% against 81.88 "
-        "for the default two views over three CEM keys, at 103.6 against 79.7 ms a pair on one "
-        "H200 (docs/stage3.md)",
+        "overrides --views). The default since the thirty-third session is 0/1,1/2,3/4: 97.1 ms "
+        "a pair against 80.5 for 0/1,1/2 on one H200 (docs/stage3.md)",
     )  # fmt: skip
     parser.add_argument(
         "--out",
@@ -100,9 +100,11 @@ def main(argv=None) -> dict:
         help="output JSON (default out/predict_where/predictions.json)",
     )
     args = parser.parse_args(argv)
-    if args.views < 1:
+    if args.views is not None and args.views < 1:
         parser.error("--views must be >= 1")
-    views = tuple((j, args.views) for j in range(args.views))
+    views = stage3.ANSWER_PIPELINE.views
+    if args.views is not None:
+        views = tuple((j, args.views) for j in range(args.views))
     if args.view_set is not None:
         try:
             views = parse_view_set(args.view_set)
@@ -185,7 +187,7 @@ def main(argv=None) -> dict:
         "select": args.select,
         "stage2_clearance_m": args.stage2_clearance,
         "stage2_lift_m": args.stage2_lift,
-        "views": args.views if args.value else None,
+        "views": [f"{j}/{t}" for j, t in views] if args.value else None,
         "mean_stage1_position_error_m": float(
             np.mean([r["stage1_position_error_m"] for r in records])
         ),

@@ -166,10 +166,21 @@ def gather_points(values: jax.Array, idx: jax.Array) -> jax.Array:
 # 1,920 states (the value network's first level, 127 steps: 1.60 / 1.75 ms on one H200,
 # results/profile_stage3_s32_views{2,3}_h200.json), so a loop iteration's overhead, not its
 # arithmetic, sets it. ``unroll`` steps per loop iteration (lax.fori_loop's unroll: the same
-# operations, the same indices) may cut that overhead; it lengthens compilation (the answer
-# pipeline on the CPU: 13.6 s at 1, 22.8 s at 8). 1 until a GPU bench of the whole pipeline
-# says otherwise (bench_stage3's "-fpsU" answers, thirty-second session).
-FPS_UNROLL = 1
+# operations, the same indices) cut that overhead on a GPU: the first level 1.80 -> 1.53 ms at 8
+# (results/profile_stage3_s33_fps_bq_h200.json), the three-view answer pipeline 104.4 -> 97.1 ms
+# at batch 1 on one H200, side by side (results/bench_stage3_s33_fps_h200.json; 97.5 at 4). It
+# lengthens compilation (the answer pipeline on the CPU: 13.6 s at 1, 22.8 s at 8), so on a CPU,
+# where the loop's overhead is small beside its arithmetic, it stays 1.
+# FPS_UNROLL: None = FPS_UNROLL_GPU on a GPU backend, 1 elsewhere; an int forces it.
+FPS_UNROLL: int | None = None
+FPS_UNROLL_GPU = 8
+
+
+def fps_unroll() -> int:
+    """The FPS unroll used when none is given: FPS_UNROLL, else by the default backend."""
+    if FPS_UNROLL is not None:
+        return FPS_UNROLL
+    return FPS_UNROLL_GPU if jax.default_backend() in ("gpu", "cuda", "rocm") else 1
 
 
 def farthest_point_sample(
@@ -178,7 +189,7 @@ def farthest_point_sample(
     """Farthest point sampling, deterministic start at index 0 (as the original CUDA kernel).
 
     points: [B, N, 3] float32, metres. num_samples: static S <= N. unroll: steps per loop
-    iteration (None: ``FPS_UNROLL`` when traced; any value gives the same indices).
+    iteration (None: ``fps_unroll()`` when traced; any value gives the same indices).
     Returns idx: [B, S] int32; idx[:, 0] == 0 and each next index maximises the distance to the
     already chosen set (ties broken by the lowest index).
     """
@@ -196,7 +207,7 @@ def farthest_point_sample(
     idx = jnp.zeros((batch, num_samples), jnp.int32)
     min_d2 = jnp.full((batch, n), 1e10, points.dtype)
     last = jnp.zeros((batch,), jnp.int32)
-    unroll = FPS_UNROLL if unroll is None else unroll
+    unroll = fps_unroll() if unroll is None else unroll
     idx, _, _ = jax.lax.fori_loop(
         1, num_samples, body, (idx, min_d2, last), unroll=max(1, min(unroll, num_samples - 1))
     )
@@ -204,10 +215,18 @@ def farthest_point_sample(
 
 
 BALL_QUERY_METHODS = ("cumsum", "count", "top_k")
+# the method ``ball_query`` uses when none is given (read at trace time, like FPS_UNROLL; every
+# method gives the same indices): "cumsum" until a GPU bench of the whole pipeline says otherwise
+# (bench_stage3's "-bqM" answers, thirty-third session).
+BALL_QUERY_METHOD = "cumsum"
 
 
 def ball_query(
-    points: jax.Array, centroids: jax.Array, radius: float, nsample: int, method: str = "cumsum"
+    points: jax.Array,
+    centroids: jax.Array,
+    radius: float,
+    nsample: int,
+    method: str | None = None,
 ) -> jax.Array:
     """Ball query as in the original PointNet++ kernel.
 
@@ -216,7 +235,8 @@ def ball_query(
     order) with squared distance strictly below ``radius**2``; empty slots repeat the first index
     found. If no point lies within the radius, every slot holds the nearest point.
 
-    method: how the first ``nsample`` hits are found (same answer): "cumsum" = the running
+    method: how the first ``nsample`` hits are found (same answer; None: ``BALL_QUERY_METHOD``
+    when traced): "cumsum" = the running
     count of hits along N, then a binary search for counts 1..nsample (memory-bound, fast on
     a GPU), "count" = the same running count, the j-th hit's position read as the number of
     indices whose count is below j (a compare-and-sum instead of the binary search; thirty-second
@@ -224,6 +244,7 @@ def ball_query(
     ``nsample`` smallest hit indices (``jax.lax.top_k``; the first
     implementation, kept for the side-by-side benchmark in ``experiments.profile_where``).
     """
+    method = BALL_QUERY_METHOD if method is None else method
     n = points.shape[1]
     d2 = squared_distance(centroids[:, :, None, :], points[:, None, :, :])  # [B, S, N]
     within = d2 < radius**2

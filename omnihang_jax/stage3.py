@@ -581,13 +581,19 @@ def parse_view_set(text: str) -> tuple[tuple[int, int], ...]:
 # validation objects 84.42 (one view, K = 16) -> 85.74 %, then held-out 81.38 -> 82.11 %; 85.5
 # ms per pair at batch 1 on one H100 against 75.0 ms for one view at K = 16, fused, side by
 # side (docs/stage3.md, "Twenty-seventh session").
+# Since the thirty-third session three views (a third subsample, 3/4): validation objects over CEM
+# keys 0-2 84.57 -> 85.28 % (higher under every key), held-out 81.88 -> 82.90 % (higher under every
+# key; docs/stage3.md "Thirty-second session"); with farthest-point sampling unrolled on a GPU
+# (pointnet2.FPS_UNROLL_GPU, the same indices) 97.1 ms per pair at batch 1 on one H200 against
+# 80.5 ms for two views, side by side (results/bench_stage3_s33_fps_h200.json; "Thirty-third
+# session").
 ANSWER_PIPELINE = PipelineConfig(
     num_proposals=10,
     starts=("stage2", "stage1"),
     select=selection.CHOSEN,
     pool_starts=True,
     rank_with_value=False,
-    views=((0, 1), (1, 2)),
+    views=((0, 1), (1, 2), (3, 4)),
 )
 # The V that CEM searches on in the default pipeline (fifteenth session): the fourteenth
 # session's fifth V (value_s15_hardneg) continued for 18 more hard-negative RL rounds on one warm

@@ -110,6 +110,26 @@ def test_ball_query_nsample_larger_than_cloud(method):
     np.testing.assert_array_equal(got[0, 0], [0, 1, 2, 3, 4, 0, 0, 0])
 
 
+def test_fps_unroll_is_eight_on_a_gpu_one_elsewhere_unless_forced(monkeypatch):
+    monkeypatch.setattr(pointnet2, "FPS_UNROLL", None)
+    assert pointnet2.fps_unroll() == (1 if jax.default_backend() == "cpu" else 8)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert pointnet2.fps_unroll() == pointnet2.FPS_UNROLL_GPU == 8
+    monkeypatch.setattr(pointnet2, "FPS_UNROLL", 3)
+    assert pointnet2.fps_unroll() == 3
+
+
+def test_ball_query_default_method_is_read_when_traced(clouds, monkeypatch):
+    centroids = clouds[:, ::9]
+    want = np.asarray(ball_query(clouds, centroids, 0.03, 8, method="cumsum"))
+    for method in ("count", "top_k"):
+        monkeypatch.setattr(pointnet2, "BALL_QUERY_METHOD", method)
+        np.testing.assert_array_equal(np.asarray(ball_query(clouds, centroids, 0.03, 8)), want)
+    monkeypatch.setattr(pointnet2, "BALL_QUERY_METHOD", "sort")
+    with pytest.raises(ValueError, match="ball-query method 'sort'"):
+        ball_query(clouds, centroids, 0.03, 8)
+
+
 def test_grouping_matches_numpy(clouds):
     rng = np.random.default_rng(3)
     features = rng.normal(size=(3, 200, 5)).astype(np.float32)
