@@ -11,7 +11,7 @@ import pytest
 
 pytest.importorskip("ompl")
 
-from omnihang_jax import planner  # noqa: E402
+from omnihang_jax import collision, planner  # noqa: E402
 
 
 def test_recording_checker_keeps_verdicts_and_a_bounded_reservoir():
@@ -258,3 +258,6 @@ def test_with_fallback_refuses_a_stricter_threshold():
         eval_paths.with_fallback(est, 0.5, 10.0)
     with pytest.raises(ValueError, match="goal-ball"):
         eval_paths.with_fallback(est._replace(nce_far_threshold=None), 0.9, 10.0)
+    # the same threshold is a replan with the same checker (thirty-third session)
+    same = eval_paths.with_fallback(est._replace(nce_config=collision.NCEConfig()), 0.56, 10.0)
+    assert same.fallback_far_threshold == 0.56 and same.fallback_time == 10.0
