@@ -58,8 +58,10 @@ def main(argv=None) -> dict:
     result = {
         "runs": files,
         "pairs": len(pairs),
-        "each_run": [scores([r[p] if r[p].get("returned") else None for p in pairs], len(pairs))
-                     for r in runs],  # fmt: skip
+        "each_run": [
+            scores([r[p] if r[p].get("returned") else None for p in pairs], len(pairs))
+            for r in runs
+        ],  # fmt: skip
         "first_run_that_returned": scores([(c or [None])[0] for c in pooled.values()], len(pairs)),
         "oracle": scores(
             [([x for x in c if x["collision_free"]] or c or [None])[0] for c in pooled.values()],
