@@ -216,8 +216,9 @@ def farthest_point_sample(
 
 BALL_QUERY_METHODS = ("cumsum", "count", "top_k")
 # the method ``ball_query`` uses when none is given (read at trace time, like FPS_UNROLL; every
-# method gives the same indices): "cumsum" until a GPU bench of the whole pipeline says otherwise
-# (bench_stage3's "-bqM" answers, thirty-third session).
+# method gives the same indices). "cumsum" is the fastest on the GPU: V's first level on the
+# three-view CEM population 2.43 ms against 3.15 (count) and 10.04 (top_k) on one H200
+# (results/profile_stage3_s33_fps_bq_h200.json); bench_stage3's "-bqM" answers time the others.
 BALL_QUERY_METHOD = "cumsum"
 
 
