@@ -929,7 +929,7 @@ def summarise(rows: list[dict], methods=METHODS) -> dict:
             p90_planning_s=round(float(np.quantile(times, 0.9)), 3),
             planning_s=[r["planning_s"] for r in mine],
             # OMPL reports a time-out with a partial tree as "Approximate solution"
-            timeouts=sum(r["status"] in ("Timeout", "Approximate solution") for r in mine),
+            timeouts=sum(planner.timed_out(r["status"]) for r in mine),
             invalid_start_or_goal=sum(
                 r["status"] in ("Invalid start", "Invalid goal") for r in mine
             ),

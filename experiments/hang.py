@@ -108,8 +108,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-verify", action="store_true", help="do not simulate the candidates")
     p.add_argument("--no-plan", action="store_true", help="do not run the how-to-hang planner")
     p.add_argument(
-        "--plan-time", type=float, default=d.plan_time,
+        "--plan-time",
+        type=float,
+        default=d.plan_time,
         help=f"planner time limit, s (default {d.plan_time:g})",
+    )
+    p.add_argument(
+        "--replan-time", type=float, default=None, metavar="S",
+        help="after the hybrid checker's plan times out, plan once more for S s with a fresh "
+        "search (default: the hybrid's own setting, HYBRID['replan_s']; 0: never)",
     )  # fmt: skip
     p.add_argument(
         "--checker", choices=["auto", "nce", "mesh"], default=d.checker,
@@ -190,6 +197,7 @@ def main(argv=None) -> int:
         search_candidates=args.search_candidates,
         plan=not args.no_plan,
         plan_time=args.plan_time,
+        replan_time=args.replan_time,
         checker=args.checker,
         scale=args.scale,
         object_scale=args.object_scale,

@@ -589,6 +589,12 @@ class BatchedMotionValidator(ob.MotionValidator):
         return not self.counter.any_colliding(states)
 
 
+def timed_out(status: str) -> bool:
+    """Whether OMPL's status string (``PlanResult.status``) is a search that ran out of time
+    (no exact path), not an invalid start or goal."""
+    return status in ("Timeout", "Approximate solution")
+
+
 def plan(
     checker: Callable[[np.ndarray], np.ndarray],
     start: np.ndarray,

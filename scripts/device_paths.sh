@@ -17,7 +17,8 @@
 #
 # VARIANTS: "NAME=FLAGS ..." (FLAGS comma-separated, added to the best hybrid's settings below;
 # empty: the best hybrid itself). A warm next call resumes a variant cut short (the rows of
-# /tmp/paths/NAME/pairs.jsonl stay). Back in $OUT: paths.log, paths_NAME.json (the summary) and
+# /tmp/paths/NAME/pairs.jsonl stay); a fresh call resumes one from RESUME=DIR (carried), whose
+# DIR/paths_NAME.pairs.jsonl rows (an earlier call's $OUT) are planned no more. Back in $OUT: paths.log, paths_NAME.json (the summary) and
 # paths_NAME.pairs.jsonl (every row) per variant.
 set -uo pipefail
 CALL=paths
@@ -43,6 +44,10 @@ for spec in ${VARIANTS:-best=}; do
     flags=${flags//,/ }
     [ "$(left)" -gt 90 ] || { log "no time left for $name"; break; }
     mkdir -p "$C/$name"
+    if [ -n "${RESUME:-}" ] && [ -s "$RESUME/paths_$name.pairs.jsonl" ] && [ ! -s "$C/$name/pairs.jsonl" ]; then
+        cp "$RESUME/paths_$name.pairs.jsonl" "$C/$name/pairs.jsonl"
+        log "variant $name resumed from $RESUME: $(wc -l <"$C/$name/pairs.jsonl") rows"
+    fi
     log "variant $name: $flags"
     pids=()
     for i in $(seq 0 $((SHARDS - 1))); do

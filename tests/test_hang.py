@@ -378,3 +378,45 @@ def test_hang_refuses_an_unknown_checker(tmp_path):
     with pytest.raises(H.HangInputError, match="--checker"):
         H.hang(None, None, tmp_path / "out", H.HangConfig(checker="octree"), log=None)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("replan_s", [0.0, 2.0])
+def test_hang_replans_once_after_the_hybrids_time_out(monkeypatch, replan_s):
+    """With ``replan_s`` > 0 a time-out of the hybrid's plan is followed by one fresh search
+    of that length (its info keeps the first), and never after an invalid start or goal."""
+    from omnihang_jax import planner
+
+    if H.find_collision_weights() != Path(H.HYBRID["weights"]) / "nce":
+        pytest.skip("the hybrid's NCE is not committed")
+    limits = []
+
+    def fake_plan(checker, start, goal, bounds, weight, config):
+        limits.append(config.time_limit)
+        return planner.PlanResult(None, "Timeout", config.time_limit, 0, 0)
+
+    monkeypatch.setattr(planner, "plan", fake_plan)
+    rng = np.random.default_rng(0)
+    obj = rng.normal(0, 0.03, (2048, 3)).astype(np.float32)
+    sup = (rng.normal(0, 0.03, (2048, 3)) + [0, 0.2, 0]).astype(np.float32)
+
+    def body(kind, pts):
+        normals = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+        return H.Body(kind, kind, "cloud", None, pts, normals, None, None, {})
+
+    how, text = H.planner_how(5.0, replan_s=replan_s)
+    assert "hybrid" in text, text
+    pose = np.array([0, 0.2, 0.1, 1, 0, 0, 0], float)
+    plan = how(None, body("object", obj), body("support", sup), pose)
+    assert len(plan.poses) == 0
+    if replan_s:
+        assert limits == [5.0, replan_s]
+        assert plan.info["replanned_after"]["status"] == "Timeout"
+    else:
+        assert limits == [5.0] and "replanned_after" not in plan.info
+    limits.clear()
+    monkeypatch.setattr(
+        planner, "plan",
+        lambda *a: limits.append(a[-1].time_limit) or planner.PlanResult(None, "Invalid goal state", 0.0, 0, 0),
+    )  # fmt: skip
+    how(None, body("object", obj), body("support", sup), pose)
+    assert limits == [5.0]  # an invalid goal is not replanned
