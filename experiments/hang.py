@@ -116,7 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--replan-time", type=float, default=None, metavar="S",
         help="after the hybrid checker's plan times out, plan once more for S s with a fresh "
-        "search (default: the hybrid's own setting, HYBRID['replan_s']; 0: never)",
+        "search (default: as long as --plan-time when HYBRID['replan'] is on, else never; 0: "
+        "never)",
     )  # fmt: skip
     p.add_argument(
         "--checker", choices=["auto", "nce", "mesh"], default=d.checker,

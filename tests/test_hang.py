@@ -380,11 +380,16 @@ def test_hang_refuses_an_unknown_checker(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("replan_s", [0.0, 2.0])
-def test_hang_replans_once_after_the_hybrids_time_out(monkeypatch, replan_s):
+@pytest.mark.parametrize(
+    "replan_s, expected", [(0.0, [5.0]), (2.0, [5.0, 2.0]), (None, [5.0, 5.0])]
+)
+def test_hang_replans_once_after_the_hybrids_time_out(monkeypatch, replan_s, expected):
     """With ``replan_s`` > 0 a time-out of the hybrid's plan is followed by one fresh search
-    of that length (its info keeps the first), and never after an invalid start or goal."""
+    of that length (its info keeps the first), and never after an invalid start or goal;
+    ``None`` with ``HYBRID["replan"]`` on replans as long as the first plan."""
     from omnihang_jax import planner
+
+    monkeypatch.setitem(H.HYBRID, "replan", True)
 
     if H.find_collision_weights() != Path(H.HYBRID["weights"]) / "nce":
         pytest.skip("the hybrid's NCE is not committed")
@@ -408,11 +413,11 @@ def test_hang_replans_once_after_the_hybrids_time_out(monkeypatch, replan_s):
     pose = np.array([0, 0.2, 0.1, 1, 0, 0, 0], float)
     plan = how(None, body("object", obj), body("support", sup), pose)
     assert len(plan.poses) == 0
-    if replan_s:
-        assert limits == [5.0, replan_s]
+    assert limits == expected
+    if len(expected) == 2:
         assert plan.info["replanned_after"]["status"] == "Timeout"
     else:
-        assert limits == [5.0] and "replanned_after" not in plan.info
+        assert "replanned_after" not in plan.info
     limits.clear()
     monkeypatch.setattr(
         planner, "plan",
