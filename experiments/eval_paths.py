@@ -253,6 +253,9 @@ class Estimators(NamedTuple):
     fallback_far_threshold: float | None = None
     fallback_time: float = 0.0
     nce_fallback: object = None
+    # thirty-fourth session, a probe: the straight retreat (--retreat) chosen by the full meshes
+    # (the oracle approach over the goal's last centimetres), the search by the estimators
+    oracle_retreat: bool = False
 
 
 def with_fallback(est: Estimators, far_threshold: float, seconds: float) -> Estimators:
@@ -761,14 +764,20 @@ def evaluate_pair(
             check = planner.RecordingChecker(
                 check, cap=20 * mine[1], seed=int(case.meta["pair_index"])
             )
-        res, retreat = planner.plan_with_retreat(check, start, goal, bounds, weight, config)
+        res, retreat = planner.plan_with_retreat(
+            check, start, goal, bounds, weight, config,
+            retreat_checker=mesh if est.oracle_retreat and name != "mesh" else None,
+        )  # fmt: skip
         start_colliding = bool(check(start[None])[0])
         goal_colliding = bool(check(goal[None])[0])
         fallback = None
         if res.path is None and name in fallbacks:  # the second plan, laxer far from the goal
             lax_check = fallbacks[name]
-            second = planner.plan(lax_check, start, goal, bounds, weight,
-                                  dataclasses.replace(config, time_limit=est.fallback_time))  # fmt: skip
+            second, _ = planner.plan_with_retreat(
+                lax_check, start, goal, bounds, weight,
+                dataclasses.replace(config, time_limit=est.fallback_time, retreat_after=0.0),
+                retreat_checker=mesh if est.oracle_retreat else None,
+            )  # fmt: skip
             fallback = dict(far_threshold=est.fallback_far_threshold, status=second.status,
                             planning_s=round(second.planning_s, 3),
                             returned=second.path is not None)  # fmt: skip
@@ -1149,6 +1158,11 @@ def main(argv=None) -> dict:
         "directions first; RRT-Connect to its end, then straight in); empty: off",
     )  # fmt: skip
     parser.add_argument(
+        "--oracle-retreat", action="store_true",
+        help="a probe, not a planner: with --retreat, the retreat's direction is chosen by the "
+        "full meshes (the oracle approach), the search to its end by the method's checker",
+    )  # fmt: skip
+    parser.add_argument(
         "--retreat-after", type=float, default=0.0, metavar="S",
         help="with --retreat: the plain plan first for S seconds, the retreat only when it "
         "finds no path (PlannerConfig.retreat_after; 0: the retreat first)",
@@ -1384,6 +1398,10 @@ def main(argv=None) -> dict:
             est = with_fallback(est, args.fallback_far_threshold, args.fallback_time)
         except ValueError as e:
             parser.error(str(e))
+    if args.oracle_retreat:
+        if not retreat:
+            parser.error("--oracle-retreat needs --retreat LENGTHS")
+        est = est._replace(oracle_retreat=True)
     if args.far_nce:
         far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
         if args.far_nce_threshold is not None:
@@ -1472,6 +1490,7 @@ def main(argv=None) -> dict:
             weights=args.far_nce, config=dataclasses.asdict(est.far_nce[0]), ball_m=est.far_nce_ball
         ),
         retreat_lengths_m=list(config.retreat_lengths),
+        oracle_retreat=est.oracle_retreat,
         clear_path=None if clearance is None else dataclasses.asdict(clearance),
         goal="first stable pose of each held-out pair"
         if args.goal == "stable"

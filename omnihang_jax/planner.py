@@ -711,6 +711,7 @@ def plan_with_retreat(
     bounds: tuple[np.ndarray, np.ndarray],
     rotation_weight: float,
     config: PlannerConfig = PlannerConfig(),
+    retreat_checker: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[PlanResult, Retreat | None]:
     """RRT-Connect to a pre-goal, then straight in: :func:`find_retreat` (lengths
     ``config.retreat_lengths``) and, when a retreat is free, :func:`plan` from ``start`` to its
@@ -718,7 +719,8 @@ def plan_with_retreat(
     free retreat (or with ``retreat_lengths`` empty) the plain plan to the goal. The search's
     time and states count in the result. ``config.retreat_after`` > 0: the plain plan first,
     for that many seconds; the retreat only when it returns no path, with the time left (the
-    first plan's time and states count too)."""
+    first plan's time and states count too). ``retreat_checker``: the retreat's checker when
+    not ``checker`` (a probe: ``collision.MeshChecker`` gives the oracle approach)."""
     lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
     spent_s, spent_states, spent_calls = 0.0, 0, 0
     if config.retreat_lengths and 0 < config.retreat_after < config.time_limit:
@@ -734,7 +736,8 @@ def plan_with_retreat(
         config = dataclasses.replace(config, time_limit=config.time_limit - first.planning_s)
     found = None
     if config.retreat_lengths:
-        found = find_retreat(checker, goal, config.retreat_lengths, config.resolution, (lo, hi))
+        found = find_retreat(retreat_checker or checker, goal, config.retreat_lengths,
+                             config.resolution, (lo, hi))  # fmt: skip
     if found is None:
         res = plan(checker, start, goal, bounds, rotation_weight, config)
         return PlanResult(res.path, res.status, res.planning_s + spent_s,

@@ -4,6 +4,7 @@ ring onto a hook, and the batched estimator checker agrees with per-pose calls."
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 from pathlib import Path
 
@@ -602,3 +603,28 @@ def test_eval_paths_summary_pairs_cleared_paths_with_the_plans_as_returned():
     assert (s["as_planned"]["returned"], s["as_planned"]["collision_free"]) == (4, 2)
     assert s["clearing"]["became_free"] == 2 and s["clearing"]["became_colliding"] == 1
     assert s["clearing"]["median_gap_after_m"] == 0.02
+
+
+def test_the_retreat_can_be_chosen_by_another_checker():
+    """``plan_with_retreat(retreat_checker=...)`` (eval_paths --oracle-retreat): the retreat's
+    direction comes from the second checker, the search still from the first. A checker that
+    wrongly calls the shaft's walls free would leave sideways (its first direction in order
+    after straight up is blocked by nothing it knows); the exact checker sends it up."""
+    exact, goal = _slot()
+    blind = planner.AnalyticChecker([([-0.2, -0.2, -0.2], [0.2, 0.2, -0.015])], radius=0.01)
+    lid = planner.AnalyticChecker([([-0.2, -0.2, 0.02], [0.2, 0.2, 0.2])], radius=0.01)
+    # the blind checker with a lid over the goal: up is blocked for it, sideways is not
+    blind_lid = planner.AnalyticChecker([*blind.boxes, *lid.boxes], radius=0.01)
+    assert planner.find_retreat(blind_lid, goal, (0.03,), 0.005).direction[2] <= 0
+    start = np.array([0.3, 0.0, 0.3, 1, 0, 0, 0])
+    bounds = (np.array([-0.4, -0.4, -0.1]), np.array([0.4, 0.4, 0.5]))
+    cfg = planner.PlannerConfig(time_limit=5.0, retreat_lengths=(0.1,))
+    _, found = planner.plan_with_retreat(
+        exact, start, goal, bounds, 0.05, cfg, retreat_checker=exact
+    )
+    np.testing.assert_allclose(found.direction, [0, 0, 1])
+    _, chosen = planner.plan_with_retreat(
+        blind_lid, start, goal, bounds, 0.05, dataclasses.replace(cfg, time_limit=0.2),
+        retreat_checker=exact,
+    )  # fmt: skip
+    np.testing.assert_allclose(chosen.direction, [0, 0, 1])  # the exact checker's choice

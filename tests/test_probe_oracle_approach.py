@@ -1,0 +1,37 @@
+"""scripts/probe_oracle_approach.py (thirty-fourth session, issue 13): the upper bound of a
+right approach over the goal's last centimetres."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+SPEC = importlib.util.spec_from_file_location(
+    "probe_oracle_approach",
+    Path(__file__).resolve().parents[1] / "scripts/probe_oracle_approach.py",
+)
+probe = importlib.util.module_from_spec(SPEC)
+SPEC.loader.exec_module(probe)
+
+
+def test_a_path_is_free_near_only_or_far_by_where_it_penetrates():
+    dist = np.array([0.20, 0.10, 0.04, 0.01, 0.0])
+    tol = 1e-3
+    assert probe.classify(np.zeros(5), dist, 0.045, tol) == "free"
+    assert probe.classify(np.array([0, 0, 5e-4, 0, 0]), dist, 0.045, tol) == "free"  # tolerated
+    assert probe.classify(np.array([0, 0, 3e-3, 2e-3, 0]), dist, 0.045, tol) == "near"
+    assert probe.classify(np.array([0, 2e-3, 3e-3, 0, 0]), dist, 0.045, tol) == "far"
+    assert probe.classify(np.array([0, 2e-3, 0, 0, 0]), dist, 0.2, tol) == "near"
+
+
+def test_the_bound_frees_near_only_paths_of_pairs_with_an_approach():
+    classes = ["free", "free", "near", "near", "far"]
+    approach = [True, False, True, False, True]
+    out = probe.bound(classes, approach, pairs=10)
+    assert out["as_planned"] == dict(returned=5, collision_free=2, precision=40.0, recall=20.0,
+                                     f1=26.7)  # fmt: skip
+    # the near-only path with an approach counts free; the one without and the far one do not
+    assert out["with_oracle_approach"]["collision_free"] == 3
+    assert out["with_oracle_approach"]["precision"] == 60.0
+    assert (out["near_only"], out["far"], out["near_only_with_approach"]) == (2, 1, 1)
+    assert probe.prf(0, 0, 10)["f1"] == 0.0
