@@ -1,56 +1,60 @@
-"""Pair-by-pair comparison of eval_paths runs planned with the same OMPL seed (twenty-fifth
-session): for each pair both runs planned, the outcome (free / colliding / time-out) as planned
-(the rows' ``raw_*`` keys where the run cleared its paths) and as returned, and the transitions.
+"""Two or more eval_paths runs on the pairs all of them planned: precision / recall / F1 of
+each over the common pairs (a run cut short is compared on what it finished), and how many
+pairs' outcomes differ. CPU, seconds.
 
-    python scripts/compare_path_runs.py results/paths80_goal_stable_s24_keep45.pairs.jsonl \\
-        out/paths80_s25_compclear/pairs.jsonl [--out results/....json]
+    python scripts/compare_path_runs.py --runs out/s34/paths80_oracle_seed1/pairs.jsonl \\
+        results/paths80_goal_stable_s33_replan_seed1.pairs.jsonl \\
+        --out results/paths80_s34_oracle_vs_replan_seed1.json
 """
+
+from __future__ import annotations
 
 import argparse
 import json
-from collections import Counter
 from pathlib import Path
 
 
-def load(path):
-    rows = {}
-    for line in Path(path).read_text().splitlines():
-        if line.strip():
-            r = json.loads(line)
-            rows[(r["pair"], r["method"])] = r  # a resumed run: the last row counts
-    return rows
+def outcome(row: dict) -> str:
+    """'free', 'colliding' or 'none' (no path returned)."""
+    if not row["returned"]:
+        return "none"
+    return "free" if row["collision_free"] else "colliding"
 
 
-def outcome(r, raw):
-    if not r["returned"]:
-        return "time-out"
-    free = r.get("raw_collision_free", r["collision_free"]) if raw else r["collision_free"]
-    return "free" if free else "colliding"
+def figures(outcomes: list[str]) -> dict:
+    """Precision / recall / F1 in percent (one decimal) over the pairs of ``outcomes``."""
+    returned = sum(o != "none" for o in outcomes)
+    free = outcomes.count("free")
+    p = 100.0 * free / returned if returned else 0.0
+    r = 100.0 * free / len(outcomes) if outcomes else 0.0
+    f = 2 * p * r / (p + r) if p + r else 0.0
+    return dict(pairs=len(outcomes), returned=returned, collision_free=free,
+                precision=round(p, 1), recall=round(r, 1), f1=round(f, 1))  # fmt: skip
 
 
-def main(argv=None):
+def compare(runs: dict[str, dict[str, dict]]) -> dict:
+    """``runs``: name -> {pair: row}. Figures of each on the pairs every run has."""
+    common = sorted(set.intersection(*(set(rows) for rows in runs.values())))
+    out = {name: figures([outcome(rows[p]) for p in common]) for name, rows in runs.items()}
+    kinds = [[outcome(rows[p]) for rows in runs.values()] for p in common]
+    return dict(common_pairs=len(common), runs=out,
+                pairs_differing=sum(len(set(k)) > 1 for k in kinds))  # fmt: skip
+
+
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("base")
-    ap.add_argument("new")
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--runs", nargs="+", required=True, help="pairs.jsonl files")
+    ap.add_argument("--method", default="nce_geometric")
+    ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
-    a, b = load(args.base), load(args.new)
-    common = sorted(set(a) & set(b))
-    out = dict(base=args.base, new=args.new, pairs=len(common))
-    for raw in (True, False):
-        key = "as_planned" if raw else "as_returned"
-        trans = Counter(f"{outcome(a[k], raw)} -> {outcome(b[k], raw)}" for k in common)
-        out[key] = dict(
-            base=dict(Counter(outcome(a[k], raw) for k in common)),
-            new=dict(Counter(outcome(b[k], raw) for k in common)),
-            changed={
-                t: n for t, n in sorted(trans.items()) if t.split(" -> ")[0] != t.split(" -> ")[1]
-            },
-        )
-    print(json.dumps(out, indent=1))
-    if args.out:
-        Path(args.out).write_text(json.dumps(out, indent=1))
-    return out
+    runs = {}
+    for f in args.runs:
+        rows = [json.loads(x) for x in Path(f).read_text().splitlines() if x.strip()]
+        runs[f] = {r["pair"]: r for r in rows if r["method"] == args.method}  # last row counts
+    summary = compare(runs)
+    Path(args.out).write_text(json.dumps(summary, indent=1) + "\n")
+    print(json.dumps(summary, indent=1))
+    return summary
 
 
 if __name__ == "__main__":

@@ -35,3 +35,22 @@ def test_the_bound_frees_near_only_paths_of_pairs_with_an_approach():
     assert out["with_oracle_approach"]["precision"] == 60.0
     assert (out["near_only"], out["far"], out["near_only_with_approach"]) == (2, 1, 1)
     assert probe.prf(0, 0, 10)["f1"] == 0.0
+
+
+def test_runs_are_compared_on_the_pairs_all_of_them_planned():
+    spec = importlib.util.spec_from_file_location(
+        "compare_path_runs", Path(__file__).resolve().parents[1] / "scripts/compare_path_runs.py"
+    )
+    cmp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cmp)
+    a = {"p0": dict(returned=True, collision_free=True), "p1": dict(returned=True, collision_free=False),
+         "p2": dict(returned=False, collision_free=False)}  # fmt: skip
+    b = {
+        "p0": dict(returned=True, collision_free=True),
+        "p1": dict(returned=True, collision_free=True),
+    }
+    out = cmp.compare({"a": a, "b": b})
+    assert out["common_pairs"] == 2 and out["pairs_differing"] == 1  # p2: only in a
+    assert out["runs"]["a"] == dict(pairs=2, returned=2, collision_free=1, precision=50.0,
+                                    recall=50.0, f1=50.0)  # fmt: skip
+    assert out["runs"]["b"]["f1"] == 100.0
