@@ -256,6 +256,12 @@ class Estimators(NamedTuple):
     # thirty-fourth session, a probe: the straight retreat (--retreat) chosen by the full meshes
     # (the oracle approach over the goal's last centimetres), the search by the estimators
     oracle_retreat: bool = False
+    # thirty-fifth session: the straight retreat's directions ranked by the approach network
+    # (approach.ApproachPredictor on the observed clouds; those at its threshold or above, best
+    # first); approach_check "none": the best one is taken as free, "method": the first the
+    # method's checker calls free
+    approach: object = None
+    approach_check: str = "none"
 
 
 def with_fallback(est: Estimators, far_threshold: float, seconds: float) -> Estimators:
@@ -718,6 +724,26 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
     return checkers
 
 
+def _never_colliding(poses: np.ndarray) -> np.ndarray:
+    return np.zeros(len(np.asarray(poses).reshape(-1, 7)), bool)
+
+
+def learned_approach(case: PairCase, est: Estimators):
+    """(directions [K, 3] to try in order, their checker or None for the method's, a row
+    record) from the approach network on the pair's observed clouds: the directions whose
+    probability reaches the network's threshold, best first (none: the plain plan)."""
+    t0 = time.perf_counter()
+    directions, probs = est.approach.order(case.object_points, case.support_points, case.goal)
+    keep = probs >= est.approach.config.threshold
+    if est.approach_check == "none":
+        keep &= np.arange(len(keep)) == 0  # the best one only, taken as free
+    seconds = time.perf_counter() - t0
+    record = dict(best=directions[0].round(3).tolist(), best_p=round(float(probs[0]), 4),
+                  tried=int(keep.sum()), seconds=round(seconds, 4))  # fmt: skip
+    checker = _never_colliding if est.approach_check == "none" else None
+    return directions[keep], checker, record
+
+
 def evaluate_pair(
     case: PairCase,
     est: Estimators,
@@ -764,10 +790,17 @@ def evaluate_pair(
             check = planner.RecordingChecker(
                 check, cap=20 * mine[1], seed=int(case.meta["pair_index"])
             )
+        directions, retreat_checker, ranked = planner.RETREAT_DIRECTIONS, None, None
+        if est.oracle_retreat and name != "mesh":
+            retreat_checker = mesh
+        elif est.approach is not None and name != "mesh":
+            directions, retreat_checker, ranked = learned_approach(case, est)
         res, retreat = planner.plan_with_retreat(
-            check, start, goal, bounds, weight, config,
-            retreat_checker=mesh if est.oracle_retreat and name != "mesh" else None,
+            check, start, goal, bounds, weight, config, retreat_checker=retreat_checker,
+            retreat_directions=directions,
         )  # fmt: skip
+        if ranked is not None:
+            res = res._replace(planning_s=res.planning_s + ranked["seconds"])
         start_colliding = bool(check(start[None])[0])
         goal_colliding = bool(check(goal[None])[0])
         fallback = None
@@ -776,7 +809,8 @@ def evaluate_pair(
             second, _ = planner.plan_with_retreat(
                 lax_check, start, goal, bounds, weight,
                 dataclasses.replace(config, time_limit=est.fallback_time, retreat_after=0.0),
-                retreat_checker=mesh if est.oracle_retreat else None,
+                retreat_checker=mesh if est.oracle_retreat else retreat_checker,
+                retreat_directions=directions,
             )  # fmt: skip
             fallback = dict(far_threshold=est.fallback_far_threshold, status=second.status,
                             planning_s=round(second.planning_s, 3),
@@ -806,6 +840,8 @@ def evaluate_pair(
                 direction=retreat.direction.round(3).tolist(), length_m=retreat.length,
                 search_s=round(retreat.seconds, 3), states=retreat.states_checked,
             )  # fmt: skip
+        if ranked is not None:
+            row["approach"] = ranked
         if res.path is not None and clearance is not None and name != "mesh":
             free, deepest, _ = planner.dense_check(mesh, res.path, config.dense_resolution, weight)
             obj, sup, cfg = case.object_points, case.support_points, clearance
@@ -1163,6 +1199,20 @@ def main(argv=None) -> dict:
         "full meshes (the oracle approach), the search to its end by the method's checker",
     )  # fmt: skip
     parser.add_argument(
+        "--approach", metavar="DIR",
+        help="with --retreat: the retreat's directions ranked by the approach network in DIR "
+        "(experiments.train_approach) on the observed clouds",
+    )  # fmt: skip
+    parser.add_argument(
+        "--approach-threshold", type=float, metavar="P",
+        help="with --approach: only directions of probability >= P (default: the network's)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--approach-check", choices=("none", "method"), default="none",
+        help="with --approach: 'none' takes the best direction as free; 'method' tries them "
+        "best first and takes the first the method's checker calls free",
+    )  # fmt: skip
+    parser.add_argument(
         "--retreat-after", type=float, default=0.0, metavar="S",
         help="with --retreat: the plain plan first for S seconds, the retreat only when it "
         "finds no path (PlannerConfig.retreat_after; 0: the retreat first)",
@@ -1402,6 +1452,17 @@ def main(argv=None) -> dict:
         if not retreat:
             parser.error("--oracle-retreat needs --retreat LENGTHS")
         est = est._replace(oracle_retreat=True)
+    if args.approach:
+        if not retreat or args.oracle_retreat:
+            parser.error("--approach needs --retreat LENGTHS (and not --oracle-retreat)")
+        from omnihang_jax import approach
+
+        a_cfg, a_params, _ = approach.load(args.approach)
+        if args.approach_threshold is not None:
+            a_cfg = dataclasses.replace(a_cfg, threshold=args.approach_threshold)
+        predictor = approach.ApproachPredictor(a_cfg, a_params)
+        predictor.probabilities(np.zeros((8, 3)), np.ones((8, 3)), np.r_[0, 0, 0, 1, 0, 0, 0.0])
+        est = est._replace(approach=predictor, approach_check=args.approach_check)
     if args.far_nce:
         far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
         if args.far_nce_threshold is not None:
@@ -1491,6 +1552,11 @@ def main(argv=None) -> dict:
         ),
         retreat_lengths_m=list(config.retreat_lengths),
         oracle_retreat=est.oracle_retreat,
+        approach=None
+        if est.approach is None
+        else dict(
+            weights=args.approach, threshold=est.approach.config.threshold, check=est.approach_check
+        ),  # fmt: skip
         clear_path=None if clearance is None else dataclasses.asdict(clearance),
         goal="first stable pose of each held-out pair"
         if args.goal == "stable"

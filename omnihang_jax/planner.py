@@ -688,20 +688,44 @@ def find_retreat(
     goal = np.asarray(goal, float)
     checked = 0
     for length in lengths:
-        n = max(1, int(np.ceil(float(length) / resolution)))
         for d in directions:
-            end = goal.copy()
-            end[:3] = goal[:3] + float(length) * d
-            if bounds is not None and not (
-                np.all(bounds[0] <= end[:3]) and np.all(end[:3] <= bounds[1])
-            ):
+            end, states = _retreat_states(goal, d, float(length), resolution, bounds)
+            if states is None:
                 continue
-            states = interpolate_segment(goal, end, n)
             checked += len(states)
             if not any_colliding(checker, states):
                 return Retreat(end, np.asarray(d, float), float(length), checked,
                                time.perf_counter() - t0)  # fmt: skip
     return None
+
+
+def _retreat_states(goal, direction, length: float, resolution: float, bounds):
+    """(far end [7], the straight retreat's states from ``goal`` [n, 7]); states None when
+    the far end leaves ``bounds``."""
+    end = goal.copy()
+    end[:3] = goal[:3] + length * np.asarray(direction, float)
+    if bounds is not None and not (np.all(bounds[0] <= end[:3]) and np.all(end[:3] <= bounds[1])):
+        return end, None
+    return end, interpolate_segment(goal, end, max(1, int(np.ceil(length / resolution))))
+
+
+def free_retreats(
+    checker: Callable[[np.ndarray], np.ndarray],
+    goal: np.ndarray,
+    length: float,
+    resolution: float,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    directions: np.ndarray = RETREAT_DIRECTIONS,
+) -> np.ndarray:
+    """[D] bool: which straight, orientation-keeping retreats of ``length`` from ``goal``
+    ``checker`` calls free (as :func:`find_retreat` judges one; False when leaving ``bounds``).
+    The approach network's labels (``approach.approach_labels``)."""
+    goal = np.asarray(goal, float)
+    out = np.zeros(len(directions), bool)
+    for i, d in enumerate(directions):
+        _, states = _retreat_states(goal, d, float(length), resolution, bounds)
+        out[i] = states is not None and not any_colliding(checker, states)
+    return out
 
 
 def plan_with_retreat(
@@ -712,6 +736,7 @@ def plan_with_retreat(
     rotation_weight: float,
     config: PlannerConfig = PlannerConfig(),
     retreat_checker: Callable[[np.ndarray], np.ndarray] | None = None,
+    retreat_directions: np.ndarray = RETREAT_DIRECTIONS,
 ) -> tuple[PlanResult, Retreat | None]:
     """RRT-Connect to a pre-goal, then straight in: :func:`find_retreat` (lengths
     ``config.retreat_lengths``) and, when a retreat is free, :func:`plan` from ``start`` to its
@@ -720,7 +745,9 @@ def plan_with_retreat(
     time and states count in the result. ``config.retreat_after`` > 0: the plain plan first,
     for that many seconds; the retreat only when it returns no path, with the time left (the
     first plan's time and states count too). ``retreat_checker``: the retreat's checker when
-    not ``checker`` (a probe: ``collision.MeshChecker`` gives the oracle approach)."""
+    not ``checker`` (a probe: ``collision.MeshChecker`` gives the oracle approach).
+    ``retreat_directions``: those tried, in order (the approach network's ranking; empty: the
+    plain plan)."""
     lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
     spent_s, spent_states, spent_calls = 0.0, 0, 0
     if config.retreat_lengths and 0 < config.retreat_after < config.time_limit:
@@ -737,7 +764,7 @@ def plan_with_retreat(
     found = None
     if config.retreat_lengths:
         found = find_retreat(retreat_checker or checker, goal, config.retreat_lengths,
-                             config.resolution, (lo, hi))  # fmt: skip
+                             config.resolution, (lo, hi), retreat_directions)  # fmt: skip
     if found is None:
         res = plan(checker, start, goal, bounds, rotation_weight, config)
         return PlanResult(res.path, res.status, res.planning_s + spent_s,

@@ -1,0 +1,196 @@
+"""The approach of a hang, learned from partial clouds (thirty-fifth session, issue 13).
+
+A hang is an insertion: the last centimetres into the goal are the reverse of taking the object
+off. The thirty-fourth session measured (``scripts/probe_oracle_approach.py``) that half of the
+best planner's colliding paths collide only within the goal's last 4.5 cm, and that planning to
+a pre-goal 4.5 cm back along a straight approach the *full meshes* call free lifts F1 by ~10.
+The full meshes are not observed; this module learns the approach from what is.
+
+The **approach network** sees the partial object cloud posed at the goal and the partial
+support cloud, both centred on the goal's position (support frame, z up), and scores each of
+the planner's 26 straight retreat directions (``planner.RETREAT_DIRECTIONS``): the logit that
+the orientation-keeping segment of ``length`` from the goal along it is free of the support and
+the wall on the full meshes. Its two branches are the contact NCE's
+(:mod:`omnihang_jax.collision`): a global PointNet++ on evenly strided subsets of both clouds
+and a local one on the contact patch (millimetre offsets to the other cloud as features).
+
+Labels are geometry, not physics: :func:`approach_labels` runs ``planner.free_retreats`` with a
+``collision.MeshChecker`` on every stable pose of a training pair (~10 ms a pose).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Callable
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from omnihang_jax import collision, planner
+from omnihang_jax.pointnet2 import PointNet2Encoder
+from omnihang_jax.stage2 import combine_clouds
+
+DIRECTIONS = planner.RETREAT_DIRECTIONS  # [26, 3] unit, support frame, upward first
+
+
+@dataclasses.dataclass(frozen=True)
+class ApproachConfig:
+    """Approach network.
+
+    pointnet / local_pointnet: presets of the global and the contact-patch branch
+      (``collision.POINTNETS``). object_points / support_points: the global branch's strided
+      subsets; local_points: the patch's points per cloud; local_from: points of each partial
+      cloud the network is given (a planner's fixed subset, ``collision.subsample_cloud`` seed 0).
+    head: MLP widths between the two codes and the 26 logits.
+    length / resolution: the approach the labels judge (m; states every ``resolution``).
+    threshold: a planner uses the best direction only when its probability reaches this
+      (below it, the plain plan to the goal).
+    """
+
+    pointnet: str = "fast"
+    local_pointnet: str = "local"
+    object_points: int = 256
+    support_points: int = 256
+    local_points: int = 256
+    local_from: int = 2048
+    head: tuple[int, ...] = (128, 64)
+    length: float = 0.045
+    resolution: float = 0.002
+    threshold: float = 0.5
+
+
+PRESETS = {
+    "tiny": ApproachConfig(
+        pointnet="tiny",
+        local_pointnet="tiny",
+        object_points=64,
+        support_points=64,
+        local_points=32,
+        local_from=128,
+        head=(32,),
+    ),  # fmt: skip
+    "contact": ApproachConfig(),
+}
+
+
+class _ApproachNet(nn.Module):
+    config: ApproachConfig
+
+    @nn.compact
+    def __call__(self, object_posed, support_points, patch):
+        """object_posed [B, N, 3], support_points [B, M, 3] (goal-centred support frame), patch
+        (points [B, 2L, 3], features [B, 2L, 5]) -> logits [B, 26]."""
+        c = self.config
+        points, flags = combine_clouds(object_posed, support_points)
+        code, _ = PointNet2Encoder(collision.POINTNETS[c.pointnet], name="encoder")(points, flags)
+        local, _ = PointNet2Encoder(collision.POINTNETS[c.local_pointnet], name="local")(*patch)
+        x = jnp.concatenate([code, local], axis=-1)
+        for width in c.head:
+            x = nn.relu(nn.Dense(width)(x))
+        return nn.Dense(len(DIRECTIONS))(x)
+
+
+def make_approach_net(config: ApproachConfig) -> collision.EstimatorNets:
+    """init(key) -> params; apply(params, object_points [B, N, 3] object frame, support_points
+    [B, M, 3] support frame, goals [B, 7]) -> logits [B, 26] (positive: the approach along
+    that direction is free)."""
+    net = _ApproachNet(config)
+
+    def init(key):
+        obj = jnp.zeros((1, config.object_points, 3))
+        sup = jnp.zeros((1, config.support_points, 3))
+        patch = (jnp.zeros((1, 2 * config.local_points, 3)), jnp.zeros((1, 2 * config.local_points, 5)))  # fmt: skip
+        return jax.jit(lambda k: net.init(k, obj, sup, patch)["params"])(key)
+
+    def apply(params, object_points, support_points, goals):
+        centre = goals[:, None, :3]
+        posed = collision.transform_points(goals, object_points) - centre
+        support = support_points - centre
+        patch = collision.contact_patch(posed, support, config.local_points)
+        posed = collision._strided(posed, config.object_points)
+        support = collision._strided(support, config.support_points)
+        return net.apply({"params": params}, posed, support, patch)
+
+    return collision.EstimatorNets(init, apply)
+
+
+def approach_probabilities(config: ApproachConfig) -> Callable:
+    """``probabilities(params, object_cloud [N, 3], support_cloud [M, 3], goals [B, 7]) -> [B,
+    26]``: one pair's clouds, every goal."""
+    nets = make_approach_net(config)
+
+    def probabilities(params, object_cloud, support_cloud, goals):
+        b = goals.shape[0]
+        obj = jnp.broadcast_to(object_cloud, (b, *object_cloud.shape))
+        sup = jnp.broadcast_to(support_cloud, (b, *support_cloud.shape))
+        return jax.nn.sigmoid(nets.apply(params, obj, sup, goals))
+
+    return probabilities
+
+
+class ApproachPredictor:
+    """A planner's view of a trained network: ``order(object_cloud, support_cloud, goal)`` ->
+    (directions [K, 3] best first, their probabilities [K]); the clouds are the partial clouds
+    as observed (any size: the fixed ``local_from`` subset is taken here). NaN clouds or goal:
+    a clear ``ValueError``."""
+
+    def __init__(self, config: ApproachConfig, params):
+        self.config, self.params = config, params
+        self._probabilities = jax.jit(approach_probabilities(config))
+
+    def probabilities(self, object_cloud, support_cloud, goal) -> np.ndarray:
+        obj = np.asarray(object_cloud, np.float32)
+        sup = np.asarray(support_cloud, np.float32)
+        goal = np.asarray(goal, np.float32).reshape(7)
+        for name, x in (("object cloud", obj), ("support cloud", sup), ("goal", goal)):
+            if not np.isfinite(x).all():
+                raise ValueError(f"approach network: the {name} has NaN or inf values")
+        obj = collision.subsample_cloud(obj, self.config.local_from)
+        sup = collision.subsample_cloud(sup, self.config.local_from)
+        return np.asarray(self._probabilities(self.params, obj, sup, goal[None]))[0]
+
+    def order(self, object_cloud, support_cloud, goal) -> tuple[np.ndarray, np.ndarray]:
+        p = self.probabilities(object_cloud, support_cloud, goal)
+        idx = np.argsort(-p, kind="stable")
+        return DIRECTIONS[idx], p[idx]
+
+
+def save(folder: str | os.PathLike, config: ApproachConfig, params, **extra) -> None:
+    """``folder/{config.json, params.msgpack}`` (``collision.save_estimator``'s format)."""
+    collision.save_estimator(folder, config, params, **extra)
+
+
+def load(folder: str | os.PathLike) -> tuple[ApproachConfig, object, dict]:
+    """(config, params, meta) of a folder written by :func:`save`."""
+    import flax
+
+    path = os.path.join(folder, "config.json")
+    if not os.path.exists(path):
+        raise FileNotFoundError(
+            f"{path} not found: train it first (`python -m experiments.train_approach`)"
+        )
+    with open(path) as f:
+        meta = json.load(f)
+    if meta.get("kind") != "ApproachConfig":
+        raise ValueError(f"{path}: not an approach network ({meta.get('kind')!r})")
+    raw = dict(meta["config"], head=tuple(meta["config"]["head"]))
+    config = ApproachConfig(**raw)
+    target = make_approach_net(config).init(jax.random.key(0))
+    with open(os.path.join(folder, collision.WEIGHTS_FILE), "rb") as f:
+        params = flax.serialization.from_bytes(target, f.read())
+    return config, params, meta
+
+
+def approach_labels(scene, goals: np.ndarray, length: float = 0.045,
+                    resolution: float = 0.002, tolerance: float = 1e-3) -> np.ndarray:  # fmt: skip
+    """[G, 7] goals -> [G, 26] bool: is the straight approach along each direction free on
+    the full meshes (``collision.MeshChecker``, penetration > ``tolerance`` collides) and
+    inside the planner's bounds (``planner.default_bounds``)?"""
+    mesh = collision.MeshChecker(scene, tolerance)
+    bounds = planner.default_bounds(scene)
+    goals = np.asarray(goals, float).reshape(-1, 7)
+    return np.stack([planner.free_retreats(mesh, g, length, resolution, bounds) for g in goals])

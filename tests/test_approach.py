@@ -1,0 +1,158 @@
+"""The approach network (issue 13, thirty-fifth session): labels from the full meshes, a
+network that learns them, and the planner's use of its ranking."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("ompl")
+
+from omnihang_jax import approach, planner  # noqa: E402
+
+
+def _ring_on_rod():
+    from sim import geometry, proposals
+    from sim.assets import objects, supports  # noqa: F401  (registers the generators)
+    from sim.assets.base import Asset, HangLoop, build_support
+    from sim.scene import build_scene
+
+    parts = geometry.ring([0, 0, 0], [0, 0, 1], 0.03, 0.004, 12)
+    free_r = 0.03 * np.cos(np.pi / 12) - 0.004
+    ring = Asset("ring", "object", "others", 0, parts, [HangLoop(np.zeros(3), np.array([0, 0, 1.0]), free_r)], {})  # fmt: skip
+    hook = build_support("single_rod_hook", 0)
+    loop, peg = ring.features[0], hook.features[0]
+    exact = proposals.ProposalConfig(jitter_angle=0.0, jitter_position=0.0)
+    lo, hi, _ = proposals._peg_range(ring, loop, peg, 1.0, exact)
+    goal = proposals.thread_pose(ring, loop, peg, 0.5 * (lo + hi), 1.0, exact)
+    return build_scene(ring, hook), goal, peg
+
+
+def test_a_ring_on_a_rod_comes_off_along_the_rod_not_straight_up():
+    """The labels are the full meshes' word: a ring threaded on a rod cannot be lifted 4.5 cm
+    straight up (the rod goes through it), but slides off along the rod towards its tip; the
+    first free direction in the planner's order is the one find_retreat takes."""
+    scene, goal, peg = _ring_on_rod()
+    labels = approach.approach_labels(scene, goal[None])[0]
+    assert labels.shape == (26,)
+    up = np.flatnonzero(np.all(np.isclose(approach.DIRECTIONS, [0, 0, 1]), axis=1))[0]
+    assert not labels[up]
+    along = np.asarray(peg.tip) - np.asarray(peg.base)
+    along /= np.linalg.norm(along)
+    outward = int(np.argmax(approach.DIRECTIONS @ along))
+    assert labels[outward]
+    assert labels.sum() < 13  # most directions run into the rod, the ring or the wall
+    mesh = planner.MeshChecker(scene)
+    found = planner.find_retreat(mesh, goal, [0.045], 0.002, planner.default_bounds(scene))
+    np.testing.assert_allclose(found.direction, approach.DIRECTIONS[np.argmax(labels)])
+
+
+def test_free_retreats_respects_bounds_and_the_checker():
+    """A floor at z < -1.5 cm for a 1-cm sphere: every direction with a downward part is
+    blocked within 4.5 cm, the rest free, and bounds that end 1 cm above the goal block up."""
+    floor = planner.AnalyticChecker([([-1, -1, -1], [1, 1, -0.015])], radius=0.01)
+    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
+    free = planner.free_retreats(floor, goal, 0.045, 0.002)
+    np.testing.assert_array_equal(free, approach.DIRECTIONS[:, 2] >= 0)
+    low = (np.array([-1.0, -1, -1]), np.array([1.0, 1, 0.01]))
+    capped = planner.free_retreats(floor, goal, 0.045, 0.002, low)
+    np.testing.assert_array_equal(capped, free & (approach.DIRECTIONS[:, 2] <= 0))
+
+
+def _plate_data(n_pairs: int, rng):
+    """Synthetic pairs: a small object cloud at the goal and a plate of support points 2 cm
+    from it on one of six sides; an approach is free when it moves away from the plate."""
+    sides = np.array([[0, 0, 1], [0, 0, -1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0.0]])
+    obj, sup, pair, goals, labels, names = [], [], [], [], [], []
+    u = np.stack(np.meshgrid(np.linspace(-0.06, 0.06, 12), np.linspace(-0.06, 0.06, 12)), -1).reshape(-1, 2)  # fmt: skip
+    for i in range(n_pairs):
+        side = sides[i % 6]
+        a = np.eye(3)[np.argmax(np.abs(side) < 0.5)]  # a vector across the plate
+        b = np.cross(side, a)
+        centre = rng.uniform(-0.1, 0.1, 3)
+        plate = centre + 0.02 * side + u[:, :1] * a + u[:, 1:] * b
+        obj.append(rng.normal(scale=0.008, size=(144, 3)))
+        sup.append(plate + rng.normal(scale=5e-4, size=plate.shape))
+        for _ in range(3):
+            pair.append(i)
+            goals.append([*centre, 1, 0, 0, 0])
+            labels.append(approach.DIRECTIONS @ side < -0.6)
+        names.append(f"plate_{i}")
+    from experiments.train_approach import ApproachData
+
+    return ApproachData.from_arrays(obj, sup, pair, goals, labels, names)
+
+
+def test_the_approach_network_learns_which_side_is_blocked():
+    """Prove learning by learning: on synthetic plates the tiny network's validation loss falls
+    and its best direction is free far more often than the prior's single direction."""
+    from experiments import train_approach
+
+    rng = np.random.default_rng(0)
+    data = _plate_data(48, rng)
+    val = _plate_data(12, np.random.default_rng(1))
+    cfg = approach.PRESETS["tiny"]
+    params, log, prior = train_approach.train(
+        data, val, cfg, steps=400, batch=16, learning_rate=3e-3, seed=0, time_budget=600,
+        val_every=400, val_rows=36, progress=False,
+    )  # fmt: skip
+    first, last = log["val_history"][0], log["val_history"][-1]
+    assert last["val_loss"] < 0.7 * first["val_loss"]
+    assert last["top1_free"] >= 0.9 and last["prior_free"] < 0.4
+
+
+def test_predictor_orders_directions_and_refuses_nan(tmp_path):
+    import jax
+
+    cfg = approach.PRESETS["tiny"]
+    params = approach.make_approach_net(cfg).init(jax.random.key(0))
+    approach.save(tmp_path, cfg, params, steps=0)
+    cfg2, params2, meta = approach.load(tmp_path)
+    assert cfg2 == cfg and meta["steps"] == 0
+    pred = approach.ApproachPredictor(cfg2, params2)
+    rng = np.random.default_rng(0)
+    obj, sup = rng.normal(scale=0.02, size=(300, 3)), rng.normal(scale=0.05, size=(500, 3))
+    goal = np.array([0.0, 0.0, 0.05, 1, 0, 0, 0])
+    directions, probs = pred.order(obj, sup, goal)
+    assert directions.shape == (26, 3) and np.all(np.diff(probs) <= 0)
+    raw = approach.ApproachPredictor(cfg, params).probabilities(obj, sup, goal)
+    np.testing.assert_allclose(np.sort(raw)[::-1], probs, rtol=1e-6)
+    bad = obj.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="object cloud"):
+        pred.order(bad, sup, goal)
+    with pytest.raises(FileNotFoundError, match="train_approach"):
+        approach.load(tmp_path / "missing")
+
+
+def test_eval_paths_keeps_the_directions_at_the_threshold_best_first():
+    """``eval_paths --approach``: 'none' takes the best direction as free (a checker that calls
+    nothing colliding), 'method' hands every direction at the threshold, best first, to the
+    method's checker; below the threshold nothing is tried (the plain plan)."""
+    from types import SimpleNamespace
+
+    from experiments import eval_paths
+
+    dirs = approach.DIRECTIONS[[3, 0, 7]]
+
+    class Fake:
+        config = SimpleNamespace(threshold=0.4)
+
+        def __init__(self, probs):
+            self.probs = np.asarray(probs)
+
+        def order(self, obj, sup, goal):
+            return dirs, self.probs
+
+    case = SimpleNamespace(object_points=None, support_points=None, goal=None)
+    est = SimpleNamespace(approach=Fake([0.9, 0.5, 0.1]), approach_check="none")
+    got, checker, rec = eval_paths.learned_approach(case, est)
+    np.testing.assert_array_equal(got, dirs[:1])
+    assert not checker(np.zeros((5, 7))).any() and rec["best_p"] == 0.9 and rec["tried"] == 1
+    est.approach_check = "method"
+    got, checker, rec = eval_paths.learned_approach(case, est)
+    np.testing.assert_array_equal(got, dirs[:2])
+    assert checker is None and rec["tried"] == 2
+    est.approach = Fake([0.3, 0.2, 0.1])
+    got, _, rec = eval_paths.learned_approach(case, est)
+    assert len(got) == 0 and rec["tried"] == 0
