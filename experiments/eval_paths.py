@@ -262,6 +262,10 @@ class Estimators(NamedTuple):
     # method's checker calls free
     approach: object = None
     approach_check: str = "none"
+    # and with approach_open_side, none towards a wall-mounted support's wall (-y): a pre-goal
+    # behind the object, between it and the wall, is a narrow place to plan to (device, OMPL
+    # seed 3: the 10 pairs whose best direction was -y planned no free path, 9 timed out)
+    approach_open_side: bool = False
 
 
 def with_fallback(est: Estimators, far_threshold: float, seconds: float) -> Estimators:
@@ -735,11 +739,15 @@ def learned_approach(case: PairCase, est: Estimators):
     t0 = time.perf_counter()
     directions, probs = est.approach.order(case.object_points, case.support_points, case.goal)
     keep = probs >= est.approach.config.threshold
+    if est.approach_open_side and case.wall_y is not None:
+        keep &= directions[:, 1] >= -1e-9
     if est.approach_check == "none":
-        keep &= np.arange(len(keep)) == 0  # the best one only, taken as free
+        keep &= np.cumsum(keep) == 1  # the best one kept only, taken as free
     seconds = time.perf_counter() - t0
     record = dict(best=directions[0].round(3).tolist(), best_p=round(float(probs[0]), 4),
                   tried=int(keep.sum()), seconds=round(seconds, 4))  # fmt: skip
+    if keep.any():
+        record["first_tried"] = directions[keep][0].round(3).tolist()
     checker = _never_colliding if est.approach_check == "none" else None
     return directions[keep], checker, record
 
@@ -1208,6 +1216,11 @@ def main(argv=None) -> dict:
         help="with --approach: only directions of probability >= P (default: the network's)",
     )  # fmt: skip
     parser.add_argument(
+        "--approach-open-side", action="store_true",
+        help="with --approach: no direction towards the wall of a wall-mounted support (-y): "
+        "the pre-goal stays on the open side",
+    )  # fmt: skip
+    parser.add_argument(
         "--approach-check", choices=("none", "method"), default="none",
         help="with --approach: 'none' takes the best direction as free; 'method' tries them "
         "best first and takes the first the method's checker calls free",
@@ -1462,7 +1475,8 @@ def main(argv=None) -> dict:
             a_cfg = dataclasses.replace(a_cfg, threshold=args.approach_threshold)
         predictor = approach.ApproachPredictor(a_cfg, a_params)
         predictor.probabilities(np.zeros((8, 3)), np.ones((8, 3)), np.r_[0, 0, 0, 1, 0, 0, 0.0])
-        est = est._replace(approach=predictor, approach_check=args.approach_check)
+        est = est._replace(approach=predictor, approach_check=args.approach_check,
+                           approach_open_side=args.approach_open_side)  # fmt: skip
     if args.far_nce:
         far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
         if args.far_nce_threshold is not None:
@@ -1555,7 +1569,10 @@ def main(argv=None) -> dict:
         approach=None
         if est.approach is None
         else dict(
-            weights=args.approach, threshold=est.approach.config.threshold, check=est.approach_check
+            weights=args.approach,
+            threshold=est.approach.config.threshold,
+            check=est.approach_check,
+            open_side=est.approach_open_side,
         ),  # fmt: skip
         clear_path=None if clearance is None else dataclasses.asdict(clearance),
         goal="first stable pose of each held-out pair"

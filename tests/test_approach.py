@@ -133,7 +133,7 @@ def test_eval_paths_keeps_the_directions_at_the_threshold_best_first():
 
     from experiments import eval_paths
 
-    dirs = approach.DIRECTIONS[[3, 0, 7]]
+    dirs = approach.DIRECTIONS[[3, 0, 7]]  # (0, 1, 1), (0, 0, 1), (1, -1, 1) / norms
 
     class Fake:
         config = SimpleNamespace(threshold=0.4)
@@ -144,8 +144,9 @@ def test_eval_paths_keeps_the_directions_at_the_threshold_best_first():
         def order(self, obj, sup, goal):
             return dirs, self.probs
 
-    case = SimpleNamespace(object_points=None, support_points=None, goal=None)
-    est = SimpleNamespace(approach=Fake([0.9, 0.5, 0.1]), approach_check="none")
+    case = SimpleNamespace(object_points=None, support_points=None, goal=None, wall_y=-0.05)
+    est = SimpleNamespace(approach=Fake([0.9, 0.5, 0.1]), approach_check="none",
+                          approach_open_side=False)  # fmt: skip
     got, checker, rec = eval_paths.learned_approach(case, est)
     np.testing.assert_array_equal(got, dirs[:1])
     assert not checker(np.zeros((5, 7))).any() and rec["best_p"] == 0.9 and rec["tried"] == 1
@@ -156,3 +157,14 @@ def test_eval_paths_keeps_the_directions_at_the_threshold_best_first():
     est.approach = Fake([0.3, 0.2, 0.1])
     got, _, rec = eval_paths.learned_approach(case, est)
     assert len(got) == 0 and rec["tried"] == 0
+    # towards the wall (-y) is left out with approach_open_side, for a wall-mounted support only
+    toward_wall = approach.DIRECTIONS[[7, 0, 3]]
+    est = SimpleNamespace(approach=Fake([0.9, 0.8, 0.1]), approach_check="none",
+                          approach_open_side=True)  # fmt: skip
+    Fake.order = lambda self, obj, sup, goal: (toward_wall, self.probs)
+    got, _, rec = eval_paths.learned_approach(case, est)
+    np.testing.assert_array_equal(got, toward_wall[1:2])
+    assert rec["first_tried"] == [0.0, 0.0, 1.0] and rec["best"][1] < 0
+    free_standing = SimpleNamespace(**{**vars(case), "wall_y": None})
+    got, _, _ = eval_paths.learned_approach(free_standing, est)
+    np.testing.assert_array_equal(got, toward_wall[:1])
