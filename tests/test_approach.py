@@ -168,3 +168,21 @@ def test_eval_paths_keeps_the_directions_at_the_threshold_best_first():
     free_standing = SimpleNamespace(**{**vars(case), "wall_y": None})
     got, _, _ = eval_paths.learned_approach(free_standing, est)
     np.testing.assert_array_equal(got, toward_wall[:1])
+
+
+def test_ranking_figures_and_the_whole_object_split():
+    from experiments.train_approach import object_split, ranking_figures
+
+    labels = np.zeros((4, 26), bool)
+    labels[0, 1] = labels[1, 0] = labels[2, [0, 1]] = True  # goal 3: no free approach
+    prob = np.full((4, 26), 0.1)
+    prob[0, 1], prob[1, 5], prob[2, 0], prob[3, 2] = 0.9, 0.6, 0.3, 0.8
+    prior = np.eye(26)[0]  # the prior always says direction 0
+    out = ranking_figures(prob, labels, prior, threshold=0.5)
+    assert out["any_free"] == 0.75 and out["top1_free"] == 0.5  # goals 0 and 2
+    assert out["top1_free_when_any"] == round(2 / 3, 4) and out["prior_free"] == 0.5
+    assert out["used"] == 0.75 and out["used_free"] == round(1 / 3, 4)  # goals 0, 1, 3 used
+    names = [f"mug_{i:04d}" for i in range(200)]
+    split = object_split(names, 7)
+    assert 10 < split.sum() < 50 and np.array_equal(split, object_split(names, 7))
+    assert np.array_equal(object_split(names[::-1], 7), split[::-1])  # by name, not position
