@@ -817,7 +817,7 @@ def evaluate_pair(
             second, _ = planner.plan_with_retreat(
                 lax_check, start, goal, bounds, weight,
                 dataclasses.replace(config, time_limit=est.fallback_time, retreat_after=0.0),
-                retreat_checker=mesh if est.oracle_retreat else retreat_checker,
+                retreat_checker=retreat_checker,
                 retreat_directions=directions,
             )  # fmt: skip
             fallback = dict(far_threshold=est.fallback_far_threshold, status=second.status,
@@ -1474,7 +1474,7 @@ def main(argv=None) -> dict:
         if args.approach_threshold is not None:
             a_cfg = dataclasses.replace(a_cfg, threshold=args.approach_threshold)
         predictor = approach.ApproachPredictor(a_cfg, a_params)
-        predictor.probabilities(np.zeros((8, 3)), np.ones((8, 3)), np.r_[0, 0, 0, 1, 0, 0, 0.0])
+        predictor.warm_up()  # compiled outside the planning clock
         est = est._replace(approach=predictor, approach_check=args.approach_check,
                            approach_open_side=args.approach_open_side)  # fmt: skip
     if args.far_nce:

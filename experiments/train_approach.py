@@ -20,6 +20,7 @@ hang is free, from the partial clouds (``omnihang_jax.approach``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -36,11 +37,6 @@ from experiments import eval_paths, train_collision
 from omnihang_jax import approach, collision, dataset_bridge
 
 LABEL_VERSION = 1
-_WORKER: dict = {}
-
-
-def _label_init(recipe: dict, data_dir: str) -> None:
-    train_collision._worker_init(recipe, data_dir)
 
 
 def _label_one(job: tuple[str, str, float, float]) -> str:
@@ -48,7 +44,7 @@ def _label_one(job: tuple[str, str, float, float]) -> str:
     from sim.scene import build_scene
 
     pair_file, out_file, length, resolution = job
-    lib = train_collision._WORKER["library"]
+    lib = train_collision._WORKER["library"]  # train_collision._worker_init's
     with np.load(pair_file) as f:
         obj, sup = lib.objects[f["object_name"].item()], lib.supports[f["support_name"].item()]
         stable = f["stable_poses"].astype(float)
@@ -81,24 +77,34 @@ def label_pairs(data: str, files: list[Path], length: float, resolution: float, 
     recipe = dataset_bridge.read_recipe(data)
     bar = tqdm(total=len(todo), desc="label approaches", unit="pair", disable=not progress)
     if todo and workers <= 1:
-        _label_init(recipe, data)
+        train_collision._worker_init(recipe, data)
         for job in todo:
             _label_one(job)
             bar.update(1)
     elif todo:
         from sim.workers import spawn_pool
 
-        with spawn_pool(workers, _label_init, (recipe, data)) as pool:
+        with spawn_pool(workers, train_collision._worker_init, (recipe, data)) as pool:
             for _ in pool.imap_unordered(_label_one, todo, chunksize=4):
                 bar.update(1)
     bar.close()
     return outs
 
 
+@dataclasses.dataclass
 class ApproachData:
-    """Clouds per pair and one row per stable pose: pair [R], goal [R, 7], labels [R, 26]."""
+    """Clouds per pair [P, N, 3] and one row per stable pose: pair [R] (rows of a pair
+    contiguous, pairs in order), goals [R, 7], labels [R, 26]."""
 
-    def __init__(self, files: list[Path], label_files: list[Path]):
+    object_points: np.ndarray
+    support_points: np.ndarray
+    pair: np.ndarray
+    goals: np.ndarray
+    labels: np.ndarray
+    object_names: list[str]
+
+    @classmethod
+    def from_files(cls, files: list[Path], label_files: list[Path]) -> ApproachData:
         objs, sups, pair, goals, labels, names = [], [], [], [], [], []
         for i, (f, lf) in enumerate(zip(files, label_files)):
             with np.load(f) as z, np.load(lf) as zl:
@@ -112,41 +118,22 @@ class ApproachData:
             pair.append(np.full(len(stable), i, np.int32))
             goals.append(stable)
             labels.append(lab)
-        self.object_points = np.stack(objs)
-        self.support_points = np.stack(sups)
-        self.object_names = names
-        self.pair = np.concatenate(pair)
-        self.goals = np.concatenate(goals)
-        self.labels = np.concatenate(labels)
-        self.first_row = np.array([np.flatnonzero(self.pair == i)[0] for i in range(len(files))])
+        return cls(np.stack(objs), np.stack(sups), np.concatenate(pair), np.concatenate(goals),
+                   np.concatenate(labels), names)  # fmt: skip
 
-    @classmethod
-    def from_arrays(cls, object_points, support_points, pair, goals, labels, object_names):
-        """The same from arrays (tests, synthetic data)."""
-        new = object.__new__(cls)
-        new.object_points = np.asarray(object_points, np.float32)
-        new.support_points = np.asarray(support_points, np.float32)
-        new.pair, new.goals = np.asarray(pair, np.int32), np.asarray(goals, np.float32)
-        new.labels, new.object_names = np.asarray(labels, bool), list(object_names)
-        new.first_row = np.array(
-            [np.flatnonzero(new.pair == i)[0] for i in range(len(new.object_points))]
-        )
-        return new
+    @property
+    def first_row(self) -> np.ndarray:
+        """[P] each pair's first stable pose (the path benchmark's goal)."""
+        return np.unique(self.pair, return_index=True)[1]
 
     def subset(self, pairs: np.ndarray) -> ApproachData:
-        new = object.__new__(ApproachData)
+        """The pairs ``pairs`` (increasing indices), renumbered 0..len-1."""
         keep = np.isin(self.pair, pairs)
-        remap = -np.ones(len(self.object_points), np.int64)
+        remap = np.full(len(self.object_points), -1, np.int32)
         remap[pairs] = np.arange(len(pairs))
-        new.object_points, new.support_points = (
-            self.object_points[pairs],
-            self.support_points[pairs],
-        )
-        new.object_names = [self.object_names[i] for i in pairs]
-        new.pair = remap[self.pair[keep]].astype(np.int32)
-        new.goals, new.labels = self.goals[keep], self.labels[keep]
-        new.first_row = np.array([np.flatnonzero(new.pair == i)[0] for i in range(len(pairs))])
-        return new
+        return ApproachData(self.object_points[pairs], self.support_points[pairs],
+                            remap[self.pair[keep]], self.goals[keep], self.labels[keep],
+                            [self.object_names[i] for i in pairs])  # fmt: skip
 
 
 def object_split(names: list[str], mod: int) -> np.ndarray:
@@ -155,19 +142,19 @@ def object_split(names: list[str], mod: int) -> np.ndarray:
 
 
 def score_rows(config, params, data: ApproachData, rows: np.ndarray, batch: int = 64) -> np.ndarray:
-    """[len(rows), 26] probabilities with the planner's fixed cloud subsets (seed 0)."""
-    probs = jax.jit(approach.approach_probabilities(config))
-    obj = np.stack([collision.subsample_cloud(o, config.local_from) for o in data.object_points])
-    sup = np.stack([collision.subsample_cloud(s, config.local_from) for s in data.support_points])
-    out = []
-    for p in np.unique(data.pair[rows]):
-        sel = rows[data.pair[rows] == p]
-        for k in range(0, len(sel), batch):
-            out.append((sel[k : k + batch], np.asarray(probs(params, obj[p], sup[p], data.goals[sel[k : k + batch]]))))  # fmt: skip
+    """[len(rows), 26] probabilities with the planner's fixed cloud subsets (seed 0); batches
+    padded to ``batch`` goals, so one compiled shape."""
+    probs = approach.jitted_probabilities(config)
     result = np.zeros((len(rows), len(approach.DIRECTIONS)), np.float32)
-    where = {r: i for i, r in enumerate(rows)}
-    for sel, pr in out:
-        result[[where[r] for r in sel]] = pr
+    for p in np.unique(data.pair[rows]):
+        obj = collision.subsample_cloud(data.object_points[p], config.local_from)
+        sup = collision.subsample_cloud(data.support_points[p], config.local_from)
+        at = np.flatnonzero(data.pair[rows] == p)
+        for k in range(0, len(at), batch):
+            idx = at[k : k + batch]
+            goals = data.goals[rows[idx]]
+            goals = np.concatenate([goals, np.repeat(goals[-1:], batch - len(idx), axis=0)])
+            result[idx] = np.asarray(probs(params, obj, sup, goals))[: len(idx)]
     return result
 
 
@@ -311,7 +298,7 @@ def main(argv=None) -> dict:
         only=lambda i: i % eval_paths.VAL_EVERY != 0,
     )["train"]  # fmt: skip
     labels = label_pairs(args.data, files, args.length, config.resolution, args.workers, progress)
-    data = ApproachData(files, labels)
+    data = ApproachData.from_files(files, labels)
     is_val = object_split(data.object_names, args.val_mod)
     train_set = data.subset(np.flatnonzero(~is_val))
     val_set = data.subset(np.flatnonzero(is_val)) if is_val.any() else None
@@ -338,7 +325,7 @@ def main(argv=None) -> dict:
             args.data, {"test": args.test_pairs}, args.workers, progress, shuffle_seed=0,
             only=records.__contains__,
         )["test"]  # fmt: skip
-        test = ApproachData(test_files, label_pairs(args.data, test_files, args.length,
+        test = ApproachData.from_files(test_files, label_pairs(args.data, test_files, args.length,
                                                     config.resolution, args.workers, progress))  # fmt: skip
         every = np.arange(len(test.goals))
         prob = score_rows(config, params, test, every)

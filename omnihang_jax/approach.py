@@ -21,7 +21,7 @@ Labels are geometry, not physics: :func:`approach_labels` runs ``planner.free_re
 from __future__ import annotations
 
 import dataclasses
-import json
+import functools
 import os
 from collections.abc import Callable
 
@@ -132,6 +132,12 @@ def approach_probabilities(config: ApproachConfig) -> Callable:
     return probabilities
 
 
+@functools.lru_cache(maxsize=8)
+def jitted_probabilities(config: ApproachConfig) -> Callable:
+    """:func:`approach_probabilities`, jitted once per config (the config is hashable)."""
+    return jax.jit(approach_probabilities(config))
+
+
 class ApproachPredictor:
     """A planner's view of a trained network: ``order(object_cloud, support_cloud, goal)`` ->
     (directions [K, 3] best first, their probabilities [K]); the clouds are the partial clouds
@@ -140,7 +146,7 @@ class ApproachPredictor:
 
     def __init__(self, config: ApproachConfig, params):
         self.config, self.params = config, params
-        self._probabilities = jax.jit(approach_probabilities(config))
+        self._probabilities = jitted_probabilities(config)
 
     def probabilities(self, object_cloud, support_cloud, goal) -> np.ndarray:
         obj = np.asarray(object_cloud, np.float32)
@@ -152,6 +158,10 @@ class ApproachPredictor:
         obj = collision.subsample_cloud(obj, self.config.local_from)
         sup = collision.subsample_cloud(sup, self.config.local_from)
         return np.asarray(self._probabilities(self.params, obj, sup, goal[None]))[0]
+
+    def warm_up(self) -> None:
+        """Compile outside a planner's clock (the fixed subset makes every call one shape)."""
+        self.probabilities(np.zeros((8, 3)), np.ones((8, 3)), np.r_[0, 0, 0, 1, 0, 0, 0.0])
 
     def order(self, object_cloud, support_cloud, goal) -> tuple[np.ndarray, np.ndarray]:
         p = self.probabilities(object_cloud, support_cloud, goal)
@@ -166,23 +176,8 @@ def save(folder: str | os.PathLike, config: ApproachConfig, params, **extra) -> 
 
 def load(folder: str | os.PathLike) -> tuple[ApproachConfig, object, dict]:
     """(config, params, meta) of a folder written by :func:`save`."""
-    import flax
-
-    path = os.path.join(folder, "config.json")
-    if not os.path.exists(path):
-        raise FileNotFoundError(
-            f"{path} not found: train it first (`python -m experiments.train_approach`)"
-        )
-    with open(path) as f:
-        meta = json.load(f)
-    if meta.get("kind") != "ApproachConfig":
-        raise ValueError(f"{path}: not an approach network ({meta.get('kind')!r})")
-    raw = dict(meta["config"], head=tuple(meta["config"]["head"]))
-    config = ApproachConfig(**raw)
-    target = make_approach_net(config).init(jax.random.key(0))
-    with open(os.path.join(folder, collision.WEIGHTS_FILE), "rb") as f:
-        params = flax.serialization.from_bytes(target, f.read())
-    return config, params, meta
+    kinds = {"ApproachConfig": (ApproachConfig, make_approach_net)}
+    return collision.load_estimator(folder, kinds, trainer="experiments.train_approach")
 
 
 def approach_labels(scene, goals: np.ndarray, length: float = 0.045,

@@ -841,19 +841,21 @@ def save_estimator(folder: str | os.PathLike, config, params, **extra) -> None:
         json.dump(meta, f, indent=2)
 
 
-def load_estimator(folder: str | os.PathLike):
-    """(config, params, meta) of a folder written by :func:`save_estimator`."""
+def load_estimator(folder: str | os.PathLike, kinds: dict | None = None,
+                   trainer: str = "experiments.train_collision"):  # fmt: skip
+    """(config, params, meta) of a folder written by :func:`save_estimator`. ``kinds``: config
+    class name -> (config class, network factory), the collision estimators' by default;
+    ``trainer``: the module named when the folder is missing."""
     path = os.path.join(folder, "config.json")
     if not os.path.exists(path):
-        raise FileNotFoundError(
-            f"{path} not found: train it first (`python -m experiments.train_collision`)"
-        )
+        raise FileNotFoundError(f"{path} not found: train it first (`python -m {trainer}`)")
     with open(path) as f:
         meta = json.load(f)
-    kinds = {
-        "NCEConfig": (NCEConfig, make_nce),
-        "NormalNetConfig": (NormalNetConfig, make_normal_net),
-    }
+    if kinds is None:
+        kinds = {
+            "NCEConfig": (NCEConfig, make_nce),
+            "NormalNetConfig": (NormalNetConfig, make_normal_net),
+        }
     if meta.get("kind") not in kinds:
         raise ValueError(f"{path}: unknown estimator kind {meta.get('kind')!r}")
     cls, factory = kinds[meta["kind"]]

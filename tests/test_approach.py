@@ -11,28 +11,13 @@ pytest.importorskip("ompl")
 from omnihang_jax import approach, planner  # noqa: E402
 
 
-def _ring_on_rod():
-    from sim import geometry, proposals
-    from sim.assets import objects, supports  # noqa: F401  (registers the generators)
-    from sim.assets.base import Asset, HangLoop, build_support
-    from sim.scene import build_scene
-
-    parts = geometry.ring([0, 0, 0], [0, 0, 1], 0.03, 0.004, 12)
-    free_r = 0.03 * np.cos(np.pi / 12) - 0.004
-    ring = Asset("ring", "object", "others", 0, parts, [HangLoop(np.zeros(3), np.array([0, 0, 1.0]), free_r)], {})  # fmt: skip
-    hook = build_support("single_rod_hook", 0)
-    loop, peg = ring.features[0], hook.features[0]
-    exact = proposals.ProposalConfig(jitter_angle=0.0, jitter_position=0.0)
-    lo, hi, _ = proposals._peg_range(ring, loop, peg, 1.0, exact)
-    goal = proposals.thread_pose(ring, loop, peg, 0.5 * (lo + hi), 1.0, exact)
-    return build_scene(ring, hook), goal, peg
-
-
 def test_a_ring_on_a_rod_comes_off_along_the_rod_not_straight_up():
     """The labels are the full meshes' word: a ring threaded on a rod cannot be lifted 4.5 cm
     straight up (the rod goes through it), but slides off along the rod towards its tip; the
     first free direction in the planner's order is the one find_retreat takes."""
-    scene, goal, peg = _ring_on_rod()
+    from tests.test_planner import ring_on_rod
+
+    scene, goal, peg = ring_on_rod()
     labels = approach.approach_labels(scene, goal[None])[0]
     assert labels.shape == (26,)
     up = np.flatnonzero(np.all(np.isclose(approach.DIRECTIONS, [0, 0, 1]), axis=1))[0]
@@ -80,7 +65,9 @@ def _plate_data(n_pairs: int, rng):
         names.append(f"plate_{i}")
     from experiments.train_approach import ApproachData
 
-    return ApproachData.from_arrays(obj, sup, pair, goals, labels, names)
+    return ApproachData(np.stack(obj).astype(np.float32), np.stack(sup).astype(np.float32),
+                        np.array(pair, np.int32), np.array(goals, np.float32), np.array(labels),
+                        names)  # fmt: skip
 
 
 def test_the_approach_network_learns_which_side_is_blocked():

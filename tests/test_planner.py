@@ -78,7 +78,9 @@ def test_straight_path_through_the_support_is_rejected_by_the_mesh_check():
     assert planner.dense_check(mesh, np.stack([front, aside]), 0.002, weight)[0]
 
 
-def test_mesh_planner_threads_a_ring_onto_a_hook():
+def ring_on_rod():
+    """(scene, goal, peg): a 3-cm ring threaded exactly half way along a single-rod hook
+    (also tests/test_approach.py)."""
     parts = geometry.ring([0, 0, 0], [0, 0, 1], 0.03, 0.004, 12)
     free_r = 0.03 * np.cos(np.pi / 12) - 0.004
     ring = Asset("ring", "object", "others", 0, parts, [HangLoop(np.zeros(3), np.array([0, 0, 1.0]), free_r)], {})  # fmt: skip
@@ -87,7 +89,11 @@ def test_mesh_planner_threads_a_ring_onto_a_hook():
     exact = proposals.ProposalConfig(jitter_angle=0.0, jitter_position=0.0)
     lo, hi, _ = proposals._peg_range(ring, loop, peg, 1.0, exact)
     goal = proposals.thread_pose(ring, loop, peg, 0.5 * (lo + hi), 1.0, exact)
-    scene = build_scene(ring, hook)
+    return build_scene(ring, hook), goal, peg
+
+
+def test_mesh_planner_threads_a_ring_onto_a_hook():
+    scene, goal, _ = ring_on_rod()
     mesh = planner.MeshChecker(scene)
     assert not mesh(goal[None])[0], "the threaded pose is free of penetration"
     start = planner.start_pose(scene, goal)
