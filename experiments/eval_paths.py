@@ -266,6 +266,10 @@ class Estimators(NamedTuple):
     # behind the object, between it and the wall, is a narrow place to plan to (device, OMPL
     # seed 3: the 10 pairs whose best direction was -y planned no free path, 9 timed out)
     approach_open_side: bool = False
+    # thirty-sixth session: the replan after a time-out with the same approach ("same") or the
+    # plain plan ("plain"): a time-out with an approach may mean its pre-goal is out of reach
+    # (seed 1, open side: 8 time-outs used an approach, the plain plan had 2 of them free)
+    approach_replan: str = "same"
 
 
 def with_fallback(est: Estimators, far_threshold: float, seconds: float) -> Estimators:
@@ -814,15 +818,20 @@ def evaluate_pair(
         fallback = None
         if res.path is None and name in fallbacks:  # the second plan, laxer far from the goal
             lax_check = fallbacks[name]
-            second, _ = planner.plan_with_retreat(
+            used = ranked is not None and len(directions) > 0  # an approach was planned to
+            plain = used and est.approach_replan == "plain"
+            second, second_retreat = planner.plan_with_retreat(
                 lax_check, start, goal, bounds, weight,
                 dataclasses.replace(config, time_limit=est.fallback_time, retreat_after=0.0),
                 retreat_checker=retreat_checker,
-                retreat_directions=directions,
+                retreat_directions=directions[:0] if plain else directions,
             )  # fmt: skip
             fallback = dict(far_threshold=est.fallback_far_threshold, status=second.status,
                             planning_s=round(second.planning_s, 3),
                             returned=second.path is not None)  # fmt: skip
+            if used:
+                fallback["approach"] = "plain" if plain else "same"
+                retreat = second_retreat  # the path's end is the second plan's
             res = second._replace(
                 planning_s=res.planning_s + second.planning_s,
                 states_checked=res.states_checked + second.states_checked,
@@ -1226,6 +1235,12 @@ def main(argv=None) -> dict:
         "best first and takes the first the method's checker calls free",
     )  # fmt: skip
     parser.add_argument(
+        "--approach-replan", choices=("same", "plain"), default="same",
+        help="with --approach and --fallback-far-threshold: the replan after a time-out keeps "
+        "the approach ('same') or plans plainly to the goal ('plain': the approach's pre-goal "
+        "may be what was out of reach)",
+    )  # fmt: skip
+    parser.add_argument(
         "--retreat-after", type=float, default=0.0, metavar="S",
         help="with --retreat: the plain plan first for S seconds, the retreat only when it "
         "finds no path (PlannerConfig.retreat_after; 0: the retreat first)",
@@ -1476,7 +1491,8 @@ def main(argv=None) -> dict:
         predictor = approach.ApproachPredictor(a_cfg, a_params)
         predictor.warm_up()  # compiled outside the planning clock
         est = est._replace(approach=predictor, approach_check=args.approach_check,
-                           approach_open_side=args.approach_open_side)  # fmt: skip
+                           approach_open_side=args.approach_open_side,
+                           approach_replan=args.approach_replan)  # fmt: skip
     if args.far_nce:
         far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
         if args.far_nce_threshold is not None:
@@ -1573,6 +1589,7 @@ def main(argv=None) -> dict:
             threshold=est.approach.config.threshold,
             check=est.approach_check,
             open_side=est.approach_open_side,
+            replan=est.approach_replan,
         ),  # fmt: skip
         clear_path=None if clearance is None else dataclasses.asdict(clearance),
         goal="first stable pose of each held-out pair"

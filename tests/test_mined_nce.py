@@ -261,3 +261,50 @@ def test_with_fallback_refuses_a_stricter_threshold():
     # the same threshold is a replan with the same checker (thirty-third session)
     same = eval_paths.with_fallback(est._replace(nce_config=collision.NCEConfig()), 0.56, 10.0)
     assert same.fallback_far_threshold == 0.56 and same.fallback_time == 10.0
+
+
+@pytest.mark.parametrize("replan", ["same", "plain"])
+def test_the_replan_after_a_time_out_keeps_or_drops_the_learned_approach(monkeypatch, replan):
+    """Thirty-sixth session: ``eval_paths --approach-replan``. The first plan, to the learned
+    approach's pre-goal, times out; the replan (everything free) either plans to the same
+    pre-goal and ends straight in ('same') or plans plainly to the goal ('plain')."""
+    from types import SimpleNamespace
+
+    from experiments import eval_paths
+    from omnihang_jax import approach
+
+    case, through = _mug_case()
+    case = case._replace(goal=np.array([*through, 1.0, 0, 0, 0]))
+    start = planner.start_pose(case.scene, case.goal)
+    up = approach.DIRECTIONS[0]
+
+    def blocked(poses):
+        p = np.asarray(poses, float).reshape(-1, 7)
+        return np.linalg.norm(p[:, :3] - start[:3], axis=1) > 0.01
+
+    def free(poses):
+        return np.zeros(len(np.asarray(poses).reshape(-1, 7)), bool)
+
+    class Up:  # the approach network: straight up, sure of it
+        config = SimpleNamespace(threshold=0.5)
+
+        def order(self, obj, sup, goal):
+            return approach.DIRECTIONS, np.linspace(0.9, 0.0, len(approach.DIRECTIONS))
+
+    monkeypatch.setattr(eval_paths, "checkers_for", lambda case, est, tol, methods: {
+        "nce_geometric": free if est.nce == "lax" else blocked})  # fmt: skip
+    est = eval_paths.Estimators(*[None] * 8)._replace(
+        nce_fallback="lax", fallback_far_threshold=0.9, fallback_time=2.0, approach=Up(),
+        approach_check="none", approach_replan=replan,
+    )  # fmt: skip
+    config = planner.PlannerConfig(time_limit=0.3, retreat_lengths=(0.045,))
+    (row,), paths = eval_paths.evaluate_pair(case, est, config, ("nce_geometric",))
+    assert row["returned"] and row["fallback"]["approach"] == replan
+    assert row["approach"]["first_tried"] == [0.0, 0.0, 1.0]
+    path = paths["nce_geometric"]
+    np.testing.assert_allclose(path[-1][:3], case.goal[:3], atol=1e-9)
+    if replan == "same":  # the path ends pre-goal (4.5 cm above) -> goal
+        assert row["retreat"]["direction"] == up.round(3).tolist()
+        np.testing.assert_allclose(path[-2][:3], case.goal[:3] + 0.045 * up, atol=1e-6)
+    else:
+        assert row["retreat"] is None

@@ -1,0 +1,121 @@
+"""Which rule should pick the approach direction from the approach network's probabilities
+(issue 13, thirty-sixth session)? A probe on labels only, no planning.
+
+For the validation objects' goals (the training run's whole-object split) and the path
+benchmark's held-out goals, every rule below is scored by how often it *uses* an approach and
+how often a used one is *free* on the full meshes (the planner's straight 4.5-cm segment):
+
+- ``argmax t``: the best direction when its probability reaches t (the thirty-fifth session's);
+- ``order t``: the first direction in the planner's fixed order (upward first, the oracle's
+  order) whose probability reaches t;
+- each with ``open`` (no direction towards a wall-mounted support's wall, ``--approach-open-side``).
+
+    python scripts/probe_approach_rule.py --weights weights/approach_s35 weights/approach_s35_6k \
+        --out results/approach_rule_s36.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from experiments import eval_paths, train_approach, train_collision
+from omnihang_jax import approach
+
+THRESHOLDS = (0.3, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
+
+
+def walls(files: list[Path]) -> np.ndarray:
+    """[P] bool: the pair's support is wall-mounted."""
+    out = []
+    for f in files:
+        with np.load(f) as z:
+            out.append(eval_paths._wall_of(z) is not None)
+    return np.array(out)
+
+
+def choose(prob: np.ndarray, wall: np.ndarray, rule: str, t: float, open_side: bool) -> np.ndarray:
+    """[R] the chosen direction per goal, -1 when none is used."""
+    ok = prob >= t
+    if open_side:
+        ok &= ~(wall[:, None] & (approach.DIRECTIONS[None, :, 1] < -1e-9))
+    if rule == "argmax":
+        masked = np.where(ok, prob, -1.0)
+        best = masked.argmax(1)
+        return np.where(ok.any(1), best, -1)
+    first = ok.argmax(1)  # the fixed order: the first that passes
+    return np.where(ok.any(1), first, -1)
+
+
+def table(prob, labels, wall) -> list[dict]:
+    rows = []
+    for open_side in (False, True):
+        for rule in ("argmax", "order"):
+            for t in THRESHOLDS:
+                c = choose(prob, wall, rule, t, open_side)
+                used = c >= 0
+                free = labels[np.flatnonzero(used), c[used]]
+                rows.append(dict(rule=rule, threshold=t, open_side=open_side,
+                                 used=round(float(used.mean()), 4),
+                                 used_free=round(float(free.mean()), 4) if used.any() else None,
+                                 used_blocked=int((~free).sum()), goals=int(len(c))))  # fmt: skip
+    return rows
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default="datasets/paper")
+    ap.add_argument("--weights", nargs="+", required=True)
+    ap.add_argument("--pairs", type=int, default=1600, help="the training run's pairs")
+    ap.add_argument("--val-mod", type=int, default=7)
+    ap.add_argument("--test-pairs", type=int, default=80)
+    ap.add_argument(
+        "--pairs-from", default="results/hanging_success_stage3_s14_cemv.pairs.jsonl.gz"
+    )
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    files = train_collision.derive_collision_pairs(
+        args.data, {"train": args.pairs}, 1, False, shuffle_seed=0,
+        only=lambda i: i % eval_paths.VAL_EVERY != 0,
+    )["train"]  # fmt: skip
+    labels = train_approach.label_pairs(args.data, files, 0.045, 0.002, 1, False)
+    data = train_approach.ApproachData.from_files(files, labels)
+    is_val = train_approach.object_split(data.object_names, args.val_mod)
+    val_idx = np.flatnonzero(is_val)
+    val = data.subset(val_idx)
+    val_wall = walls([files[i] for i in val_idx])
+    records = eval_paths.read_answers(args.pairs_from)
+    test_files = train_collision.derive_collision_pairs(
+        args.data, {"test": args.test_pairs}, 1, False, shuffle_seed=0, only=records.__contains__,
+    )["test"]  # fmt: skip
+    test = train_approach.ApproachData.from_files(
+        test_files, train_approach.label_pairs(args.data, test_files, 0.045, 0.002, 1, False)
+    )
+    test_wall = walls(test_files)
+    out = dict(val_pairs=len(val_idx), test_pairs=len(test_files), weights={})
+    for w in args.weights:
+        config, params, _ = approach.load(w)
+        res = {}
+        for name, d, wall in (
+            ("validation_first_goal", val, val_wall),
+            ("held_out_first_goal", test, test_wall),
+        ):
+            rows = d.first_row
+            prob = train_approach.score_rows(config, params, d, rows)
+            res[name] = table(prob, d.labels[rows], wall[d.pair[rows]])
+            res[name + "_any_free"] = round(float(d.labels[rows].any(1).mean()), 4)
+        out["weights"][w] = res
+        print(w, flush=True)
+        for v, h in zip(res["validation_first_goal"], res["held_out_first_goal"]):
+            print(f"  {v['rule']:6s} t={v['threshold']:.2f} open={int(v['open_side'])}  val used "
+                  f"{v['used']:.3f} free {v['used_free']}  | held-out used {h['used']:.3f} free "
+                  f"{h['used_free']} blocked {h['used_blocked']}")  # fmt: skip
+    Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
+    return out
+
+
+if __name__ == "__main__":
+    main()
