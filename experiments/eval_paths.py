@@ -73,7 +73,7 @@ from experiments.train_collision import (
     observed_gap,
     record_eyes,
 )
-from omnihang_jax import collision, planner
+from omnihang_jax import approach, collision, planner
 
 METHODS = ("nce", "hce", "hce_true_normals", "mesh")  # the default run
 ALL_METHODS = (*METHODS, "nce_geometric", "geometric")
@@ -732,19 +732,14 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
     return checkers
 
 
-def _never_colliding(poses: np.ndarray) -> np.ndarray:
-    return np.zeros(len(np.asarray(poses).reshape(-1, 7)), bool)
-
-
 def learned_approach(case: PairCase, est: Estimators):
     """(directions [K, 3] to try in order, their checker or None for the method's, a row
     record) from the approach network on the pair's observed clouds: the directions whose
     probability reaches the network's threshold, best first (none: the plain plan)."""
     t0 = time.perf_counter()
     directions, probs = est.approach.order(case.object_points, case.support_points, case.goal)
-    keep = probs >= est.approach.config.threshold
-    if est.approach_open_side and case.wall_y is not None:
-        keep &= directions[:, 1] >= -1e-9
+    keep = approach.usable(directions, probs, est.approach.config.threshold,
+                           case.wall_y is not None, est.approach_open_side)  # fmt: skip
     if est.approach_check == "none":
         keep &= np.cumsum(keep) == 1  # the best one kept only, taken as free
     seconds = time.perf_counter() - t0
@@ -752,7 +747,7 @@ def learned_approach(case: PairCase, est: Estimators):
                   tried=int(keep.sum()), seconds=round(seconds, 4))  # fmt: skip
     if keep.any():
         record["first_tried"] = directions[keep][0].round(3).tolist()
-    checker = _never_colliding if est.approach_check == "none" else None
+    checker = approach.never_colliding if est.approach_check == "none" else None
     return directions[keep], checker, record
 
 
@@ -1483,8 +1478,6 @@ def main(argv=None) -> dict:
     if args.approach:
         if not retreat or args.oracle_retreat:
             parser.error("--approach needs --retreat LENGTHS (and not --oracle-retreat)")
-        from omnihang_jax import approach
-
         a_cfg, a_params, _ = approach.load(args.approach)
         if args.approach_threshold is not None:
             a_cfg = dataclasses.replace(a_cfg, threshold=args.approach_threshold)

@@ -169,6 +169,22 @@ class ApproachPredictor:
         return DIRECTIONS[idx], p[idx]
 
 
+def usable(directions: np.ndarray, probs: np.ndarray, threshold: float, wall_mounted: bool,
+           open_side: bool) -> np.ndarray:  # fmt: skip
+    """[K] bool: the ranked directions a planner may use: probability >= ``threshold`` and,
+    with ``open_side`` on a wall-mounted support, none towards the wall (-y; thirty-fifth
+    session: a pre-goal between the object and the wall is a narrow place to plan to)."""
+    keep = np.asarray(probs) >= threshold
+    if open_side and wall_mounted:
+        keep &= np.asarray(directions)[:, 1] >= -1e-9
+    return keep
+
+
+def never_colliding(poses: np.ndarray) -> np.ndarray:
+    """The approach segment's checker when the network's choice is taken as free."""
+    return np.zeros(len(np.asarray(poses).reshape(-1, 7)), bool)
+
+
 def save(folder: str | os.PathLike, config: ApproachConfig, params, **extra) -> None:
     """``folder/{config.json, params.msgpack}`` (``collision.save_estimator``'s format)."""
     collision.save_estimator(folder, config, params, **extra)

@@ -935,6 +935,18 @@ HYBRID = dict(
     # the same checker (a fresh RRT-Connect search). Paired over five runs of the 80 held-out
     # pairs: +2.0 to +4.4 F1, precision level (docs/paths.md "A replan after a time-out")
     replan=True,
+    # thirty-sixth session: the path ends with a straight 4.5-cm approach into the hang when the
+    # approach network (omnihang_jax.approach, on the observed clouds) is sure enough of one
+    # (probability >= threshold, chosen on the validation objects' labels), never towards the
+    # wall of a wall-mounted support; a replan after a time-out plans plainly to the goal.
+    # None: off (docs/paths.md "The approach rule chosen on validation")
+    approach=dict(
+        weights="weights/approach_s35_6k",
+        threshold=0.7,
+        length=0.045,
+        open_side=True,
+        replan="plain",
+    ),
 )
 
 FAR_TEST_POINTS = 1024  # observed object points (and as many predicted) in the far test
@@ -983,6 +995,31 @@ def hybrid_settings(nce_folder) -> tuple[Any, str]:
     )
 
 
+def hybrid_approach() -> tuple[Any, str]:
+    """(approach.ApproachPredictor or None, why) of :data:`HYBRID`'s approach network."""
+    settings = HYBRID.get("approach")
+    if not settings:
+        return None, "no approach network (HYBRID['approach'] is off)"
+    folder = Path(settings["weights"])
+    if not (folder / "config.json").exists():
+        return None, f"{folder} missing: no learned approach"
+    return _approach(str(folder.resolve()), float(settings["threshold"])), (
+        f"a straight {settings['length'] * 100:g}-cm approach into the hang when the approach "
+        f"network {settings['weights']} gives it p >= {settings['threshold']:g}"
+    )
+
+
+@functools.lru_cache(maxsize=2)
+def _approach(folder: str, threshold: float):
+    """The approach network of ``folder`` at ``threshold``, compiled, once per process."""
+    from omnihang_jax import approach
+
+    cfg, params, _ = approach.load(folder)
+    predictor = approach.ApproachPredictor(dataclasses.replace(cfg, threshold=threshold), params)
+    predictor.warm_up()
+    return predictor
+
+
 def find_collision_weights() -> Path | None:
     """The first trained neural collision estimator (``<folder>/nce/config.json``) among
     COLLISION_WEIGHTS, then any ``weights/collision_*``; None when there is none yet.
@@ -1004,7 +1041,7 @@ class _CloudGeometry(NamedTuple):
 
 def planner_how(
     time_limit: float = 20.0, path_step: float = 0.01, checker: str = "auto",
-    replan_s: float | None = None,
+    replan_s: float | None = None, free_standing: bool = False,
 ):  # fmt: skip
     """(how, description) of the OMPL RRT-Connect planner (``omnihang_jax.planner``), or
     (None, reason). The checker is the neural collision estimator on the observed clouds when
@@ -1016,20 +1053,24 @@ def planner_how(
     are there: the observed-cloud test OR the NCE, lenient near the goal), "mesh" (the full
     meshes only) or "nce" (the estimator alone, no fallback). When the hybrid's plan times
     out, it plans once more for ``replan_s`` seconds (None: ``time_limit`` when
-    ``HYBRID["replan"]``, else no; 0: no)."""
+    ``HYBRID["replan"]``, else no; 0: no). With the hybrid and ``HYBRID["approach"]``, the
+    plan goes to a pre-goal 4.5 cm back along the approach network's direction and ends
+    straight in (``free_standing``: the support stands on the floor, so no wall side to avoid
+    when there is no scene to say so)."""
     if replan_s is None:
         replan_s = time_limit if HYBRID["replan"] else 0.0
     replan = float(replan_s)
     if checker not in ("auto", "mesh", "nce"):
         raise ValueError(f"checker must be 'auto', 'mesh' or 'nce', got {checker!r}")
     try:
-        from omnihang_jax import planner
+        from omnihang_jax import approach, planner
     except Exception as exc:  # ompl missing or the module broken: say so, do not fail
         return None, f"omnihang_jax.planner not importable ({type(exc).__name__}: {exc})"
     weights = None if checker == "mesh" else find_collision_weights()
     if checker == "nce" and weights is None:
         return None, "no trained neural collision estimator (weights/collision_*/nce)"
     hybrid, hybrid_why = (None, "") if checker != "auto" else hybrid_settings(weights)
+    approach_net, approach_why = (None, "") if hybrid is None else hybrid_approach()
 
     def how(scene, obj: Body, sup: Body, pose: np.ndarray) -> PathPlan | None:
 
@@ -1043,10 +1084,17 @@ def planner_how(
         radius = planner.object_radius(geometry)
         config = planner.PlannerConfig(time_limit=time_limit)
 
-        def attempt(checker, name, seconds=None):
+        def attempt(checker, name, seconds=None, approach_to=None):
             limits = config if seconds is None else dataclasses.replace(config, time_limit=seconds)
             with _captured_stderr() as log:  # OMPL's C++ warnings: kept in info, not shown
-                res = planner.plan(checker, start, pose, bounds, radius, limits)
+                if approach_to is None:
+                    res, retreat = planner.plan(checker, start, pose, bounds, radius, limits), None
+                else:  # to the pre-goal, then straight in (the network's choice taken as free)
+                    res, retreat = planner.plan_with_retreat(
+                        checker, start, pose, bounds, radius,
+                        dataclasses.replace(limits, retreat_lengths=(HYBRID["approach"]["length"],)),
+                        retreat_checker=approach.never_colliding, retreat_directions=approach_to,
+                    )  # fmt: skip
             info = dict(
                 checker=name,
                 status=res.status,
@@ -1054,6 +1102,8 @@ def planner_how(
                 states_checked=res.states_checked,
                 start_xyz_wxyz=[float(x) for x in start],
             )
+            if retreat is not None:
+                info["approach_direction"] = [float(x) for x in retreat.direction]
             if log.text.strip():
                 info["ompl_log"] = log.text.strip().splitlines()[:20]
             return res.path, info
@@ -1080,7 +1130,24 @@ def planner_how(
                 )
                 name = f"the neural collision estimator {weights}"
             nce_checker.warm_up(128)
-            path, info = attempt(nce_checker, name)
+            approach_to, approach_info = None, None
+            if approach_net is not None:
+                t0 = time.perf_counter()
+                directions, probs = approach_net.order(obj.points, sup.points, pose)
+                wall = (
+                    (scene.support.wall_y is not None) if scene is not None else not free_standing
+                )
+                keep = approach.usable(directions, probs, approach_net.config.threshold, wall,
+                                       HYBRID["approach"]["open_side"])  # fmt: skip
+                approach_info = dict(
+                    network=approach_why, best=[float(x) for x in directions[0]],
+                    best_p=float(probs[0]), used=bool(keep.any()),
+                    seconds=round(time.perf_counter() - t0, 4),
+                )  # fmt: skip
+                if keep.any():
+                    approach_to = directions[keep][:1]
+                    approach_info["p"] = float(probs[keep][0])
+            path, info = attempt(nce_checker, name, approach_to=approach_to)
             if (
                 path is None
                 and hybrid is not None
@@ -1088,8 +1155,15 @@ def planner_how(
                 and planner.timed_out(info["status"])
             ):
                 first = info  # a time-out (not an invalid start or goal): one fresh search
-                path, info = attempt(nce_checker, name, replan)
+                again = (
+                    None
+                    if HYBRID["approach"] and HYBRID["approach"]["replan"] == "plain"
+                    else approach_to
+                )
+                path, info = attempt(nce_checker, name, replan, approach_to=again)
                 info = dict(info, replanned_after=first)
+            if approach_info is not None:
+                info["approach"] = approach_info
             if hybrid is not None:
                 info["completion"] = far_info
             if path is not None and hybrid is not None:
@@ -1135,8 +1209,9 @@ def planner_how(
         return how, "OMPL RRT-Connect, full-mesh checker (no trained collision estimator yet)"
     if hybrid is not None:
         return how, (
-            f"OMPL RRT-Connect, hybrid checker: {hybrid_why}, NCE {weights} (the full meshes "
-            f"when it finds no path and meshes are known)"
+            f"OMPL RRT-Connect, hybrid checker: {hybrid_why}, NCE {weights}"
+            + (f"; {approach_why}" if approach_net is not None else "")
+            + " (the full meshes when it finds no path and meshes are known)"
         )
     return how, (
         f"OMPL RRT-Connect, neural collision estimator {weights} (the full meshes when it "
@@ -1482,7 +1557,10 @@ def hang(
     if config.plan:
         if how is None:
             how, reason = planner_how(
-                config.plan_time, checker=config.checker, replan_s=config.replan_time
+                config.plan_time,
+                checker=config.checker,
+                replan_s=config.replan_time,
+                free_standing=config.free_standing,
             )
         else:
             reason = f"user function {getattr(how, '__name__', repr(how))}"

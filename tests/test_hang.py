@@ -390,6 +390,7 @@ def test_hang_replans_once_after_the_hybrids_time_out(monkeypatch, replan_s, exp
     from omnihang_jax import planner
 
     monkeypatch.setitem(H.HYBRID, "replan", True)
+    monkeypatch.setitem(H.HYBRID, "approach", None)  # the plain plan (the next test has it)
 
     if H.find_collision_weights() != Path(H.HYBRID["weights"]) / "nce":
         pytest.skip("the hybrid's NCE is not committed")
@@ -425,3 +426,55 @@ def test_hang_replans_once_after_the_hybrids_time_out(monkeypatch, replan_s, exp
     )  # fmt: skip
     how(None, body("object", obj), body("support", sup), pose)
     assert limits == [5.0]  # an invalid goal is not replanned
+
+
+@pytest.mark.parametrize("free_standing", [False, True])
+def test_hang_plans_to_the_approach_networks_pre_goal_then_plainly(monkeypatch, free_standing):
+    """Thirty-sixth session: with ``HYBRID["approach"]`` the first plan goes to the pre-goal
+    4.5 cm back along the network's best usable direction (never towards a wall-mounted
+    support's wall), the replan after its time-out plainly to the goal."""
+    from types import SimpleNamespace
+
+    from omnihang_jax import approach, planner
+
+    if H.find_collision_weights() != Path(H.HYBRID["weights"]) / "nce":
+        pytest.skip("the hybrid's NCE is not committed")
+    monkeypatch.setitem(H.HYBRID, "replan", True)
+    monkeypatch.setitem(H.HYBRID, "approach", dict(weights="unused", threshold=0.7,
+                                                  length=0.045, open_side=True, replan="plain"))  # fmt: skip
+    towards_wall, up = approach.DIRECTIONS[10], approach.DIRECTIONS[0]  # (0, -1, 0), (0, 0, 1)
+
+    class Net:  # sure of the wall side first, then straight up
+        config = SimpleNamespace(threshold=0.7)
+
+        def order(self, obj, sup, goal):
+            return np.stack([towards_wall, up, approach.DIRECTIONS[1]]), np.array([0.95, 0.8, 0.1])
+
+    monkeypatch.setattr(H, "hybrid_approach", lambda: (Net(), "the test's approach network"))
+    goals = []
+
+    def fake_plan(checker, start, goal, bounds, weight, config):
+        goals.append(np.asarray(goal, float).copy())
+        return planner.PlanResult(None, "Timeout", config.time_limit, 0, 0)
+
+    monkeypatch.setattr(planner, "plan", fake_plan)
+    rng = np.random.default_rng(0)
+    obj = rng.normal(0, 0.03, (2048, 3)).astype(np.float32)
+    sup = (rng.normal(0, 0.03, (2048, 3)) + [0, 0.2, 0]).astype(np.float32)
+
+    def body(kind, pts):
+        normals = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+        return H.Body(kind, kind, "cloud", None, pts, normals, None, None, {})
+
+    how, text = H.planner_how(2.0, replan_s=1.0, free_standing=free_standing)
+    assert "approach" in text, text
+    pose = np.array([0, 0.2, 0.1, 1, 0, 0, 0], float)
+    plan = how(None, body("object", obj), body("support", sup), pose)
+    assert len(plan.poses) == 0 and len(goals) == 2
+    chosen = towards_wall if free_standing else up
+    np.testing.assert_allclose(goals[0][:3], pose[:3] + 0.045 * chosen, atol=1e-9)
+    np.testing.assert_allclose(goals[1], pose)  # the replan: plainly to the goal
+    assert plan.info["approach"]["used"] and plan.info["approach"]["p"] == (
+        0.95 if free_standing else 0.8
+    )
+    assert plan.info["replanned_after"]["approach_direction"] == chosen.tolist()
