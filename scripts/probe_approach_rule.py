@@ -38,10 +38,10 @@ def walls(files: list[Path]) -> np.ndarray:
 
 
 def choose(prob: np.ndarray, wall: np.ndarray, rule: str, t: float, open_side: bool) -> np.ndarray:
-    """[R] the chosen direction per goal, -1 when none is used."""
-    ok = prob >= t
-    if open_side:
-        ok &= ~(wall[:, None] & (approach.DIRECTIONS[None, :, 1] < -1e-9))
+    """[R] the chosen direction per goal (``prob`` [R, 26] in ``approach.DIRECTIONS`` order),
+    -1 when none is used; what may be used is the planner's own rule (``approach.usable``)."""
+    ok = np.stack([approach.usable(approach.DIRECTIONS, p, t, w, open_side)
+                   for p, w in zip(prob, wall)])  # fmt: skip
     if rule == "argmax":
         masked = np.where(ok, prob, -1.0)
         best = masked.argmax(1)

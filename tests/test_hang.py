@@ -380,6 +380,19 @@ def test_hang_refuses_an_unknown_checker(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def _cloud_bodies():
+    """A made-up object cloud and a support cloud 20 cm in front of it (Bodies, no meshes)."""
+    rng = np.random.default_rng(0)
+    obj = rng.normal(0, 0.03, (2048, 3)).astype(np.float32)
+    sup = (rng.normal(0, 0.03, (2048, 3)) + [0, 0.2, 0]).astype(np.float32)
+
+    def body(kind, pts):
+        normals = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+        return H.Body(kind, kind, "cloud", None, pts, normals, None, None, {})
+
+    return body("object", obj), body("support", sup)
+
+
 @pytest.mark.parametrize(
     "replan_s, expected", [(0.0, [5.0]), (2.0, [5.0, 2.0]), (None, [5.0, 5.0])]
 )
@@ -401,18 +414,12 @@ def test_hang_replans_once_after_the_hybrids_time_out(monkeypatch, replan_s, exp
         return planner.PlanResult(None, "Timeout", config.time_limit, 0, 0)
 
     monkeypatch.setattr(planner, "plan", fake_plan)
-    rng = np.random.default_rng(0)
-    obj = rng.normal(0, 0.03, (2048, 3)).astype(np.float32)
-    sup = (rng.normal(0, 0.03, (2048, 3)) + [0, 0.2, 0]).astype(np.float32)
-
-    def body(kind, pts):
-        normals = pts / np.linalg.norm(pts, axis=1, keepdims=True)
-        return H.Body(kind, kind, "cloud", None, pts, normals, None, None, {})
+    obj, sup = _cloud_bodies()
 
     how, text = H.planner_how(5.0, replan_s=replan_s)
     assert "hybrid" in text, text
     pose = np.array([0, 0.2, 0.1, 1, 0, 0, 0], float)
-    plan = how(None, body("object", obj), body("support", sup), pose)
+    plan = how(None, obj, sup, pose)
     assert len(plan.poses) == 0
     assert limits == expected
     if len(expected) == 2:
@@ -424,7 +431,7 @@ def test_hang_replans_once_after_the_hybrids_time_out(monkeypatch, replan_s, exp
         planner, "plan",
         lambda *a: limits.append(a[-1].time_limit) or planner.PlanResult(None, "Invalid goal state", 0.0, 0, 0),
     )  # fmt: skip
-    how(None, body("object", obj), body("support", sup), pose)
+    how(None, obj, sup, pose)
     assert limits == [5.0]  # an invalid goal is not replanned
 
 
@@ -458,18 +465,12 @@ def test_hang_plans_to_the_approach_networks_pre_goal_then_plainly(monkeypatch, 
         return planner.PlanResult(None, "Timeout", config.time_limit, 0, 0)
 
     monkeypatch.setattr(planner, "plan", fake_plan)
-    rng = np.random.default_rng(0)
-    obj = rng.normal(0, 0.03, (2048, 3)).astype(np.float32)
-    sup = (rng.normal(0, 0.03, (2048, 3)) + [0, 0.2, 0]).astype(np.float32)
-
-    def body(kind, pts):
-        normals = pts / np.linalg.norm(pts, axis=1, keepdims=True)
-        return H.Body(kind, kind, "cloud", None, pts, normals, None, None, {})
+    obj, sup = _cloud_bodies()
 
     how, text = H.planner_how(2.0, replan_s=1.0, free_standing=free_standing)
     assert "approach" in text, text
     pose = np.array([0, 0.2, 0.1, 1, 0, 0, 0], float)
-    plan = how(None, body("object", obj), body("support", sup), pose)
+    plan = how(None, obj, sup, pose)
     assert len(plan.poses) == 0 and len(goals) == 2
     chosen = towards_wall if free_standing else up
     np.testing.assert_allclose(goals[0][:3], pose[:3] + 0.045 * chosen, atol=1e-9)
