@@ -939,10 +939,12 @@ HYBRID = dict(
     # approach network (omnihang_jax.approach, on the observed clouds) is sure enough of one
     # (probability >= threshold, chosen on the validation objects' labels), never towards the
     # wall of a wall-mounted support; a replan after a time-out plans plainly to the goal.
-    # None: off (docs/paths.md "The approach rule chosen on validation")
+    # None: off (docs/paths.md "The approach rule chosen on validation"). Thirty-seventh
+    # session: the network trained on 8,000 pairs, its threshold chosen by the same rule
+    # (docs/paths.md "More approach data")
     approach=dict(
-        weights="weights/approach_s35_6k",
-        threshold=0.7,
+        weights="weights/approach_s37_8k",
+        threshold=0.8,
         length=0.045,
         open_side=True,
         replan="plain",

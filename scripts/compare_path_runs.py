@@ -32,13 +32,31 @@ def figures(outcomes: list[str]) -> dict:
                 precision=round(p, 1), recall=round(r, 1), f1=round(f, 1))  # fmt: skip
 
 
+def approach_used(row: dict):
+    """The learned approach's direction the first plan used (a tuple), or None (plain plan)."""
+    first = (row.get("approach") or {}).get("first_tried")
+    return None if first is None else tuple(first)
+
+
 def compare(runs: dict[str, dict[str, dict]]) -> dict:
-    """``runs``: name -> {pair: row}. Figures of each on the pairs every run has."""
+    """``runs``: name -> {pair: row}. Figures of each on the pairs every run has, and the same
+    split by ``approach_decision``: ``same`` where every run's first plan made the same
+    approach decision (the same direction, or none), ``differ`` where they did not (thirty-
+    seventh session: with a fixed OMPL seed a device run repeats exactly, so a paired
+    difference between two approach rules comes from the ``differ`` pairs)."""
     common = sorted(set.intersection(*(set(rows) for rows in runs.values())))
     out = {name: figures([outcome(rows[p]) for p in common]) for name, rows in runs.items()}
     kinds = [[outcome(rows[p]) for rows in runs.values()] for p in common]
+    split = {}
+    for key in ("same", "differ"):
+        pairs = [p for p in common
+                 if (len({approach_used(rows[p]) for rows in runs.values()}) == 1) == (key == "same")]  # fmt: skip
+        split[key] = {
+            name: figures([outcome(rows[p]) for p in pairs]) for name, rows in runs.items()
+        }
     return dict(common_pairs=len(common), runs=out,
-                pairs_differing=sum(len(set(k)) > 1 for k in kinds))  # fmt: skip
+                pairs_differing=sum(len(set(k)) > 1 for k in kinds),
+                approach_decision=split)  # fmt: skip
 
 
 def main(argv=None) -> dict:

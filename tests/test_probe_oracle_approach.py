@@ -54,3 +54,25 @@ def test_runs_are_compared_on_the_pairs_all_of_them_planned():
     assert out["runs"]["a"] == dict(pairs=2, returned=2, collision_free=1, precision=50.0,
                                     recall=50.0, f1=50.0)  # fmt: skip
     assert out["runs"]["b"]["f1"] == 100.0
+    # no approach anywhere: every common pair is a "same decision" pair
+    assert out["approach_decision"]["same"]["a"]["pairs"] == 2
+    assert out["approach_decision"]["differ"]["a"]["pairs"] == 0
+
+
+def test_runs_are_split_by_their_approach_decision():
+    spec = importlib.util.spec_from_file_location(
+        "compare_path_runs", Path(__file__).resolve().parents[1] / "scripts/compare_path_runs.py"
+    )
+    cmp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cmp)
+    up, front = {"first_tried": [0.0, 0.0, 1.0]}, {"first_tried": [0.0, 1.0, 0.0]}
+    a = {"p0": dict(returned=True, collision_free=True, approach=up),
+         "p1": dict(returned=True, collision_free=True, approach=front),
+         "p2": dict(returned=False, collision_free=False, approach={"best_p": 0.3})}  # fmt: skip
+    b = {"p0": dict(returned=True, collision_free=True, approach=up),
+         "p1": dict(returned=True, collision_free=False, approach=up),
+         "p2": dict(returned=True, collision_free=False, approach=None)}  # fmt: skip
+    out = cmp.compare({"a": a, "b": b})["approach_decision"]
+    assert out["same"]["a"]["pairs"] == 2 and out["differ"]["a"]["pairs"] == 1  # p1 differs
+    assert out["differ"]["a"]["collision_free"] == 1 and out["differ"]["b"]["collision_free"] == 0
+    assert out["same"]["b"]["returned"] == 2 and out["same"]["a"]["returned"] == 1
