@@ -42,18 +42,17 @@ def compare(runs: dict[str, dict[str, dict]]) -> dict:
     """``runs``: name -> {pair: row}. Figures of each on the pairs every run has, and the same
     split by ``approach_decision``: ``same`` where every run's first plan made the same
     approach decision (the same direction, or none), ``differ`` where they did not (thirty-
-    seventh session: with a fixed OMPL seed a device run repeats exactly, so a paired
-    difference between two approach rules comes from the ``differ`` pairs)."""
+    seventh session: runs of one OMPL seed nearly repeat, so a paired difference between two
+    approach rules comes almost all from the ``differ`` pairs)."""
     common = sorted(set.intersection(*(set(rows) for rows in runs.values())))
     out = {name: figures([outcome(rows[p]) for p in common]) for name, rows in runs.items()}
     kinds = [[outcome(rows[p]) for rows in runs.values()] for p in common]
-    split = {}
-    for key in ("same", "differ"):
-        pairs = [p for p in common
-                 if (len({approach_used(rows[p]) for rows in runs.values()}) == 1) == (key == "same")]  # fmt: skip
-        split[key] = {
-            name: figures([outcome(rows[p]) for p in pairs]) for name, rows in runs.items()
-        }
+    same = {p for p in common if len({approach_used(rows[p]) for rows in runs.values()}) == 1}
+    split = {
+        key: {name: figures([outcome(rows[p]) for p in common if (p in same) == (key == "same")])
+              for name, rows in runs.items()}
+        for key in ("same", "differ")
+    }  # fmt: skip
     return dict(common_pairs=len(common), runs=out,
                 pairs_differing=sum(len(set(k)) > 1 for k in kinds),
                 approach_decision=split)  # fmt: skip
