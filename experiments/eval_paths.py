@@ -461,6 +461,20 @@ def hce_goal_pass_thresholds(
     return out
 
 
+def only_pairs(cases: list, path: str | Path) -> list:
+    """The ``cases`` named in ``path`` (pair names one per line, or a JSON list), in their
+    order; a name that is not among the cases is a clear error (another --pairs or goal)."""
+    text = Path(path).read_text()
+    names = json.loads(text) if text.lstrip().startswith("[") else text.split()
+    have = {c.name for c in cases}
+    unknown = sorted(set(names) - have)
+    if unknown:
+        raise ValueError(f"--only-pairs {path}: {len(unknown)} pair(s) not among the "
+                         f"{len(cases)} loaded (e.g. {unknown[0]!r}); check --pairs")  # fmt: skip
+    keep = set(names)
+    return [c for c in cases if c.name in keep]
+
+
 def select_geometric(
     data: str,
     weights: str,
@@ -1211,9 +1225,15 @@ def main(argv=None) -> dict:
         "full meshes (the oracle approach), the search to its end by the method's checker",
     )  # fmt: skip
     parser.add_argument(
-        "--approach", metavar="DIR",
+        "--approach", metavar="DIR", nargs="+",
         help="with --retreat: the retreat's directions ranked by the approach network in DIR "
-        "(experiments.train_approach) on the observed clouds",
+        "(experiments.train_approach) on the observed clouds; several DIRs: their mean "
+        "probability",
+    )  # fmt: skip
+    parser.add_argument(
+        "--approach-views", type=int, default=1, metavar="N",
+        help="with --approach: the probabilities averaged over N subsets of the clouds (seeds "
+        "0..N-1; thirty-eighth session)",
     )  # fmt: skip
     parser.add_argument(
         "--approach-threshold", type=float, metavar="P",
@@ -1318,6 +1338,12 @@ def main(argv=None) -> dict:
         "--summary-only", action="store_true",
         help="plan nothing: the summary of the rows already in OUT/pairs.jsonl (after --shard "
         "runs; pairs without rows are left out and counted as missing_pairs)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--only-pairs", default=None, metavar="FILE",
+        help="plan and summarise only these of the --pairs pairs (FILE: pair names, one per line, "
+        "or a JSON list; thirty-eighth session: a paired comparison of two rules plans only the "
+        "pairs where they decide differently, scripts/approach_decisions.py)",
     )  # fmt: skip
     parser.add_argument(
         "--shard", default=None, metavar="I/N",
@@ -1478,10 +1504,9 @@ def main(argv=None) -> dict:
     if args.approach:
         if not retreat or args.oracle_retreat:
             parser.error("--approach needs --retreat LENGTHS (and not --oracle-retreat)")
-        a_cfg, a_params, _ = approach.load(args.approach)
-        if args.approach_threshold is not None:
-            a_cfg = dataclasses.replace(a_cfg, threshold=args.approach_threshold)
-        predictor = approach.ApproachPredictor(a_cfg, a_params)
+        predictor = approach.load_predictor(
+            args.approach, args.approach_threshold, args.approach_views
+        )
         predictor.warm_up()  # compiled outside the planning clock
         est = est._replace(approach=predictor, approach_check=args.approach_check,
                            approach_open_side=args.approach_open_side,
@@ -1503,6 +1528,8 @@ def main(argv=None) -> dict:
         args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer",
         split=args.split,
     )  # fmt: skip
+    if args.only_pairs:
+        cases = only_pairs(cases, args.only_pairs)
     if args.completion:
         cases = add_completion(cases, args.completion, args.data if args.completion_carve else None)
     jsonl = out / "pairs.jsonl"
@@ -1578,7 +1605,8 @@ def main(argv=None) -> dict:
         approach=None
         if est.approach is None
         else dict(
-            weights=args.approach,
+            weights=args.approach[0] if len(args.approach) == 1 else args.approach,
+            views=est.approach.views,
             threshold=est.approach.config.threshold,
             check=est.approach_check,
             open_side=est.approach_open_side,

@@ -141,14 +141,16 @@ def object_split(names: list[str], mod: int) -> np.ndarray:
     return np.array([zlib.crc32(n.encode()) % mod == 0 for n in names])
 
 
-def score_rows(config, params, data: ApproachData, rows: np.ndarray, batch: int = 64) -> np.ndarray:
-    """[len(rows), 26] probabilities with the planner's fixed cloud subsets (seed 0); batches
-    padded to ``batch`` goals, so one compiled shape."""
+def score_rows(config, params, data: ApproachData, rows: np.ndarray, batch: int = 64,
+               seed: int = 0) -> np.ndarray:  # fmt: skip
+    """[len(rows), 26] probabilities with the planner's fixed cloud subsets (``seed`` 0; another
+    seed draws other ``local_from`` subsets); batches padded to ``batch`` goals, so one compiled
+    shape."""
     probs = approach.jitted_probabilities(config)
     result = np.zeros((len(rows), len(approach.DIRECTIONS)), np.float32)
     for p in np.unique(data.pair[rows]):
-        obj = collision.subsample_cloud(data.object_points[p], config.local_from)
-        sup = collision.subsample_cloud(data.support_points[p], config.local_from)
+        obj = collision.subsample_cloud(data.object_points[p], config.local_from, seed)
+        sup = collision.subsample_cloud(data.support_points[p], config.local_from, seed)
         at = np.flatnonzero(data.pair[rows] == p)
         for k in range(0, len(at), batch):
             idx = at[k : k + batch]

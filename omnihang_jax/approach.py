@@ -142,11 +142,21 @@ class ApproachPredictor:
     """A planner's view of a trained network: ``order(object_cloud, support_cloud, goal)`` ->
     (directions [K, 3] best first, their probabilities [K]); the clouds are the partial clouds
     as observed (any size: the fixed ``local_from`` subset is taken here). NaN clouds or goal:
-    a clear ``ValueError``."""
+    a clear ``ValueError``.
 
-    def __init__(self, config: ApproachConfig, params):
-        self.config, self.params = config, params
-        self._probabilities = jitted_probabilities(config)
+    Thirty-eighth session: ``params`` may be a list of networks' parameters (``configs`` their
+    configs, the first's threshold counts) and ``views`` > 1 averages the probabilities over
+    that many cloud subsets (seeds 0..views-1; seed 0 alone is the planner's default)."""
+
+    def __init__(self, config: ApproachConfig, params, views: int = 1, configs=None):
+        if views < 1:
+            raise ValueError(f"views must be >= 1, got {views}")
+        members = params if isinstance(params, list) else [params]
+        configs = list(configs) if configs is not None else [config] * len(members)
+        if len(configs) != len(members):
+            raise ValueError(f"{len(members)} networks but {len(configs)} configs")
+        self.config, self.params, self.views = config, params, views
+        self._members = [(c, p, jitted_probabilities(c)) for c, p in zip(configs, members)]
 
     def probabilities(self, object_cloud, support_cloud, goal) -> np.ndarray:
         obj = np.asarray(object_cloud, np.float32)
@@ -155,9 +165,13 @@ class ApproachPredictor:
         for name, x in (("object cloud", obj), ("support cloud", sup), ("goal", goal)):
             if not np.isfinite(x).all():
                 raise ValueError(f"approach network: the {name} has NaN or inf values")
-        obj = collision.subsample_cloud(obj, self.config.local_from)
-        sup = collision.subsample_cloud(sup, self.config.local_from)
-        return np.asarray(self._probabilities(self.params, obj, sup, goal[None]))[0]
+        total = np.zeros(len(DIRECTIONS), np.float64)
+        for config, params, probabilities in self._members:
+            for seed in range(self.views):
+                o = collision.subsample_cloud(obj, config.local_from, seed)
+                s = collision.subsample_cloud(sup, config.local_from, seed)
+                total += np.asarray(probabilities(params, o, s, goal[None]))[0]
+        return (total / (len(self._members) * self.views)).astype(np.float32)
 
     def warm_up(self) -> None:
         """Compile outside a planner's clock (the fixed subset makes every call one shape)."""
@@ -194,6 +208,22 @@ def load(folder: str | os.PathLike) -> tuple[ApproachConfig, object, dict]:
     """(config, params, meta) of a folder written by :func:`save`."""
     kinds = {"ApproachConfig": (ApproachConfig, make_approach_net)}
     return collision.load_estimator(folder, kinds, trainer="experiments.train_approach")
+
+
+def load_predictor(folders, threshold: float | None = None, views: int = 1) -> ApproachPredictor:
+    """The predictor of one folder (a str) or several (their mean; thirty-eighth session), at
+    ``threshold`` (default: the first network's), averaged over ``views`` cloud subsets."""
+    folders = [folders] if isinstance(folders, (str, os.PathLike)) else list(folders)
+    if not folders:
+        raise ValueError("no approach network given")
+    loaded = [load(f) for f in folders]
+    config = loaded[0][0]
+    if threshold is not None:
+        config = dataclasses.replace(config, threshold=threshold)
+    if len(loaded) == 1 and views == 1:
+        return ApproachPredictor(config, loaded[0][1])
+    return ApproachPredictor(config, [p for _, p, _ in loaded], views=views,
+                             configs=[c for c, _, _ in loaded])  # fmt: skip
 
 
 def approach_labels(scene, goals: np.ndarray, length: float = 0.045,

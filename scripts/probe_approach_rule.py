@@ -12,6 +12,10 @@ how often a used one is *free* on the full meshes (the planner's straight 4.5-cm
 
     python scripts/probe_approach_rule.py --weights weights/approach_s35 weights/approach_s35_6k \
         --out results/approach_rule_s36.json
+
+Thirty-eighth session: ``--views N`` also scores each network on N subsets of the clouds
+(``local_from`` points drawn with seeds 0..N-1; the planner uses seed 0) averaged (``W@N``), and
+``--ensemble`` the mean of all the given networks' probabilities (``ensemble@N``).
 """
 
 from __future__ import annotations
@@ -75,6 +79,8 @@ def main(argv=None) -> dict:
     ap.add_argument(
         "--pairs-from", default="results/hanging_success_stage3_s14_cemv.pairs.jsonl.gz"
     )
+    ap.add_argument("--views", type=int, default=1, help="also average N cloud subsets")
+    ap.add_argument("--ensemble", action="store_true", help="also the networks' mean")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     files = train_collision.derive_collision_pairs(
@@ -95,20 +101,29 @@ def main(argv=None) -> dict:
         test_files, train_approach.label_pairs(args.data, test_files, 0.045, 0.002, 1, False)
     )
     test_wall = walls(test_files)
-    out = dict(val_pairs=len(val_idx), test_pairs=len(test_files), weights={})
+    out = dict(val_pairs=len(val_idx), test_pairs=len(test_files), views=args.views, weights={})
+    sets = dict(validation_first_goal=(val, val_wall), held_out_first_goal=(test, test_wall))
+    probs = {}  # (weights, set) -> [views, R, 26]
     for w in args.weights:
         config, params, _ = approach.load(w)
+        for name, (d, _) in sets.items():
+            probs[w, name] = np.stack([train_approach.score_rows(config, params, d, d.first_row, seed=s)
+                                       for s in range(args.views)])  # fmt: skip
+    entries = {w: {n: probs[w, n][:1] for n in sets} for w in args.weights}
+    if args.views > 1:
+        entries.update({f"{w}@{args.views}": {n: probs[w, n] for n in sets} for w in args.weights})
+    if args.ensemble:
+        entries[f"ensemble@{args.views}"] = {
+            n: np.concatenate([probs[w, n] for w in args.weights]) for n in sets
+        }
+    for key, by_set in entries.items():
         res = {}
-        for name, d, wall in (
-            ("validation_first_goal", val, val_wall),
-            ("held_out_first_goal", test, test_wall),
-        ):
+        for name, (d, wall) in sets.items():
             rows = d.first_row
-            prob = train_approach.score_rows(config, params, d, rows)
-            res[name] = table(prob, d.labels[rows], wall[d.pair[rows]])
+            res[name] = table(by_set[name].mean(0), d.labels[rows], wall[d.pair[rows]])
             res[name + "_any_free"] = round(float(d.labels[rows].any(1).mean()), 4)
-        out["weights"][w] = res
-        print(w, flush=True)
+        out["weights"][key] = res
+        print(key, flush=True)
         for v, h in zip(res["validation_first_goal"], res["held_out_first_goal"]):
             print(f"  {v['rule']:6s} t={v['threshold']:.2f} open={int(v['open_side'])}  val used "
                   f"{v['used']:.3f} free {v['used_free']}  | held-out used {h['used']:.3f} free "

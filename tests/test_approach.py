@@ -112,6 +112,49 @@ def test_predictor_orders_directions_and_refuses_nan(tmp_path):
         approach.load(tmp_path / "missing")
 
 
+def test_predictor_averages_networks_and_cloud_subsets():
+    """Thirty-eighth session: a list of networks and ``views`` > 1 average the probabilities of
+    each network on each cloud subset (seeds 0..views-1), computed here one by one."""
+    import jax
+
+    from omnihang_jax import collision
+
+    cfg = approach.PRESETS["tiny"]
+    nets = [approach.make_approach_net(cfg).init(jax.random.key(k)) for k in (0, 1)]
+    rng = np.random.default_rng(0)
+    obj, sup = rng.normal(scale=0.02, size=(300, 3)), rng.normal(scale=0.05, size=(500, 3))
+    goal = np.array([0.0, 0.0, 0.05, 1, 0, 0, 0])
+    f = approach.jitted_probabilities(cfg)
+    by_hand = np.mean([
+        np.asarray(f(p, collision.subsample_cloud(obj, cfg.local_from, s),
+                     collision.subsample_cloud(sup, cfg.local_from, s), goal[None]))[0]
+        for p in nets for s in range(3)
+    ], axis=0)  # fmt: skip
+    both = approach.ApproachPredictor(cfg, nets, views=3).probabilities(obj, sup, goal)
+    np.testing.assert_allclose(both, by_hand, rtol=1e-5)
+    one = approach.ApproachPredictor(cfg, nets[0]).probabilities(obj, sup, goal)
+    assert not np.allclose(one, both)  # another network and other subsets: other numbers
+    with pytest.raises(ValueError, match="views"):
+        approach.ApproachPredictor(cfg, nets, views=0)
+    with pytest.raises(ValueError, match="configs"):
+        approach.ApproachPredictor(cfg, nets, configs=[cfg])
+
+
+def test_only_pairs_keeps_the_named_cases_and_refuses_unknown_ones(tmp_path):
+    from types import SimpleNamespace
+
+    from experiments import eval_paths
+
+    cases = [SimpleNamespace(name=n) for n in ("a", "b", "c")]
+    (tmp_path / "l.txt").write_text("c\na\n")
+    assert [c.name for c in eval_paths.only_pairs(cases, tmp_path / "l.txt")] == ["a", "c"]
+    (tmp_path / "l.json").write_text('["b"]')
+    assert [c.name for c in eval_paths.only_pairs(cases, tmp_path / "l.json")] == ["b"]
+    (tmp_path / "bad.txt").write_text("a\nzz\n")
+    with pytest.raises(ValueError, match="zz"):
+        eval_paths.only_pairs(cases, tmp_path / "bad.txt")
+
+
 def test_eval_paths_keeps_the_directions_at_the_threshold_best_first():
     """``eval_paths --approach``: 'none' takes the best direction as free (a checker that calls
     nothing colliding), 'method' hands every direction at the threshold, best first, to the

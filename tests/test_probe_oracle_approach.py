@@ -76,3 +76,39 @@ def test_runs_are_split_by_their_approach_decision():
     assert out["same"]["a"]["pairs"] == 2 and out["differ"]["a"]["pairs"] == 1  # p1 differs
     assert out["differ"]["a"]["collision_free"] == 1 and out["differ"]["b"]["collision_free"] == 0
     assert out["same"]["b"]["returned"] == 2 and out["same"]["a"]["returned"] == 1
+
+
+def test_splice_takes_each_row_from_the_run_that_decided_alike(tmp_path):
+    """scripts/approach_decisions.py splice (thirty-eighth session): a pair's row comes from the
+    reference that covers it (decided alike, ``diff``'s decisions), else from the new run; a pair
+    to plan without a new row stops the splice."""
+    import json
+
+    import pytest
+
+    spec = importlib.util.spec_from_file_location(
+        "approach_decisions", Path(__file__).resolve().parents[1] / "scripts/approach_decisions.py"
+    )
+    dec = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(dec)
+    assert dec.decision({"first_tried": [0.7071, 0.0, 0.70711]}) == (0.707, 0.0, 0.707)
+    assert dec.decision({"best_p": 0.3}) is None and dec.decision(None) is None
+    ref = [dict(pair=p, returned=True, collision_free=p != "p1") for p in ("p0", "p1", "p2")]
+    ref2 = [dict(pair="p2", returned=False, collision_free=False)]
+    new = [dict(pair="p1", returned=True, collision_free=True)]
+    for name, rows in (("ref", ref), ("ref2", ref2), ("new", new)):
+        (tmp_path / f"{name}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    r1, r2 = str(tmp_path / "ref.jsonl"), str(tmp_path / "ref2.jsonl")
+    decisions = {"p0": dict(covered_by=r1), "p1": dict(covered_by=None), "p2": dict(covered_by=r2)}
+    (tmp_path / "d.json").write_text(json.dumps(dict(decisions=decisions)))
+    args = ["splice", "--decisions", str(tmp_path / "d.json"), "--new",
+            str(tmp_path / "new.jsonl"), "--out", str(tmp_path / "out.jsonl")]  # fmt: skip
+    assert dec.main(args) == 3
+    rows = dec.read_rows(tmp_path / "out.jsonl")
+    assert [rows[p]["returned"] for p in ("p0", "p1", "p2")] == [True, True, False]
+    assert rows["p1"]["collision_free"] and rows["p1"]["spliced_from"].endswith("new.jsonl")
+    assert rows["p0"]["spliced_from"] == r1 and rows["p2"]["spliced_from"] == r2
+    decisions["p2"]["covered_by"] = None
+    (tmp_path / "d.json").write_text(json.dumps(dict(decisions=decisions)))
+    with pytest.raises(SystemExit, match="p2"):
+        dec.main(args)
