@@ -144,12 +144,14 @@ def load_pairs(
     records: dict | None = None,
     answer_goals: bool = False,
     split: str = "test",
+    names: set[str] | None = None,
 ) -> list[PairCase]:
     """``n`` held-out pairs (derived on demand) with their scenes, drawn among the pairs of
     ``records`` (:func:`read_answers`) when given; goal = the pair's first stable pose, or with
     ``answer_goals`` the pipeline's answer in ``records`` (``meta["goal_status"]``: its
     simulated status). ``split="train"``: training pairs instead (``--mine``), never one of
-    the NCE's validation pairs (``pair_index % VAL_EVERY == 0``) nor a record's."""
+    the NCE's validation pairs (``pair_index % VAL_EVERY == 0``) nor a record's. ``names``:
+    only the pairs of these names get a case (their scenes built; ``--only-pairs``)."""
     if answer_goals and records is None:
         raise ValueError("answer goals need the pipeline's records")
     if split not in ("test", "train"):
@@ -176,6 +178,8 @@ def load_pairs(
         )
     cases = []
     for path in files:
+        if names is not None and path.stem not in names:
+            continue
         with np.load(path) as f:
             meta = {k: f[k].item() for k in ("pair_index", "object_name", "support_name")}
             meta |= {k: f[k].item() for k in ("object_category", "support_family", "split")}
@@ -268,7 +272,8 @@ class Estimators(NamedTuple):
     approach_open_side: bool = False
     # thirty-sixth session: the replan after a time-out with the same approach ("same") or the
     # plain plan ("plain"): a time-out with an approach may mean its pre-goal is out of reach
-    # (seed 1, open side: 8 time-outs used an approach, the plain plan had 2 of them free)
+    # (seed 1, open side: 8 time-outs used an approach, the plain plan had 2 of them free);
+    # thirty-eighth session: "next", the second usable direction (plain when there is none)
     approach_replan: str = "same"
 
 
@@ -461,11 +466,16 @@ def hce_goal_pass_thresholds(
     return out
 
 
-def only_pairs(cases: list, path: str | Path) -> list:
-    """The ``cases`` named in ``path`` (pair names one per line, or a JSON list), in their
-    order; a name that is not among the cases is a clear error (another --pairs or goal)."""
+def read_pair_names(path: str | Path) -> list[str]:
+    """Pair names of an ``--only-pairs`` file: one per line, or a JSON list."""
     text = Path(path).read_text()
-    names = json.loads(text) if text.lstrip().startswith("[") else text.split()
+    return json.loads(text) if text.lstrip().startswith("[") else text.split()
+
+
+def only_pairs(cases: list, path: str | Path) -> list:
+    """The ``cases`` named in ``path`` (:func:`read_pair_names`), in their order; a name that
+    is not among the cases is a clear error (another --pairs or goal)."""
+    names = read_pair_names(path)
     have = {c.name for c in cases}
     unknown = sorted(set(names) - have)
     if unknown:
@@ -765,6 +775,17 @@ def learned_approach(case: PairCase, est: Estimators):
     return directions[keep], checker, record
 
 
+def next_approach(case: PairCase, est) -> np.ndarray:
+    """[0 or 1, 3]: the second usable direction of the approach network (at its threshold, open
+    side as configured), for ``--approach-replan next``: a time-out of the first plan may mean
+    that the first direction's pre-goal is out of reach (thirty-eighth session). Empty: none
+    passes, and the replan plans plainly to the goal."""
+    directions, probs = est.approach.order(case.object_points, case.support_points, case.goal)
+    keep = approach.usable(directions, probs, est.approach.config.threshold,
+                           case.wall_y is not None, est.approach_open_side)  # fmt: skip
+    return directions[keep][1:2]
+
+
 def evaluate_pair(
     case: PairCase,
     est: Estimators,
@@ -829,17 +850,24 @@ def evaluate_pair(
             lax_check = fallbacks[name]
             used = ranked is not None and len(directions) > 0  # an approach was planned to
             plain = used and est.approach_replan == "plain"
+            replan_directions = directions[:0] if plain else directions
+            if used and est.approach_replan == "next":
+                replan_directions = next_approach(case, est)
+                plain = len(replan_directions) == 0
             second, second_retreat = planner.plan_with_retreat(
                 lax_check, start, goal, bounds, weight,
                 dataclasses.replace(config, time_limit=est.fallback_time, retreat_after=0.0),
                 retreat_checker=retreat_checker,
-                retreat_directions=directions[:0] if plain else directions,
+                retreat_directions=replan_directions,
             )  # fmt: skip
             fallback = dict(far_threshold=est.fallback_far_threshold, status=second.status,
                             planning_s=round(second.planning_s, 3),
                             returned=second.path is not None)  # fmt: skip
             if used:
-                fallback["approach"] = "plain" if plain else "same"
+                kind = "next" if est.approach_replan == "next" else "same"
+                fallback["approach"] = "plain" if plain else kind
+                if kind == "next" and not plain:
+                    fallback["approach_direction"] = replan_directions[0].round(3).tolist()
                 retreat = second_retreat  # the path's end is the second plan's
             res = second._replace(
                 planning_s=res.planning_s + second.planning_s,
@@ -1250,10 +1278,11 @@ def main(argv=None) -> dict:
         "best first and takes the first the method's checker calls free",
     )  # fmt: skip
     parser.add_argument(
-        "--approach-replan", choices=("same", "plain"), default="same",
+        "--approach-replan", choices=("same", "plain", "next"), default="same",
         help="with --approach and --fallback-far-threshold: the replan after a time-out keeps "
         "the approach ('same') or plans plainly to the goal ('plain': the approach's pre-goal "
-        "may be what was out of reach)",
+        "may be what was out of reach) or tries the second usable direction ('next', plain when "
+        "there is none)",
     )  # fmt: skip
     parser.add_argument(
         "--retreat-after", type=float, default=0.0, metavar="S",
@@ -1526,7 +1555,7 @@ def main(argv=None) -> dict:
     records = read_answers(args.pairs_from) if args.pairs_from else None
     cases = load_pairs(
         args.data, args.pairs, args.workers, not args.no_progress, records, args.goal == "answer",
-        split=args.split,
+        split=args.split, names=set(read_pair_names(args.only_pairs)) if args.only_pairs else None,
     )  # fmt: skip
     if args.only_pairs:
         cases = only_pairs(cases, args.only_pairs)

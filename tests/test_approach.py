@@ -198,6 +198,10 @@ def test_eval_paths_keeps_the_directions_at_the_threshold_best_first():
     free_standing = SimpleNamespace(**{**vars(case), "wall_y": None})
     got, _, _ = eval_paths.learned_approach(free_standing, est)
     np.testing.assert_array_equal(got, toward_wall[:1])
+    # --approach-replan next (thirty-eighth session): the second usable direction, none when
+    # only one passes (here the wall-side one is not usable, so 0.8's is the first, none second)
+    assert len(eval_paths.next_approach(case, est)) == 0
+    np.testing.assert_array_equal(eval_paths.next_approach(free_standing, est), toward_wall[1:2])
 
 
 def test_ranking_figures_and_the_whole_object_split():
