@@ -57,6 +57,7 @@ import dataclasses
 import gzip
 import json
 import os
+import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -479,8 +480,8 @@ def only_pairs(cases: list, path: str | Path) -> list:
     have = {c.name for c in cases}
     unknown = sorted(set(names) - have)
     if unknown:
-        raise ValueError(f"--only-pairs {path}: {len(unknown)} pair(s) not among the "
-                         f"{len(cases)} loaded (e.g. {unknown[0]!r}); check --pairs")  # fmt: skip
+        raise ValueError(f"--only-pairs {path}: {len(unknown)} pair(s) not among the pairs "
+                         f"loaded (e.g. {unknown[0]!r}); check --pairs and --pairs-from")  # fmt: skip
     keep = set(names)
     return [c for c in cases if c.name in keep]
 
@@ -777,7 +778,8 @@ def learned_approach(case: PairCase, est: Estimators):
 
 def next_approach(case: PairCase, est) -> np.ndarray:
     """[0 or 1, 3]: the second usable direction of the approach network (at its threshold, open
-    side as configured), for ``--approach-replan next``: a time-out of the first plan may mean
+    side as configured), for ``--approach-replan next`` (with ``--approach-check none``, whose
+    first plan used the first usable direction): a time-out of the first plan may mean
     that the first direction's pre-goal is out of reach (thirty-eighth session). Empty: none
     passes, and the replan plans plainly to the goal."""
     directions, probs = est.approach.order(case.object_points, case.support_points, case.goal)
@@ -852,7 +854,9 @@ def evaluate_pair(
             plain = used and est.approach_replan == "plain"
             replan_directions = directions[:0] if plain else directions
             if used and est.approach_replan == "next":
+                t_next = time.perf_counter()
                 replan_directions = next_approach(case, est)
+                res = res._replace(planning_s=res.planning_s + time.perf_counter() - t_next)
                 plain = len(replan_directions) == 0
             second, second_retreat = planner.plan_with_retreat(
                 lax_check, start, goal, bounds, weight,
@@ -1537,6 +1541,9 @@ def main(argv=None) -> dict:
             args.approach, args.approach_threshold, args.approach_views
         )
         predictor.warm_up()  # compiled outside the planning clock
+        if args.approach_replan == "next" and args.approach_check != "none":
+            parser.error("--approach-replan next needs --approach-check none (with 'method' the "
+                         "first plan may already have used the second direction)")  # fmt: skip
         est = est._replace(approach=predictor, approach_check=args.approach_check,
                            approach_open_side=args.approach_open_side,
                            approach_replan=args.approach_replan)  # fmt: skip
@@ -1649,7 +1656,9 @@ def main(argv=None) -> dict:
         device=str(jax.devices()[0]),
         host_cores=os.cpu_count(),
         wall_s_this_run=round(time.time() - t0, 1),
-        command="python -m experiments.eval_paths " + " ".join(argv or []),
+        only_pairs=args.only_pairs,
+        command="python -m experiments.eval_paths "
+        + " ".join(sys.argv[1:] if argv is None else argv),
     )
     results = Path(args.results) if args.results else out / "paths.json"
     results.parent.mkdir(parents=True, exist_ok=True)

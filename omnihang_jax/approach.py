@@ -151,7 +151,7 @@ class ApproachPredictor:
     def __init__(self, config: ApproachConfig, params, views: int = 1, configs=None):
         if views < 1:
             raise ValueError(f"views must be >= 1, got {views}")
-        members = params if isinstance(params, list) else [params]
+        members = list(params) if isinstance(params, (list, tuple)) else [params]
         configs = list(configs) if configs is not None else [config] * len(members)
         if len(configs) != len(members):
             raise ValueError(f"{len(members)} networks but {len(configs)} configs")

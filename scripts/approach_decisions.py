@@ -32,13 +32,17 @@ from pathlib import Path
 from omnihang_jax import approach
 
 
-def read_rows(path: str | Path) -> dict[str, dict]:
-    """pair -> its last row (a resumed run: the last row counts)."""
+def read_rows(path: str | Path, method: str = "nce_geometric") -> dict[str, dict]:
+    """pair -> its last row of ``method`` (a resumed run: the last row counts); rows planned to
+    another goal than the first stable pose are refused (a run of another protocol)."""
     rows = {}
     for line in Path(path).read_text().splitlines():
         if line.strip():
             r = json.loads(line)
-            rows[r["pair"]] = r
+            if r.get("goal_kind", "stable") != "stable":
+                raise SystemExit(f"{path}: a row planned to {r['goal_kind']!r}, not a stable pose")
+            if r.get("method", method) == method:
+                rows[r["pair"]] = r
     return rows
 
 
@@ -56,8 +60,11 @@ def diff(args) -> dict:
     refs = {str(r): read_rows(r) for r in args.reference}
     names = set().union(*refs.values())
     records = eval_paths.read_answers(args.pairs_from)
-    cases = eval_paths.load_pairs(args.data, args.pairs, 1, False, records, False)
-    cases = [c for c in cases if c.name in names]
+    cases = eval_paths.load_pairs(args.data, args.pairs, 1, False, records, False, names=names)
+    lost = sorted(names - {c.name for c in cases})
+    if lost:
+        raise SystemExit(f"diff: {len(lost)} reference pair(s) are not among the --pairs "
+                         f"{args.pairs} of --pairs-from (e.g. {lost[0]!r})")  # fmt: skip
     est = types.SimpleNamespace(
         approach=approach.load_predictor(args.approach, args.threshold, args.views),
         approach_open_side=args.open_side,
@@ -103,6 +110,11 @@ def splice(args) -> int:
     if missing:
         raise SystemExit(f"splice: {len(missing)} pair(s) to plan have no new row, e.g. "
                          f"{missing[0]!r}: plan them first (eval_paths --only-pairs)")  # fmt: skip
+    wrong = [p for p, d in decisions.items() if d["covered_by"] is None
+             and decision(new[p].get("approach")) != (None if d["new"] is None else tuple(d["new"]))]  # fmt: skip
+    if wrong:
+        raise SystemExit(f"splice: {len(wrong)} new row(s) decided otherwise than diff's rule, "
+                         f"e.g. {wrong[0]!r}: --new is another rule's or seed's run")  # fmt: skip
     refs = {r: read_rows(r) for r in {d["covered_by"] for d in decisions.values()} - {None}}
     with open(args.out, "w") as f:
         for pair, d in decisions.items():

@@ -112,7 +112,7 @@ def test_predictor_orders_directions_and_refuses_nan(tmp_path):
         approach.load(tmp_path / "missing")
 
 
-def test_predictor_averages_networks_and_cloud_subsets():
+def test_predictor_averages_networks_and_cloud_subsets(tmp_path):
     """Thirty-eighth session: a list of networks and ``views`` > 1 average the probabilities of
     each network on each cloud subset (seeds 0..views-1), computed here one by one."""
     import jax
@@ -133,7 +133,19 @@ def test_predictor_averages_networks_and_cloud_subsets():
     both = approach.ApproachPredictor(cfg, nets, views=3).probabilities(obj, sup, goal)
     np.testing.assert_allclose(both, by_hand, rtol=1e-5)
     one = approach.ApproachPredictor(cfg, nets[0]).probabilities(obj, sup, goal)
+    seed0 = f(nets[0], collision.subsample_cloud(obj, cfg.local_from),
+              collision.subsample_cloud(sup, cfg.local_from), goal[None])  # fmt: skip
+    np.testing.assert_array_equal(one, np.asarray(seed0)[0])  # one network, one view: as before
     assert not np.allclose(one, both)  # another network and other subsets: other numbers
+    # load_predictor: several folders, the threshold given overrides the first config's
+    for k, p in enumerate(nets):
+        approach.save(tmp_path / f"n{k}", cfg, p, steps=0)
+    loaded = approach.load_predictor([str(tmp_path / "n0"), str(tmp_path / "n1")], 0.77, views=3)
+    assert loaded.config.threshold == 0.77 and loaded.views == 3
+    np.testing.assert_allclose(loaded.probabilities(obj, sup, goal), by_hand, rtol=1e-5)
+    single = approach.load_predictor(str(tmp_path / "n0"))
+    assert single.config.threshold == cfg.threshold
+    np.testing.assert_array_equal(single.probabilities(obj, sup, goal), one)
     with pytest.raises(ValueError, match="views"):
         approach.ApproachPredictor(cfg, nets, views=0)
     with pytest.raises(ValueError, match="configs"):

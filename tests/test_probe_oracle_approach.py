@@ -99,7 +99,11 @@ def test_splice_takes_each_row_from_the_run_that_decided_alike(tmp_path):
     for name, rows in (("ref", ref), ("ref2", ref2), ("new", new)):
         (tmp_path / f"{name}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     r1, r2 = str(tmp_path / "ref.jsonl"), str(tmp_path / "ref2.jsonl")
-    decisions = {"p0": dict(covered_by=r1), "p1": dict(covered_by=None), "p2": dict(covered_by=r2)}
+    decisions = {
+        "p0": dict(covered_by=r1),
+        "p1": dict(covered_by=None, new=None),
+        "p2": dict(covered_by=r2, new=None),
+    }
     (tmp_path / "d.json").write_text(json.dumps(dict(decisions=decisions)))
     args = ["splice", "--decisions", str(tmp_path / "d.json"), "--new",
             str(tmp_path / "new.jsonl"), "--out", str(tmp_path / "out.jsonl")]  # fmt: skip
@@ -108,6 +112,11 @@ def test_splice_takes_each_row_from_the_run_that_decided_alike(tmp_path):
     assert [rows[p]["returned"] for p in ("p0", "p1", "p2")] == [True, True, False]
     assert rows["p1"]["collision_free"] and rows["p1"]["spliced_from"].endswith("new.jsonl")
     assert rows["p0"]["spliced_from"] == r1 and rows["p2"]["spliced_from"] == r2
+    decisions["p1"]["new"] = [0.0, 0.0, 1.0]  # diff's rule used an approach, the new row none
+    (tmp_path / "d.json").write_text(json.dumps(dict(decisions=decisions)))
+    with pytest.raises(SystemExit, match="decided otherwise"):
+        dec.main(args)
+    decisions["p1"]["new"] = None
     decisions["p2"]["covered_by"] = None
     (tmp_path / "d.json").write_text(json.dumps(dict(decisions=decisions)))
     with pytest.raises(SystemExit, match="p2"):
