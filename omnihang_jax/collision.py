@@ -923,25 +923,30 @@ class MeshChecker:
         others = list(scene.support_geoms) + ([scene.wall_geom] if scene.wall_geom >= 0 else [])
         self.other_geoms = set(int(g) for g in others)
 
-    def penetration(self, poses: np.ndarray) -> np.ndarray:
-        """[B, 7] -> [B] deepest object-support penetration in metres (0 if none)."""
+    def deepest_contacts(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """[B, 7] -> (depth [B] of the deepest object-support penetration in metres, 0 if none;
+        its contact point [B, 3] in the support frame, NaN where there is none)."""
         poses = np.asarray(poses, float).reshape(-1, 7)
-        out = np.zeros(len(poses))
+        depth = np.zeros(len(poses))
+        point = np.full((len(poses), 3), np.nan)
         m, d = self.model, self.data
         for i, pose in enumerate(poses):
             d.qpos[:7] = pose
             self._mujoco.mj_kinematics(m, d)
             self._mujoco.mj_collision(m, d)
-            deepest = 0.0
             for j in range(d.ncon):
                 con = d.contact[j]
                 g1, g2 = int(con.geom1), int(con.geom2)
                 if (g1 in self.object_geoms and g2 in self.other_geoms) or (
                     g2 in self.object_geoms and g1 in self.other_geoms
                 ):
-                    deepest = max(deepest, -float(con.dist))
-            out[i] = deepest
-        return out
+                    if -float(con.dist) > depth[i]:
+                        depth[i], point[i] = -float(con.dist), con.pos
+        return depth, point
+
+    def penetration(self, poses: np.ndarray) -> np.ndarray:
+        """[B, 7] -> [B] deepest object-support penetration in metres (0 if none)."""
+        return self.deepest_contacts(poses)[0]
 
     def __call__(self, poses: np.ndarray) -> np.ndarray:
         return self.penetration(poses) > self.tolerance

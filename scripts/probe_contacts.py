@@ -28,38 +28,6 @@ from experiments import eval_paths
 from omnihang_jax import collision, planner
 
 
-def rotation(q: np.ndarray) -> np.ndarray:
-    """[3, 3] of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])  # fmt: skip
-
-
-def deepest_contact(checker: collision.MeshChecker, poses: np.ndarray, tolerance: float):
-    """(depth m, state index, contact point [3]) of the deepest object-support contact deeper
-    than ``tolerance`` along ``poses``, or None."""
-    import mujoco
-
-    m, d = checker.model, checker.data
-    best = None
-    for i, pose in enumerate(poses):
-        d.qpos[:7] = pose
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_collision(m, d)
-        for j in range(d.ncon):
-            con = d.contact[j]
-            g1, g2 = int(con.geom1), int(con.geom2)
-            pair = (g1 in checker.object_geoms and g2 in checker.other_geoms) or (
-                g2 in checker.object_geoms and g1 in checker.other_geoms
-            )
-            if pair and -con.dist > tolerance and (best is None or -con.dist > best[0]):
-                best = (float(-con.dist), i, np.array(con.pos))
-    return best
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", nargs="+", required=True, help="eval_paths --out folders")
@@ -90,12 +58,13 @@ def main(argv=None) -> dict:
                 continue
             path = np.load(Path(run, "scenes", case.name, f"{args.method}_path.npy"))
             dense = planner.interpolate_path(path, 0.002, weight)
-            best = deepest_contact(checker, dense, args.tolerance)
-            if best is None:
+            depths, points = checker.deepest_contacts(dense)
+            i = int(np.argmax(depths))
+            if depths[i] <= args.tolerance:
                 print(f"note: {case.name} in {run}: no contact deeper than the tolerance")
                 continue
-            depth, i, pos = best
-            posed = case.object_points @ rotation(dense[i][3:]).T + dense[i][:3]
+            depth, pos = float(depths[i]), points[i]
+            posed = collision.posed_points(dense[i], case.object_points)[0]
             rec = dict(
                 run=run, pair=case.name, support_family=case.meta["support_family"],
                 object_category=case.meta["object_category"], depth_mm=round(depth * 1e3, 1),

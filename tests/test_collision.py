@@ -212,6 +212,15 @@ def test_near_contact_poses_and_their_mesh_labels():
     np.testing.assert_allclose(fields["near_penetration"], mesh.penetration(fields["near_poses"]))
     np.testing.assert_allclose(fields["collision_penetration"], mesh.penetration(stable))
     assert 0 < (fields["near_penetration"] > 1e-3).mean() < 1  # both kinds among them
+    # the deepest contact's point (scripts/probe_contacts.py): where there is one, inside the
+    # support's box (support frame), none where nothing touches
+    depth, point = mesh.deepest_contacts(fields["near_poses"])
+    np.testing.assert_array_equal(depth, mesh.penetration(fields["near_poses"]))
+    touching = depth > 0
+    assert touching.any() and (~touching).any()
+    assert np.isnan(point[~touching]).all() and np.isfinite(point[touching]).all()
+    lo, hi = np.asarray(scene.support_bounds, float)
+    assert np.all((point[touching] >= lo - 0.01) & (point[touching] <= hi + 0.01))
 
 
 def test_transit_poses_are_near_the_support_at_the_boundary_and_leave_the_rest_unchanged():

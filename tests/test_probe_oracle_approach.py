@@ -121,18 +121,3 @@ def test_splice_takes_each_row_from_the_run_that_decided_alike(tmp_path):
     (tmp_path / "d.json").write_text(json.dumps(dict(decisions=decisions)))
     with pytest.raises(SystemExit, match="p2"):
         dec.main(args)
-
-
-def test_probe_contacts_rotation_matches_scipy():
-    """scripts/probe_contacts.py poses the observed cloud with (w, x, y, z) quaternions."""
-    from scipy.spatial.transform import Rotation
-
-    spec = importlib.util.spec_from_file_location(
-        "probe_contacts", Path(__file__).resolve().parents[1] / "scripts/probe_contacts.py"
-    )
-    pc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(pc)
-    q = np.array([0.3, -0.5, 0.7, 0.2])
-    q /= np.linalg.norm(q)
-    want = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
-    np.testing.assert_allclose(pc.rotation(q), want, atol=1e-12)
