@@ -944,6 +944,21 @@ class MeshChecker:
                         depth[i], point[i] = -float(con.dist), con.pos
         return depth, point
 
+    def clearance(self, poses: np.ndarray, cap: float = 0.05) -> np.ndarray:
+        """[B, 7] -> [B] the smallest signed distance (m, at most ``cap``; negative when they
+        overlap) between any object part and any support (or wall) part, by
+        ``mujoco.mj_geomDistance``: how far off the support a pose is."""
+        poses = np.asarray(poses, float).reshape(-1, 7)
+        out = np.full(len(poses), cap)
+        m, d = self.model, self.data
+        for i, pose in enumerate(poses):
+            d.qpos[:7] = pose
+            self._mujoco.mj_kinematics(m, d)
+            for a in self.object_geoms:
+                for b in self.other_geoms:
+                    out[i] = min(out[i], float(self._mujoco.mj_geomDistance(m, d, a, b, cap, None)))
+        return out
+
     def penetration(self, poses: np.ndarray) -> np.ndarray:
         """[B, 7] -> [B] deepest object-support penetration in metres (0 if none)."""
         return self.deepest_contacts(poses)[0]

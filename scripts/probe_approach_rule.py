@@ -69,6 +69,26 @@ def table(prob, labels, wall) -> list[dict]:
     return rows
 
 
+def family_of(path: Path) -> str:
+    """The support family of a derived pair file (``<index>_<object>__<family>_<nnnn>.npz``)."""
+    return Path(path).stem.split("__")[1].rsplit("_", 1)[0]
+
+
+def by_family(prob, labels, wall, families, t: float) -> dict:
+    """Per support family at ``argmax t`` with the open side (the planner's rule): goals, the
+    share with any free direction, the share used and the used ones' free share."""
+    c = choose(prob, wall, "argmax", t, True)
+    out = {}
+    for fam in sorted(set(families)):
+        m = np.array([f == fam for f in families])
+        used = m & (c >= 0)
+        free = labels[np.flatnonzero(used), c[used]]
+        out[fam] = dict(goals=int(m.sum()), any_free=round(float(labels[m].any(1).mean()), 3),
+                        used=round(float(used.sum() / max(m.sum(), 1)), 3),
+                        used_free=round(float(free.mean()), 3) if used.any() else None)  # fmt: skip
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default="datasets/paper")
@@ -81,6 +101,13 @@ def main(argv=None) -> dict:
     )
     ap.add_argument("--views", type=int, default=1, help="also average N cloud subsets")
     ap.add_argument("--ensemble", action="store_true", help="also the networks' mean")
+    ap.add_argument(
+        "--family-thresholds",
+        type=float,
+        nargs="*",
+        default=[],
+        help="also break argmax-open down by support family at these thresholds",
+    )
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     files = train_collision.derive_collision_pairs(
@@ -92,7 +119,8 @@ def main(argv=None) -> dict:
     is_val = train_approach.object_split(data.object_names, args.val_mod)
     val_idx = np.flatnonzero(is_val)
     val = data.subset(val_idx)
-    val_wall = walls([files[i] for i in val_idx])
+    val_files = [files[i] for i in val_idx]
+    val_wall = walls(val_files)
     records = eval_paths.read_answers(args.pairs_from)
     test_files = train_collision.derive_collision_pairs(
         args.data, {"test": args.test_pairs}, 1, False, shuffle_seed=0, only=records.__contains__,
@@ -122,12 +150,25 @@ def main(argv=None) -> dict:
             rows = d.first_row
             res[name] = table(by_set[name].mean(0), d.labels[rows], wall[d.pair[rows]])
             res[name + "_any_free"] = round(float(d.labels[rows].any(1).mean()), 4)
+            fams = [
+                family_of(f) for f in (val_files if name.startswith("validation") else test_files)
+            ]
+            fams = [fams[i] for i in d.pair[rows]]
+            for t in args.family_thresholds:
+                res.setdefault(name + "_by_family", {})[f"{t:g}"] = by_family(
+                    by_set[name].mean(0), d.labels[rows], wall[d.pair[rows]], fams, t
+                )
         out["weights"][key] = res
         print(key, flush=True)
         for v, h in zip(res["validation_first_goal"], res["held_out_first_goal"]):
             print(f"  {v['rule']:6s} t={v['threshold']:.2f} open={int(v['open_side'])}  val used "
                   f"{v['used']:.3f} free {v['used_free']}  | held-out used {h['used']:.3f} free "
                   f"{h['used_free']} blocked {h['used_blocked']}")  # fmt: skip
+        for name in sets:
+            for t, fams in res.get(name + "_by_family", {}).items():
+                print(f"  {name} argmax open t={t}")
+                for fam, r in fams.items():
+                    print(f"    {fam:16s} {r}")
     Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
     return out
 

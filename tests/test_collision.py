@@ -472,3 +472,25 @@ def test_nce_schedule_near_share_and_validation_curve():
     assert [r["step"] for r in curve] == [1, 60, 120]
     assert curve[-1]["val_loss"] < curve[0]["val_loss"]
     assert 0.0 <= curve[-1]["val_near_accuracy"] <= 1.0
+
+
+def test_mesh_clearance_grows_as_the_object_moves_away_and_is_negative_inside():
+    """``MeshChecker.clearance`` (thirty-ninth session, scripts/probe_dogleg.py): the smallest
+    part-to-part distance, capped; it grows with a straight move away from the support, is
+    negative where the meshes overlap (the penetration test agrees) and reads the cap far off."""
+    from omnihang_jax import planner
+
+    scene = _mug_on_pegboard()
+    mesh = planner.MeshChecker(scene)
+    lo, hi = np.asarray(scene.support_bounds, float)
+    centre = 0.5 * (lo + hi)
+    gaps = np.array([0.002, 0.01, 0.02, 1.0])
+    inside = np.array([*centre, 1, 0, 0, 0], float)
+    out = np.stack([inside.copy() for _ in range(4)])
+    out[:, 1] = hi[1] - float(np.asarray(scene.obj.bounds())[0][1]) + gaps  # wholly in front
+    c_in = mesh.clearance(inside)
+    assert c_in[0] < 0 and mesh(inside[None])[0]
+    c = mesh.clearance(out, cap=0.05)
+    assert np.all(np.diff(c) >= -1e-9) and c[-1] == pytest.approx(0.05)
+    # at least the gap to the support's front plane; an 8-mm step adds at most 8 mm
+    assert np.all(c[:3] >= gaps[:3] - 1e-4) and 0.002 < c[1] - c[0] <= 0.008 + 1e-6
