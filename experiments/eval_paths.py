@@ -276,6 +276,10 @@ class Estimators(NamedTuple):
     # (seed 1, open side: 8 time-outs used an approach, the plain plan had 2 of them free);
     # thirty-eighth session: "next", the second usable direction (plain when there is none)
     approach_replan: str = "same"
+    # thirty-ninth session, a probe: on goals no straight move takes off the support but two do
+    # (on the full meshes, >= 1 cm clear), the approach is that two-move route (the oracle);
+    # elsewhere the approach network's rule as configured
+    oracle_two_moves: bool = False
 
 
 def with_fallback(est: Estimators, far_threshold: float, seconds: float) -> Estimators:
@@ -776,6 +780,22 @@ def learned_approach(case: PairCase, est: Estimators):
     return directions[keep], checker, record
 
 
+TWO_MOVE_FIRSTS = (0.015, 0.03, 0.045)  # m: the first move's lengths (scripts/probe_dogleg.py)
+TWO_MOVE_CLEAR = 0.01  # m: the end must be this clear of the support on the meshes
+
+
+def two_move_oracle(case: PairCase, mesh, config: planner.PlannerConfig, bounds):
+    """The oracle two-move approach of a goal (``planner.find_two_move_retreat`` on the full
+    meshes, ending ``TWO_MOVE_CLEAR`` off), or None where one straight move already takes the
+    object off or no two moves do (thirty-ninth session: 17 of the 80 benchmark goals)."""
+    length = config.retreat_lengths[0]
+    found = planner.find_two_move_retreat(
+        mesh, case.goal, TWO_MOVE_FIRSTS, length, config.resolution, bounds,
+        lambda pose: float(mesh.clearance(pose)[0]) >= TWO_MOVE_CLEAR,
+    )  # fmt: skip
+    return found if found is not None and len(found.via) else None
+
+
 def next_approach(case: PairCase, est) -> np.ndarray:
     """[0 or 1, 3]: the second usable direction of the approach network (at its threshold, open
     side as configured), for ``--approach-replan next`` (with ``--approach-check none``, whose
@@ -835,13 +855,23 @@ def evaluate_pair(
                 check, cap=20 * mine[1], seed=int(case.meta["pair_index"])
             )
         directions, retreat_checker, ranked = planner.RETREAT_DIRECTIONS, None, None
+        two = None
         if est.oracle_retreat and name != "mesh":
             retreat_checker = mesh
         elif est.approach is not None and name != "mesh":
             directions, retreat_checker, ranked = learned_approach(case, est)
+            if est.oracle_two_moves:
+                two = two_move_oracle(case, mesh, config, bounds)
+                if two is not None:  # the replan after a time-out stays plain
+                    directions = two.direction[None]
+                    ranked["two_moves"] = dict(
+                        corner=np.asarray(two.via[0][:3] - goal[:3]).round(4).tolist(),
+                        second=two.direction.round(3).tolist(),
+                        search_s=round(two.seconds, 3),
+                    )  # fmt: skip
         res, retreat = planner.plan_with_retreat(
             check, start, goal, bounds, weight, config, retreat_checker=retreat_checker,
-            retreat_directions=directions,
+            retreat_directions=directions, retreat=two,
         )  # fmt: skip
         if ranked is not None:
             res = res._replace(planning_s=res.planning_s + ranked["seconds"])
@@ -1257,6 +1287,11 @@ def main(argv=None) -> dict:
         "full meshes (the oracle approach), the search to its end by the method's checker",
     )  # fmt: skip
     parser.add_argument(
+        "--oracle-two-moves", action="store_true",
+        help="a probe, not a planner: with --approach, on goals that no straight move takes off "
+        "the support but two moves do (full meshes, 1 cm clear), plan to that two-move route",
+    )  # fmt: skip
+    parser.add_argument(
         "--approach", metavar="DIR", nargs="+",
         help="with --retreat: the retreat's directions ranked by the approach network in DIR "
         "(experiments.train_approach) on the observed clouds; several DIRs: their mean "
@@ -1546,7 +1581,10 @@ def main(argv=None) -> dict:
                          "first plan may already have used the second direction)")  # fmt: skip
         est = est._replace(approach=predictor, approach_check=args.approach_check,
                            approach_open_side=args.approach_open_side,
-                           approach_replan=args.approach_replan)  # fmt: skip
+                           approach_replan=args.approach_replan,
+                           oracle_two_moves=args.oracle_two_moves)  # fmt: skip
+    elif args.oracle_two_moves:
+        parser.error("--oracle-two-moves needs --approach (elsewhere its rule plans)")
     if args.far_nce:
         far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
         if args.far_nce_threshold is not None:
@@ -1638,6 +1676,7 @@ def main(argv=None) -> dict:
         ),
         retreat_lengths_m=list(config.retreat_lengths),
         oracle_retreat=est.oracle_retreat,
+        oracle_two_moves=est.oracle_two_moves,
         approach=None
         if est.approach is None
         else dict(

@@ -670,6 +670,9 @@ class Retreat(NamedTuple):
     length: float  # m
     states_checked: int
     seconds: float
+    # thirty-ninth session: waypoints between the pre-goal and the goal, in approach order
+    # (:func:`find_two_move_retreat`: the corner of a two-move retreat); empty: straight in
+    via: np.ndarray = np.zeros((0, 7))
 
 
 def find_retreat(
@@ -696,6 +699,60 @@ def find_retreat(
             if not any_colliding(checker, states):
                 return Retreat(end, np.asarray(d, float), float(length), checked,
                                time.perf_counter() - t0)  # fmt: skip
+    return None
+
+
+def find_two_move_retreat(
+    checker: Callable[[np.ndarray], np.ndarray],
+    goal: np.ndarray,
+    firsts,
+    length: float,
+    resolution: float,
+    bounds: tuple[np.ndarray, np.ndarray] | None,
+    off: Callable[[np.ndarray], bool],
+    directions: np.ndarray = RETREAT_DIRECTIONS,
+) -> Retreat | None:
+    """The first retreat of at most two straight, orientation-keeping moves from ``goal`` that
+    ``checker`` calls free and whose end ``off(pose [7])`` accepts (e.g. clear of the support):
+    the one-move retreats of ``length`` first, then for each first length in ``firsts`` and each
+    first direction, a second move of ``length`` in each direction not going back (the
+    directions in order). The returned ``Retreat``'s ``direction`` / ``length`` are the second
+    move's, ``via`` the corner. None when none exists. Thirty-ninth session
+    (``scripts/probe_dogleg.py``): 27 of the 80 benchmark goals are off the support after one
+    4.5-cm move, 44 after two."""
+    t0 = time.perf_counter()
+    goal = np.asarray(goal, float)
+    checked = [0]
+
+    def free_end(a, d, L):
+        end, states = _retreat_states(a, d, float(L), resolution, bounds)
+        if states is None:
+            return None
+        checked[0] += len(states)
+        return None if any_colliding(checker, states) else end
+
+    ends = {}
+    for i, d in enumerate(directions):
+        end = free_end(goal, d, length)
+        if end is None:
+            continue
+        ends[i] = end
+        if off(end):
+            return Retreat(end, np.asarray(d, float), float(length), checked[0],
+                           time.perf_counter() - t0)  # fmt: skip
+    for first in firsts:
+        for i, d1 in enumerate(directions):
+            same = abs(float(first) - length) < 1e-9
+            mid = ends.get(i) if same else free_end(goal, d1, first)
+            if mid is None:
+                continue
+            for d2 in directions:
+                if np.dot(d1, d2) < -0.5:  # back the way it came
+                    continue
+                end = free_end(mid, d2, length)
+                if end is not None and off(end):
+                    return Retreat(end, np.asarray(d2, float), float(length), checked[0],
+                                   time.perf_counter() - t0, via=mid[None])  # fmt: skip
     return None
 
 
@@ -737,6 +794,7 @@ def plan_with_retreat(
     config: PlannerConfig = PlannerConfig(),
     retreat_checker: Callable[[np.ndarray], np.ndarray] | None = None,
     retreat_directions: np.ndarray = RETREAT_DIRECTIONS,
+    retreat: Retreat | None = None,
 ) -> tuple[PlanResult, Retreat | None]:
     """RRT-Connect to a pre-goal, then straight in: :func:`find_retreat` (lengths
     ``config.retreat_lengths``) and, when a retreat is free, :func:`plan` from ``start`` to its
@@ -761,8 +819,8 @@ def plan_with_retreat(
             first.checker_calls,
         )
         config = dataclasses.replace(config, time_limit=config.time_limit - first.planning_s)
-    found = None
-    if config.retreat_lengths:
+    found = retreat
+    if found is None and config.retreat_lengths:
         found = find_retreat(retreat_checker or checker, goal, config.retreat_lengths,
                              config.resolution, (lo, hi), retreat_directions)  # fmt: skip
     if found is None:
@@ -771,7 +829,10 @@ def plan_with_retreat(
                           res.states_checked + spent_states, res.checker_calls + spent_calls), None  # fmt: skip
     left = dataclasses.replace(config, time_limit=max(config.time_limit - found.seconds, 0.01))
     res = plan(checker, start, found.pregoal, bounds, rotation_weight, left)
-    path = None if res.path is None else np.concatenate([res.path, np.asarray(goal, float)[None]])
+    path = None
+    if res.path is not None:
+        path = np.concatenate([res.path, np.asarray(found.via, float).reshape(-1, 7),
+                               np.asarray(goal, float)[None]])  # fmt: skip
     return PlanResult(path, res.status, res.planning_s + found.seconds + spent_s,
                       res.states_checked + found.states_checked + spent_states,
                       res.checker_calls + spent_calls), found  # fmt: skip

@@ -32,47 +32,32 @@ from omnihang_jax import collision, planner
 
 
 def search(case, length: float, firsts, clear: float, resolution: float) -> dict:
-    """The three answers for one case, with the first found move(s) of each."""
+    """The three answers for one case: the first free straight move's direction, and the
+    first one-move / two-move route off the support (``planner.find_two_move_retreat``, the
+    planner's direction order) as [first direction, first length, second direction] or None."""
     mesh = collision.MeshChecker(case.scene, 1e-3)
-    gap = lambda pose: float(mesh.clearance(pose)[0])  # noqa: E731
     lo, hi = planner.default_bounds(case.scene)
     bounds = (np.asarray(lo, float), np.asarray(hi, float))
     goal = np.asarray(case.goal, float)
-    dirs = planner.RETREAT_DIRECTIONS
-    out = dict(straight=None, straight_off=None, dogleg_off=None, checked=0)
+    off = lambda pose: float(mesh.clearance(pose)[0]) >= clear  # noqa: E731
+    free = planner.free_retreats(mesh, goal, length, resolution, bounds)
+    out = dict(
+        straight=planner.RETREAT_DIRECTIONS[free][0].round(3).tolist() if free.any() else None
+    )
 
-    def free_segment(a, d, L):
-        end, states = planner._retreat_states(a, d, L, resolution, bounds)
-        if states is None:
+    def route(found):
+        if found is None:
             return None
-        out["checked"] += len(states)
-        return None if planner.any_colliding(mesh, states) else end
+        if not len(found.via):
+            return [found.direction.round(3).tolist(), found.length, None]
+        first = found.via[0, :3] - goal[:3]
+        size = float(np.linalg.norm(first))
+        return [(first / size).round(3).tolist(), round(size, 4), found.direction.round(3).tolist()]
 
-    ends = {}
-    for i, d in enumerate(dirs):
-        end = free_segment(goal, d, length)
-        if end is None:
-            continue
-        ends[i] = end
-        if out["straight"] is None:
-            out["straight"] = [i]
-        if out["straight_off"] is None and gap(end) >= clear:
-            out["straight_off"] = [i]
-    if out["straight_off"] is not None:
-        out["dogleg_off"] = out["straight_off"] + [None]
-        return out
-    for L1 in firsts:
-        for i, d1 in enumerate(dirs):
-            mid = ends.get(i) if abs(L1 - length) < 1e-9 else free_segment(goal, d1, L1)
-            if mid is None:
-                continue
-            for j, d2 in enumerate(dirs):
-                if np.dot(d1, d2) < -0.5:  # back the way it came
-                    continue
-                end = free_segment(mid, d2, length)
-                if end is not None and gap(end) >= clear:
-                    out["dogleg_off"] = [i, j, L1]
-                    return out
+    one = planner.find_two_move_retreat(mesh, goal, (), length, resolution, bounds, off)
+    out["straight_off"] = route(one)
+    two = one or planner.find_two_move_retreat(mesh, goal, firsts, length, resolution, bounds, off)
+    out["dogleg_off"] = route(two)
     return out
 
 
@@ -115,6 +100,9 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs-from", default="out/paths_records.jsonl.gz")
     ap.add_argument("--pairs", type=int, default=80)
+    ap.add_argument("--split", default="test", choices=["test", "train"],
+                    help="train: training pairs' first goals (the label statistics of a "
+                    "learned route; never the NCE's validation pairs)")  # fmt: skip
     ap.add_argument("--data", default="datasets/paper")
     ap.add_argument("--length", type=float, default=0.045, help="m, the straight move")
     ap.add_argument("--first", type=float, nargs="+", default=[0.015, 0.03, 0.045])
@@ -131,9 +119,12 @@ def main(argv=None) -> dict:
         Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
         print(json.dumps(result["runs"]["by_kind"], indent=1))
         return result
-    cases = eval_paths.load_pairs(
-        args.data, args.pairs, records=eval_paths.read_answers(args.pairs_from)
-    )
+    if args.split == "train":  # training pairs are derived on demand (a few s each)
+        cases = eval_paths.load_pairs(args.data, args.pairs, split="train", workers=2)
+    else:
+        cases = eval_paths.load_pairs(
+            args.data, args.pairs, records=eval_paths.read_answers(args.pairs_from)
+        )
     rows = []
     t0 = time.perf_counter()
     for case in cases:

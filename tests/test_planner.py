@@ -634,3 +634,40 @@ def test_the_retreat_can_be_chosen_by_another_checker():
         retreat_checker=exact,
     )  # fmt: skip
     np.testing.assert_allclose(chosen.direction, [0, 0, 1])  # the exact checker's choice
+
+
+def test_two_move_retreat_leaves_an_l_shaped_tunnel_and_the_path_turns_its_corner():
+    """``planner.find_two_move_retreat`` (thirty-ninth session, ``eval_paths
+    --oracle-two-moves``): the goal sits under a ceiling in a corridor that opens 3 cm to +x into
+    a shaft going up. No straight move reaches the shaft's top; +x 3 cm then up does, and
+    ``plan_with_retreat`` ends its path through that corner."""
+    boxes = [
+        ([-0.2, -0.2, -0.2], [0.2, 0.2, -0.015]),  # floor
+        ([-0.2, -0.2, 0.015], [0.015, 0.2, 0.2]),  # ceiling over the goal, up to x = 0.015
+        ([0.05, -0.2, -0.2], [0.2, 0.2, 0.2]),  # the shaft's far wall
+        ([-0.2, -0.2, -0.2], [-0.015, 0.2, 0.2]),  # behind the goal
+        ([-0.2, 0.015, -0.2], [0.2, 0.2, 0.2]),  # the corridor's sides
+        ([-0.2, -0.2, -0.2], [0.2, -0.015, 0.2]),
+    ]
+    exact = planner.AnalyticChecker(boxes, radius=0.01)
+    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
+    assert not exact(goal[None])[0]
+    off = lambda pose: pose[2] > 0.04  # noqa: E731  (out of the shaft's bottom)
+    bounds = (np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3]))
+    # one move: nothing; two: +x 3 cm, then straight up
+    one = planner.find_two_move_retreat(exact, goal, (), 0.045, 0.002, bounds, off)
+    assert one is None
+    found = planner.find_two_move_retreat(exact, goal, (0.015, 0.03, 0.045), 0.045, 0.002,
+                                          bounds, off)  # fmt: skip
+    assert found is not None and found.via.shape == (1, 7)
+    np.testing.assert_allclose(found.via[0, :3], [0.03, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(found.direction, [0, 0, 1])
+    np.testing.assert_allclose(found.pregoal[:3], [0.03, 0, 0.045], atol=1e-9)
+    # planned to from above the shaft: the path ends pre-goal -> corner -> goal
+    start = np.array([0.03, 0.0, 0.15, 1, 0, 0, 0])
+    cfg = planner.PlannerConfig(time_limit=5.0, retreat_lengths=(0.045,))
+    res, used = planner.plan_with_retreat(exact, start, goal, bounds, 0.05, cfg, retreat=found)
+    assert used is found and res.path is not None
+    np.testing.assert_allclose(res.path[-2], found.via[0])
+    np.testing.assert_allclose(res.path[-1], goal)
+    assert not planner.any_colliding(exact, planner.interpolate_path(res.path, 0.002, 0.05))
