@@ -24,6 +24,19 @@ from experiments import eval_paths
 from omnihang_jax import approach, collision, planner
 
 
+def best(net, case, pose, t: float):
+    """(the best usable direction at ``t`` from ``pose``, open side, or None; its probability)."""
+    dirs, probs = net.order(case.object_points, case.support_points, pose)
+    keep = approach.usable(dirs, probs, t, case.wall_y is not None, True)
+    return (dirs[keep][0], float(probs[keep][0])) if keep.any() else (None, float(probs[0]))
+
+
+def segment(mesh, bounds, a, d, length: float):
+    """(the straight move's end, whether the meshes call it free and it stays in ``bounds``)."""
+    end, states = planner._retreat_states(a, d, length, 0.002, bounds)
+    return end, states is not None and not planner.any_colliding(mesh, states)
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs-from", default="out/paths_records.jsonl.gz")
@@ -45,33 +58,23 @@ def main(argv=None) -> dict:
         mesh = collision.MeshChecker(case.scene, 1e-3)
         lo, hi = planner.default_bounds(case.scene)
         bounds = (np.asarray(lo, float), np.asarray(hi, float))
-        wall = case.wall_y is not None
         goal = np.asarray(case.goal, float)
 
-        def best(pose, t):
-            dirs, probs = net.order(case.object_points, case.support_points, pose)
-            keep = approach.usable(dirs, probs, t, wall, True)
-            return (dirs[keep][0], float(probs[keep][0])) if keep.any() else (None, float(probs[0]))
-
-        def segment(a, d):
-            end, states = planner._retreat_states(a, d, args.length, 0.002, bounds)
-            return end, states is not None and not planner.any_colliding(mesh, states)
-
         row = dict(pair=case.name, support_family=case.meta["support_family"])
-        d1, p1 = best(goal, args.threshold)
+        d1, p1 = best(net, case, goal, args.threshold)
         if d1 is None:
             row["first"] = None
             rows.append(row)
             continue
-        pre, free1 = segment(goal, d1)
+        pre, free1 = segment(mesh, bounds, goal, d1, args.length)
         row |= dict(first=d1.round(3).tolist(), p1=round(p1, 3), first_free=free1,
                     first_off=free1 and float(mesh.clearance(pre)[0]) >= args.clear)  # fmt: skip
         for t2 in args.second_thresholds:
-            d2, p2 = best(pre, t2)
+            d2, p2 = best(net, case, pre, t2)
             if d2 is None:
                 row[f"second@{t2:g}"] = None
                 continue
-            end, free2 = segment(pre, d2)
+            end, free2 = segment(mesh, bounds, pre, d2, args.length)
             row[f"second@{t2:g}"] = dict(
                 direction=d2.round(3).tolist(), p=round(p2, 3), free=free1 and free2,
                 off=free1 and free2 and float(mesh.clearance(end)[0]) >= args.clear,
