@@ -57,3 +57,42 @@ def test_the_approach_rule_by_family_counts_used_and_free_goals():
     out = rule.by_family(prob, labels, np.array([False] * 3), ["a", "a", "b"], 0.5)
     assert out["a"] == dict(goals=2, any_free=1.0, used=1.0, used_free=0.5)
     assert out["b"] == dict(goals=1, any_free=0.0, used=0.0, used_free=None)
+
+
+def test_the_lattice_route_leaves_an_l_shaped_tunnel():
+    """scripts/probe_route_bfs.py: the breadth-first lattice search finds the way out of the
+    planner test's L-shaped tunnel (+x, then up) with an exact checker standing in for the
+    meshes (its clearance: the distance to the boxes minus the sphere's radius)."""
+    bfs = _load("probe_route_bfs")
+    from omnihang_jax import planner
+
+    boxes = [
+        ([-0.2, -0.2, -0.2], [0.2, 0.2, -0.015]),
+        ([-0.2, -0.2, 0.015], [0.015, 0.2, 0.2]),
+        ([0.05, -0.2, -0.2], [0.2, 0.2, 0.06]),
+        ([-0.2, -0.2, -0.2], [-0.015, 0.2, 0.2]),
+        ([-0.2, 0.015, -0.2], [0.2, 0.2, 0.2]),
+        ([-0.2, -0.2, -0.2], [0.2, -0.015, 0.2]),
+    ]
+    exact = planner.AnalyticChecker(boxes, radius=0.01)
+
+    class Exact:
+        def __call__(self, poses):
+            return exact(poses)
+
+        def clearance(self, pose):
+            p = np.asarray(pose, float).reshape(-1, 7)[:, :3]
+            d = min(np.linalg.norm(p - np.clip(p, lo, hi), axis=1).min() for lo, hi in exact.boxes)
+            return np.array([d - exact.radius])
+
+    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
+    bounds = (np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3]))
+    route, expanded = bfs.bfs_route(Exact(), goal, 0.015, 0.01, 500, bounds)
+    assert route is not None and route[0] == [0, 0, 0] and expanded <= 500
+    pts = 0.015 * np.asarray(route, float)
+    assert pts[-1][2] > 0.06  # out over the far wall's top, 1 cm clear
+    assert not exact(np.concatenate([pts, np.tile([1, 0, 0, 0], (len(pts), 1))], 1)).any()
+    # a lid over the shaft: no way off
+    lid = planner.AnalyticChecker([*boxes, ([-0.2, -0.2, 0.07], [0.2, 0.2, 0.2])], radius=0.01)
+    exact.boxes = lid.boxes
+    assert bfs.bfs_route(Exact(), goal, 0.015, 0.01, 500, bounds)[0] is None
