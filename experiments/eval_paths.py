@@ -280,6 +280,9 @@ class Estimators(NamedTuple):
     # (on the full meshes, >= 1 cm clear), the approach is that two-move route (the oracle);
     # elsewhere the approach network's rule as configured
     oracle_two_moves: bool = False
+    # and, with oracle_lattice > 0 (m), on threaded goals (no one- or two-move way off) the
+    # shortest lattice route of that step off the support (planner.lattice_retreat, meshes)
+    oracle_lattice: float = 0.0
 
 
 def with_fallback(est: Estimators, far_threshold: float, seconds: float) -> Estimators:
@@ -796,6 +799,18 @@ def two_move_oracle(case: PairCase, mesh, config: planner.PlannerConfig, bounds)
     return found if found is not None and len(found.via) else None
 
 
+def lattice_oracle(case: PairCase, mesh, config: planner.PlannerConfig, bounds, step: float):
+    """The oracle lattice route off the support (``planner.lattice_retreat`` on the full
+    meshes, ``TWO_MOVE_CLEAR`` off, at most 20,000 nodes) of a goal no straight move takes off
+    (call it after :func:`two_move_oracle` found none), or None."""
+    off = lambda pose: float(mesh.clearance(pose)[0]) >= TWO_MOVE_CLEAR  # noqa: E731
+    length = config.retreat_lengths[0]
+    if planner.find_two_move_retreat(mesh, case.goal, (), length, config.resolution, bounds, off):
+        return None  # one move takes it off: the approach rule's case
+    found, _ = planner.lattice_retreat(mesh, case.goal, step, off, 20_000, bounds)
+    return found
+
+
 def next_approach(case: PairCase, est) -> np.ndarray:
     """[0 or 1, 3]: the second usable direction of the approach network (at its threshold, open
     side as configured), for ``--approach-replan next`` (with ``--approach-check none``, whose
@@ -862,10 +877,16 @@ def evaluate_pair(
             directions, retreat_checker, ranked = learned_approach(case, est)
             if est.oracle_two_moves:
                 two = two_move_oracle(case, mesh, config, bounds)
+                if two is None and est.oracle_lattice > 0:
+                    two = lattice_oracle(case, mesh, config, bounds, est.oracle_lattice)
+                    if two is not None:
+                        ranked["lattice"] = dict(waypoints=len(two.via) + 1,
+                                                 search_s=round(two.seconds, 3))  # fmt: skip
                 if two is not None:  # the replan after a time-out stays plain
                     directions = two.direction[None]
+                if two is not None and "lattice" not in ranked:
                     ranked["two_moves"] = dict(
-                        corner=np.asarray(two.via[0][:3] - goal[:3]).round(4).tolist(),
+                        corner=np.asarray(two.via[-1][:3] - goal[:3]).round(4).tolist(),
                         second=two.direction.round(3).tolist(),
                         search_s=round(two.seconds, 3),
                     )  # fmt: skip
@@ -1292,6 +1313,11 @@ def main(argv=None) -> dict:
         "the support but two moves do (full meshes, 1 cm clear), plan to that two-move route",
     )  # fmt: skip
     parser.add_argument(
+        "--oracle-lattice", type=float, default=0.0, metavar="STEP",
+        help="a probe, with --oracle-two-moves: on goals neither one nor two moves take off the "
+        "support, plan to the shortest lattice route of STEP m off it (full meshes)",
+    )  # fmt: skip
+    parser.add_argument(
         "--approach", metavar="DIR", nargs="+",
         help="with --retreat: the retreat's directions ranked by the approach network in DIR "
         "(experiments.train_approach) on the observed clouds; several DIRs: their mean "
@@ -1582,7 +1608,10 @@ def main(argv=None) -> dict:
         est = est._replace(approach=predictor, approach_check=args.approach_check,
                            approach_open_side=args.approach_open_side,
                            approach_replan=args.approach_replan,
-                           oracle_two_moves=args.oracle_two_moves)  # fmt: skip
+                           oracle_two_moves=args.oracle_two_moves,
+                           oracle_lattice=args.oracle_lattice)  # fmt: skip
+        if args.oracle_lattice and not args.oracle_two_moves:
+            parser.error("--oracle-lattice needs --oracle-two-moves")
     elif args.oracle_two_moves:
         parser.error("--oracle-two-moves needs --approach (elsewhere its rule plans)")
     if args.far_nce:
@@ -1677,6 +1706,7 @@ def main(argv=None) -> dict:
         retreat_lengths_m=list(config.retreat_lengths),
         oracle_retreat=est.oracle_retreat,
         oracle_two_moves=est.oracle_two_moves,
+        oracle_lattice=est.oracle_lattice,
         approach=None
         if est.approach is None
         else dict(

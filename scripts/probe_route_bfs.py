@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from collections import Counter, deque
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -30,38 +30,15 @@ from omnihang_jax import collision, planner
 def bfs_route(
     mesh, goal, step: float, clear: float, max_nodes: int, bounds
 ) -> tuple[list | None, int]:
-    """(the lattice route off the support [k, 3] of offsets, or None; nodes expanded)."""
-    goal = np.asarray(goal, float)
-    dirs = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], int) - 1
-    start = (0, 0, 0)
-    parent = {start: None}
-    queue = deque([start])
-    expanded = 0
-    while queue and expanded < max_nodes:
-        node = queue.popleft()
-        expanded += 1
-        pose = goal.copy()
-        pose[:3] += step * np.asarray(node)
-        for d in dirs:
-            nxt = tuple(int(v) for v in np.asarray(node) + d)
-            if nxt in parent:
-                continue
-            end = goal.copy()
-            end[:3] += step * np.asarray(nxt)
-            if not (np.all(bounds[0] <= end[:3]) and np.all(end[:3] <= bounds[1])):
-                continue
-            n = max(1, int(np.ceil(step * np.linalg.norm(d) / 0.002)))
-            if planner.any_colliding(mesh, planner.interpolate_segment(pose, end, n)):
-                continue
-            parent[nxt] = node
-            if float(mesh.clearance(end)[0]) >= clear:
-                route, k = [], nxt
-                while k is not None:
-                    route.append(k)
-                    k = parent[k]
-                return [list(map(int, r)) for r in route[::-1]], expanded
-            queue.append(nxt)
-    return None, expanded
+    """(the lattice route off the support as lattice offsets [k][3] from the goal, goal first,
+    or None; nodes expanded): ``planner.lattice_retreat`` with "``clear`` off" as its end."""
+    found, expanded = planner.lattice_retreat(
+        mesh, goal, step, lambda pose: float(mesh.clearance(pose)[0]) >= clear, max_nodes, bounds
+    )
+    if found is None:
+        return None, expanded
+    pts = [np.asarray(goal, float)[:3], *[v[:3] for v in found.via[::-1]], found.pregoal[:3]]
+    return [np.rint((p - pts[0]) / step).astype(int).tolist() for p in pts], expanded
 
 
 def main(argv=None) -> dict:
