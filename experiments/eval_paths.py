@@ -787,28 +787,25 @@ TWO_MOVE_FIRSTS = (0.015, 0.03, 0.045)  # m: the first move's lengths (scripts/p
 TWO_MOVE_CLEAR = 0.01  # m: the end must be this clear of the support on the meshes
 
 
-def two_move_oracle(case: PairCase, mesh, config: planner.PlannerConfig, bounds):
-    """The oracle two-move approach of a goal (``planner.find_two_move_retreat`` on the full
-    meshes, ending ``TWO_MOVE_CLEAR`` off), or None where one straight move already takes the
-    object off or no two moves do (thirty-ninth session: 17 of the 80 benchmark goals)."""
-    length = config.retreat_lengths[0]
-    found = planner.find_two_move_retreat(
-        mesh, case.goal, TWO_MOVE_FIRSTS, length, config.resolution, bounds,
-        lambda pose: float(mesh.clearance(pose)[0]) >= TWO_MOVE_CLEAR,
-    )  # fmt: skip
-    return found if found is not None and len(found.via) else None
-
-
-def lattice_oracle(case: PairCase, mesh, config: planner.PlannerConfig, bounds, step: float):
-    """The oracle lattice route off the support (``planner.lattice_retreat`` on the full
-    meshes, ``TWO_MOVE_CLEAR`` off, at most 20,000 nodes) of a goal no straight move takes off
-    (call it after :func:`two_move_oracle` found none), or None."""
+def route_oracle(case: PairCase, mesh, config: planner.PlannerConfig, bounds, lattice: float):
+    """(kind, retreat) of the oracle route off the support on the full meshes (ending
+    ``TWO_MOVE_CLEAR`` clear; thirty-ninth session): ("two_moves", ...) where one straight move
+    does not take the object off but two do (``planner.find_two_move_retreat``; 17 of the 80
+    benchmark goals); ("lattice", ...) where neither does and ``lattice`` > 0, the shortest
+    lattice route of that step (``planner.lattice_retreat``, at most 20,000 nodes); (None, None)
+    where one move does (the approach rule's case) or none is found."""
     off = lambda pose: float(mesh.clearance(pose)[0]) >= TWO_MOVE_CLEAR  # noqa: E731
     length = config.retreat_lengths[0]
-    if planner.find_two_move_retreat(mesh, case.goal, (), length, config.resolution, bounds, off):
-        return None  # one move takes it off: the approach rule's case
-    found, _ = planner.lattice_retreat(mesh, case.goal, step, off, 20_000, bounds)
-    return found
+    found = planner.find_two_move_retreat(
+        mesh, case.goal, TWO_MOVE_FIRSTS, length, config.resolution, bounds, off
+    )
+    if found is not None:
+        return ("two_moves", found) if len(found.via) else (None, None)
+    if lattice > 0:
+        found, _ = planner.lattice_retreat(mesh, case.goal, lattice, off, 20_000, bounds)
+        if found is not None:
+            return "lattice", found
+    return None, None
 
 
 def next_approach(case: PairCase, est) -> np.ndarray:
@@ -876,18 +873,13 @@ def evaluate_pair(
         elif est.approach is not None and name != "mesh":
             directions, retreat_checker, ranked = learned_approach(case, est)
             if est.oracle_two_moves:
-                two = two_move_oracle(case, mesh, config, bounds)
-                if two is None and est.oracle_lattice > 0:
-                    two = lattice_oracle(case, mesh, config, bounds, est.oracle_lattice)
-                    if two is not None:
-                        ranked["lattice"] = dict(waypoints=len(two.via) + 1,
-                                                 search_s=round(two.seconds, 3))  # fmt: skip
+                kind, two = route_oracle(case, mesh, config, bounds, est.oracle_lattice)
                 if two is not None:  # the replan after a time-out stays plain
                     directions = two.direction[None]
-                if two is not None and "lattice" not in ranked:
-                    ranked["two_moves"] = dict(
+                    ranked[kind] = dict(
+                        waypoints=len(two.via) + 1,
                         corner=np.asarray(two.via[-1][:3] - goal[:3]).round(4).tolist(),
-                        second=two.direction.round(3).tolist(),
+                        last=two.direction.round(3).tolist(),
                         search_s=round(two.seconds, 3),
                     )  # fmt: skip
         res, retreat = planner.plan_with_retreat(
@@ -1044,6 +1036,22 @@ def save_mined(case: PairCase, recorder, mesh, path, method: str, config, mine) 
         colliding=int(colliding.sum()), missed=int((colliding & ~called).sum()),
         false_alarms=int((~colliding & called).sum()),
     )  # fmt: skip
+
+
+def read_rows(path: str | Path, method: str = "nce_geometric") -> dict[str, dict]:
+    """A run's ``pairs.jsonl`` (this module's ``--out``) -> pair -> its last row of ``method``
+    (a resumed run: the last row counts); rows planned to another goal than the first stable
+    pose are refused (a run of another protocol). The scripts that compare or splice runs
+    read them so (``scripts/approach_decisions.py``, ``splice_rows.py``, ``probe_path_gaps.py``)."""
+    rows = {}
+    for line in Path(path).read_text().splitlines():
+        if line.strip():
+            r = json.loads(line)
+            if r.get("goal_kind", "stable") != "stable":
+                raise ValueError(f"{path}: a row planned to {r['goal_kind']!r}, not a stable pose")
+            if r.get("method", method) == method:
+                rows[r["pair"]] = r
+    return rows
 
 
 def summarise(rows: list[dict], methods=METHODS) -> dict:

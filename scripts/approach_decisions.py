@@ -29,21 +29,8 @@ import json
 import types
 from pathlib import Path
 
+from experiments.eval_paths import read_rows  # noqa: F401  (its splice reads runs so)
 from omnihang_jax import approach
-
-
-def read_rows(path: str | Path, method: str = "nce_geometric") -> dict[str, dict]:
-    """pair -> its last row of ``method`` (a resumed run: the last row counts); rows planned to
-    another goal than the first stable pose are refused (a run of another protocol)."""
-    rows = {}
-    for line in Path(path).read_text().splitlines():
-        if line.strip():
-            r = json.loads(line)
-            if r.get("goal_kind", "stable") != "stable":
-                raise SystemExit(f"{path}: a row planned to {r['goal_kind']!r}, not a stable pose")
-            if r.get("method", method) == method:
-                rows[r["pair"]] = r
-    return rows
 
 
 def decision(record: dict | None):

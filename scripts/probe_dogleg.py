@@ -54,10 +54,10 @@ def search(case, length: float, firsts, clear: float, resolution: float) -> dict
         size = float(np.linalg.norm(first))
         return [(first / size).round(3).tolist(), round(size, 4), found.direction.round(3).tolist()]
 
-    one = planner.find_two_move_retreat(mesh, goal, (), length, resolution, bounds, off)
-    out["straight_off"] = route(one)
-    two = one or planner.find_two_move_retreat(mesh, goal, firsts, length, resolution, bounds, off)
-    out["dogleg_off"] = route(two)
+    # one search: the one-move routes come first, so a route without a corner is one move
+    found = planner.find_two_move_retreat(mesh, goal, firsts, length, resolution, bounds, off)
+    out["straight_off"] = route(found) if found is not None and not len(found.via) else None
+    out["dogleg_off"] = route(found)
     return out
 
 

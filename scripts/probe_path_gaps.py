@@ -30,11 +30,6 @@ import numpy as np
 RINGS = (0.0, 0.02, 0.045, 0.08, 0.12)  # m, planner metric: distance-from-goal lower bounds
 
 
-def _rows(run: str, method: str) -> dict:
-    rows = [json.loads(x) for x in Path(run, "pairs.jsonl").read_text().splitlines() if x.strip()]
-    return {r["pair"]: r for r in rows if r["method"] == method}
-
-
 def measure(args) -> dict:
     from scipy.spatial import cKDTree
 
@@ -42,7 +37,7 @@ def measure(args) -> dict:
     from omnihang_jax import planner
     from omnihang_jax.collision import posed_points, subsample_cloud
 
-    runs = {run: _rows(run, args.method) for run in args.runs}
+    runs = {run: eval_paths.read_rows(Path(run, "pairs.jsonl"), args.method) for run in args.runs}
     names = {p for rows in runs.values() for p, r in rows.items() if r["returned"]}
     cases = eval_paths.load_pairs(
         args.data, args.pairs, records=eval_paths.read_answers(args.pairs_from), names=names
@@ -109,9 +104,11 @@ def score(paths: list[dict], pairs_per_run: dict, refuse) -> dict:
 def summarise(args) -> dict:
     data = json.loads(Path(args.gaps).read_text())
     paths = data["paths"]
+    from experiments import eval_paths
+
     pairs_per_run = {}
     for run in data["runs"]:
-        rows = _rows(run, data["method"])
+        rows = eval_paths.read_rows(Path(run, "pairs.jsonl"), data["method"])
         pairs_per_run[run] = len(rows)  # recall = free paths / all pairs, as eval_paths.summarise
     base = score(paths, pairs_per_run, lambda p: False)
     grid = []

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
+
+from experiments import eval_paths
 
 
 def main(argv=None) -> int:
@@ -23,21 +24,11 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
 
-    def rows(path):
-        out = {}
-        for line in Path(path).read_text().splitlines():
-            r = json.loads(line) if line.strip() else None
-            if r and r.get("method", args.method) == args.method:
-                out[r["pair"]] = r
-        return out
-
-    ref, new = rows(args.reference), rows(args.new)
+    ref = eval_paths.read_rows(args.reference, args.method)
+    new = eval_paths.read_rows(args.new, args.method)
     stray = sorted(set(new) - set(ref))
     if stray:
         raise SystemExit(f"{len(stray)} new pair(s) the reference lacks, e.g. {stray[0]!r}")
-    goal_kinds = {r.get("goal_kind", "stable") for r in [*ref.values(), *new.values()]}
-    if len(goal_kinds) > 1:
-        raise SystemExit(f"the runs plan to different goals: {sorted(goal_kinds)}")
     with open(args.out, "w") as f:
         for pair, row in ref.items():
             src = args.new if pair in new else args.reference
