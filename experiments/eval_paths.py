@@ -283,6 +283,11 @@ class Estimators(NamedTuple):
     # and, with oracle_lattice > 0 (m), on threaded goals (no one- or two-move way off) the
     # shortest lattice route of that step off the support (planner.lattice_retreat, meshes)
     oracle_lattice: float = 0.0
+    # fortieth session: a route network (approach.ApproachPredictor with first_lengths: one or
+    # two straight moves ending off the support) at its threshold; routes_mode "fill": asked
+    # only where the straight approach rule gives none, "first": asked first
+    routes: object = None
+    routes_mode: str = "fill"
 
 
 def with_fallback(est: Estimators, far_threshold: float, seconds: float) -> Estimators:
@@ -808,6 +813,23 @@ def route_oracle(case: PairCase, mesh, config: planner.PlannerConfig, bounds, la
     return None, None
 
 
+def learned_route(case: PairCase, est):
+    """(retreat or None, record) from the route network on the observed clouds: its best route
+    when its probability reaches the network's threshold (``planner.route_retreat``, the
+    corner in ``via``; taken as free, like the straight rule's best direction)."""
+    t0 = time.perf_counter()
+    routes, probs = est.routes.best_routes(case.object_points, case.support_points, case.goal)
+    best = routes[0]
+    record = dict(best=[int(best[0]), round(float(best[1]), 4), int(best[2])],
+                  best_p=round(float(probs[0]), 4))  # fmt: skip
+    found = None
+    if probs[0] >= est.routes.config.threshold:
+        found = planner.route_retreat(case.goal, best, est.routes.config.length)
+        record["waypoints"] = len(found.via) + 1
+    record["seconds"] = round(time.perf_counter() - t0, 4)
+    return found, record
+
+
 def next_approach(case: PairCase, est) -> np.ndarray:
     """[0 or 1, 3]: the second usable direction of the approach network (at its threshold, open
     side as configured), for ``--approach-replan next`` (with ``--approach-check none``, whose
@@ -872,6 +894,11 @@ def evaluate_pair(
             retreat_checker = mesh
         elif est.approach is not None and name != "mesh":
             directions, retreat_checker, ranked = learned_approach(case, est)
+            if est.routes is not None and (est.routes_mode == "first" or not len(directions)):
+                found, ranked["route"] = learned_route(case, est)
+                ranked["seconds"] = round(ranked["seconds"] + ranked["route"]["seconds"], 4)
+                if found is not None:  # the replan after a time-out stays as configured
+                    two, directions = found, found.direction[None]
             if est.oracle_two_moves:
                 kind, two = route_oracle(case, mesh, config, bounds, est.oracle_lattice)
                 if two is not None:  # the replan after a time-out stays plain
@@ -1316,6 +1343,18 @@ def main(argv=None) -> dict:
         "full meshes (the oracle approach), the search to its end by the method's checker",
     )  # fmt: skip
     parser.add_argument(
+        "--routes", metavar="DIR",
+        help="with --approach: a route network (train_approach --first-lengths): its best route "
+        "of one or two straight moves, when confident, is the approach (see --routes-mode)",
+    )  # fmt: skip
+    parser.add_argument("--routes-threshold", type=float, metavar="P",
+                        help="with --routes: its best route's probability needed (default: its own)")  # fmt: skip
+    parser.add_argument(
+        "--routes-mode", choices=("fill", "first"), default="fill",
+        help="with --routes: 'fill' asks it only where the straight approach rule gives none, "
+        "'first' asks it first (the straight rule where it is not confident)",
+    )  # fmt: skip
+    parser.add_argument(
         "--oracle-two-moves", action="store_true",
         help="a probe, not a planner: with --approach, on goals that no straight move takes off "
         "the support but two moves do (full meshes, 1 cm clear), plan to that two-move route",
@@ -1622,6 +1661,15 @@ def main(argv=None) -> dict:
             parser.error("--oracle-lattice needs --oracle-two-moves")
     elif args.oracle_two_moves:
         parser.error("--oracle-two-moves needs --approach (elsewhere its rule plans)")
+    if args.routes:
+        if not args.approach:
+            parser.error("--routes needs --approach (the straight rule it fills in or precedes)")
+        routes = approach.load_predictor(args.routes, args.routes_threshold)
+        if not routes.config.first_lengths:
+            parser.error(f"--routes {args.routes}: a straight approach network, not a route "
+                         "network (experiments.train_approach --first-lengths)")  # fmt: skip
+        routes.warm_up()
+        est = est._replace(routes=routes, routes_mode=args.routes_mode)
     if args.far_nce:
         far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
         if args.far_nce_threshold is not None:
@@ -1715,6 +1763,15 @@ def main(argv=None) -> dict:
         oracle_retreat=est.oracle_retreat,
         oracle_two_moves=est.oracle_two_moves,
         oracle_lattice=est.oracle_lattice,
+        routes=None
+        if est.routes is None
+        else dict(
+            weights=args.routes,
+            threshold=est.routes.config.threshold,
+            first_lengths_m=list(est.routes.config.first_lengths),
+            clear_m=est.routes.config.clear,
+            mode=est.routes_mode,
+        ),  # fmt: skip
         approach=None
         if est.approach is None
         else dict(

@@ -37,43 +37,66 @@ from experiments import eval_paths, train_collision
 from omnihang_jax import approach, collision, dataset_bridge
 
 LABEL_VERSION = 1
+ROUTE_LABEL_VERSION = 1  # fortieth session: route networks' labels (approach.route_labels)
 
 
-def _label_one(job: tuple[str, str, float, float]) -> str:
-    """Label one pair file's stable poses; returns the label file (written atomically)."""
+def _label_one(job: tuple) -> str:
+    """Label one pair file's stable poses (the first ``goals`` of them when > 0; a route
+    network's labels when ``config.first_lengths``); returns the label file (written
+    atomically)."""
     from sim.scene import build_scene
 
-    pair_file, out_file, length, resolution = job
+    pair_file, out_file, config, goals = job
     lib = train_collision._WORKER["library"]  # train_collision._worker_init's
     with np.load(pair_file) as f:
         obj, sup = lib.objects[f["object_name"].item()], lib.supports[f["support_name"].item()]
         stable = f["stable_poses"].astype(float)
-    labels = approach.approach_labels(build_scene(obj, sup), stable, length, resolution)
+    if goals > 0:
+        stable = stable[:goals]
+    scene = build_scene(obj, sup)
+    if config.first_lengths:
+        labels, version = approach.route_labels(scene, stable, config), ROUTE_LABEL_VERSION
+    else:
+        labels = approach.approach_labels(scene, stable, config.length, config.resolution)
+        version = LABEL_VERSION
     tmp = out_file + ".tmp.npz"
-    np.savez(tmp, labels=labels, length=np.float32(length), version=np.int64(LABEL_VERSION))
+    np.savez(tmp, labels=labels, length=np.float32(config.length), version=np.int64(version),
+             goals=np.int64(goals))  # fmt: skip
     os.replace(tmp, out_file)
     return out_file
 
 
-def _labels_done(path: str) -> bool:
+def _labels_done(path: str, version: int = LABEL_VERSION, goals: int = 0) -> bool:
     try:
         with np.load(path) as f:
-            return int(f["version"]) == LABEL_VERSION
+            return int(f["version"]) == version and int(f.get("goals", 0)) == goals
     except (OSError, ValueError, KeyError, EOFError):
         return False
 
 
-def label_pairs(data: str, files: list[Path], length: float, resolution: float, workers: int,
-                progress: bool = True) -> list[Path]:  # fmt: skip
-    """The label file of every pair file (derived where missing; resumable)."""
-    out_dir = Path(data) / train_collision.DERIVED.replace("collision", "approach")
+def label_dir(data: str, config) -> Path:
+    """Where a config's labels live: ``derived/approach`` (straight approaches) or
+    ``derived/approach_routes_<first lengths in mm>_<clear mm>`` (route networks)."""
+    name = "approach"
+    if config.first_lengths:
+        mm = "-".join(f"{1000 * x:g}" for x in config.first_lengths)
+        name = f"approach_routes_{mm}_{1000 * config.clear:g}"
+    return Path(data) / train_collision.DERIVED.replace("collision", name)
+
+
+def label_pairs(data: str, files: list[Path], config, workers: int, progress: bool = True,
+                goals: int = 0) -> list[Path]:  # fmt: skip
+    """The label file of every pair file (derived where missing; resumable). ``goals`` > 0:
+    only each pair's first ``goals`` stable poses (route labels cost ~50 ms a goal)."""
+    out_dir = label_dir(data, config)
+    version = ROUTE_LABEL_VERSION if config.first_lengths else LABEL_VERSION
     outs, todo = [], []
     for f in files:
         out = out_dir / f.parent.name / f.name
         out.parent.mkdir(parents=True, exist_ok=True)
         outs.append(out)
-        if not _labels_done(os.fspath(out)):
-            todo.append((os.fspath(f), os.fspath(out), length, resolution))
+        if not _labels_done(os.fspath(out), version, goals):
+            todo.append((os.fspath(f), os.fspath(out), config, goals))
     recipe = dataset_bridge.read_recipe(data)
     bar = tqdm(total=len(todo), desc="label approaches", unit="pair", disable=not progress)
     if todo and workers <= 1:
@@ -113,6 +136,8 @@ class ApproachData:
                 names.append(z["object_name"].item())
                 stable = z["stable_poses"].astype(np.float32)
                 lab = zl["labels"].astype(bool)
+                if int(zl.get("goals", 0)) > 0:  # the first goals only
+                    stable = stable[: int(zl["goals"])]
             if len(lab) != len(stable):
                 raise RuntimeError(f"{lf}: {len(lab)} label rows for {len(stable)} stable poses")
             pair.append(np.full(len(stable), i, np.int32))
@@ -143,11 +168,11 @@ def object_split(names: list[str], mod: int) -> np.ndarray:
 
 def score_rows(config, params, data: ApproachData, rows: np.ndarray, batch: int = 64,
                seed: int = 0) -> np.ndarray:  # fmt: skip
-    """[len(rows), 26] probabilities with the planner's fixed cloud subsets (``seed`` 0; another
+    """[len(rows), outputs] probabilities with the planner's fixed cloud subsets (``seed`` 0; another
     seed draws other ``local_from`` subsets); batches padded to ``batch`` goals, so one compiled
     shape."""
     probs = approach.jitted_probabilities(config)
-    result = np.zeros((len(rows), len(approach.DIRECTIONS)), np.float32)
+    result = np.zeros((len(rows), config.outputs), np.float32)
     for p in np.unique(data.pair[rows]):
         obj = collision.subsample_cloud(data.object_points[p], config.local_from, seed)
         sup = collision.subsample_cloud(data.support_points[p], config.local_from, seed)
@@ -183,11 +208,41 @@ def ranking_figures(
     )
 
 
+def warm_start(params, init_folder: str, config, prior: np.ndarray):
+    """``params`` with every layer but the last taken from a trained approach network (the
+    same architecture); the last layer's columns of the one-move routes from its straight
+    approaches' columns, the others' biases at the training prior's logit (fortieth session:
+    a route network started from ``approach_s37_8k``)."""
+    old_config, old, _ = approach.load(init_folder)
+    for field in ("pointnet", "local_pointnet", "object_points", "support_points",
+                  "local_points", "local_from", "head"):  # fmt: skip
+        if getattr(old_config, field) != getattr(config, field):
+            raise ValueError(f"--init {init_folder}: its {field} differs from the preset's")
+    params = jax.tree_util.tree_map(lambda x: x, dict(params))
+    last = f"Dense_{len(config.head)}"
+    new_last = dict(params[last])
+    p = np.clip(prior, 1e-4, 1 - 1e-4)
+    bias = np.log(p / (1 - p)).astype(np.float32)
+    kernel = np.array(new_last["kernel"])
+    one_move = np.flatnonzero(config.routes[:, 0] < 0)
+    old_kernel, old_bias = np.asarray(old[last]["kernel"]), np.asarray(old[last]["bias"])
+    if old_kernel.shape[1] == len(one_move):
+        kernel[:, one_move] = old_kernel
+        bias[one_move] = old_bias
+    for key in old:
+        if key != last:
+            params[key] = old[key]
+    params[last] = dict(kernel=jnp.asarray(kernel), bias=jnp.asarray(bias))
+    return params
+
+
 def train(data: ApproachData, val: ApproachData | None, config, steps: int, batch: int,
           learning_rate: float, seed: int, time_budget: float, val_every: int, val_rows: int,
-          progress: bool = True):  # fmt: skip
+          progress: bool = True, init: str | None = None):  # fmt: skip
     nets = approach.make_approach_net(config)
     params = nets.init(jax.random.key(seed))
+    if init:
+        params = warm_start(params, init, config, data.labels.mean(0))
     schedule = optax.warmup_cosine_decay_schedule(
         0.1 * learning_rate, learning_rate, max(1, int(0.03 * steps)), steps, 0.05 * learning_rate
     )  # the NCE's warm-up + cosine, counted in steps
@@ -239,6 +294,28 @@ def train(data: ApproachData, val: ApproachData | None, config, steps: int, batc
     return params, log, prior
 
 
+def threshold_sweep(prob: np.ndarray, labels: np.ndarray, thresholds=None) -> list[dict]:
+    """For each threshold: the share of goals whose best output reaches it (``used``), how
+    often that best output is truly positive (``used_free``) and how many are not
+    (``used_blocked``). The rule picks the lowest threshold with ``used_free`` >= 0.9."""
+    thresholds = np.round(np.arange(0.3, 0.96, 0.05), 2) if thresholds is None else thresholds
+    top = prob.argmax(1)
+    good = labels[np.arange(len(top)), top]
+    out = []
+    for t in thresholds:
+        used = prob.max(1) >= t
+        out.append(dict(threshold=float(t), used=round(float(used.mean()), 4),
+                        used_free=round(float(good[used].mean()), 4) if used.any() else None,
+                        used_blocked=int((used & ~good).sum())))  # fmt: skip
+    return out
+
+
+def rule_threshold(sweep: list[dict], target: float = 0.9) -> float | None:
+    """The lowest threshold of ``sweep`` whose used outputs are >= ``target`` positive."""
+    ok = [r["threshold"] for r in sweep if r["used_free"] is not None and r["used_free"] >= target]
+    return min(ok) if ok else None
+
+
 def plot_curves(log: dict, path: Path) -> None:
     import matplotlib
 
@@ -272,6 +349,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--pairs", type=int, default=1600, help="training pairs (default 1600)")
     ap.add_argument("--preset", default="contact", choices=sorted(approach.PRESETS))
     ap.add_argument("--length", type=float, default=0.045, help="approach length, m")
+    ap.add_argument(
+        "--first-lengths", type=float, nargs="*", default=[], metavar="M",
+        help="a route network (fortieth session): one output per route of one or two straight "
+        "moves (first moves of these lengths, m), labelled free and ending --clear off",
+    )  # fmt: skip
+    ap.add_argument("--clear", type=float, default=0.01, help="route networks: m off at the end")
+    ap.add_argument("--goals-per-pair", type=int, default=0,
+                    help="label each pair's first N stable poses only (0: all)")  # fmt: skip
+    ap.add_argument("--init", metavar="DIR", help="warm start from a trained approach network")
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--time-budget", type=float, default=3600.0, help="s of training at most")
     ap.add_argument("--batch", type=int, default=32)
@@ -293,24 +379,26 @@ def main(argv=None) -> dict:
     progress = not args.no_progress
     config = approach.PRESETS[args.preset]
     config = approach.ApproachConfig(**{**config.__dict__, "length": args.length,
-                                        "threshold": args.threshold})  # fmt: skip
+                                        "threshold": args.threshold,
+                                        "first_lengths": tuple(args.first_lengths),
+                                        "clear": args.clear})  # fmt: skip
     t0 = time.time()
     files = train_collision.derive_collision_pairs(
         args.data, {"train": args.pairs}, args.workers, progress, shuffle_seed=0,
         only=lambda i: i % eval_paths.VAL_EVERY != 0,
     )["train"]  # fmt: skip
-    labels = label_pairs(args.data, files, args.length, config.resolution, args.workers, progress)
+    labels = label_pairs(args.data, files, config, args.workers, progress, args.goals_per_pair)
     data = ApproachData.from_files(files, labels)
     is_val = object_split(data.object_names, args.val_mod)
     train_set = data.subset(np.flatnonzero(~is_val))
     val_set = data.subset(np.flatnonzero(is_val)) if is_val.any() else None
     print(f"{len(files)} pairs ({int(is_val.sum())} validation, whole objects), "
           f"{len(train_set.goals)} training goals, {0 if val_set is None else len(val_set.goals)} "
-          f"validation; free share per direction {np.round(data.labels.mean(0), 2).tolist()}",
+          f"validation; positive share per output {np.round(data.labels.mean(0), 2).tolist()}",
           flush=True)  # fmt: skip
     params, log, prior = train(train_set, val_set, config, args.steps, args.batch, args.lr,
                                args.seed, args.time_budget, args.val_every, args.val_rows,
-                               progress)  # fmt: skip
+                               progress, args.init)  # fmt: skip
     out = Path(args.out)
     approach.save(out, config, params, steps=log["steps"], pairs=len(files),
                   val_objects=sorted(set(val_set.object_names)) if val_set else [],
@@ -320,15 +408,21 @@ def main(argv=None) -> dict:
                    train_goals=len(train_set.goals),
                    val_goals=0 if val_set is None else len(val_set.goals),
                    prior=prior.round(4).tolist(), log=log, weights=str(out),
-                   curves=str(out / "curves.png"))  # fmt: skip
+                   curves=str(out / "curves.png"), init=args.init,
+                   goals_per_pair=args.goals_per_pair)  # fmt: skip
+    if val_set is not None:  # the validation rule on each validation pair's first goal
+        first = val_set.first_row
+        sweep = threshold_sweep(score_rows(config, params, val_set, first), val_set.labels[first])
+        summary["validation_first_goal"] = dict(goals=len(first), sweep=sweep,
+                                                rule_threshold=rule_threshold(sweep))  # fmt: skip
     if args.test_pairs:
         records = eval_paths.read_answers(args.pairs_from)
         test_files = train_collision.derive_collision_pairs(
             args.data, {"test": args.test_pairs}, args.workers, progress, shuffle_seed=0,
             only=records.__contains__,
         )["test"]  # fmt: skip
-        test = ApproachData.from_files(test_files, label_pairs(args.data, test_files, args.length,
-                                                    config.resolution, args.workers, progress))  # fmt: skip
+        test = ApproachData.from_files(test_files, label_pairs(
+            args.data, test_files, config, args.workers, progress, args.goals_per_pair))  # fmt: skip
         every = np.arange(len(test.goals))
         prob = score_rows(config, params, test, every)
         summary["held_out"] = dict(

@@ -49,6 +49,10 @@ class ApproachConfig:
     length / resolution: the approach the labels judge (m; states every ``resolution``).
     threshold: a planner uses the best direction only when its probability reaches this
       (below it, the plain plan to the goal).
+    first_lengths: empty, the 26 straight approaches above; else (fortieth session) a **route
+      network**: one output per route of ``planner.move_routes(first_lengths)`` (one or two
+      straight moves, the last ``length`` long), labelled free *and* ending at least ``clear``
+      (m) off the support and the wall on the full meshes (:func:`route_labels`).
     """
 
     pointnet: str = "fast"
@@ -61,6 +65,18 @@ class ApproachConfig:
     length: float = 0.045
     resolution: float = 0.002
     threshold: float = 0.5
+    first_lengths: tuple[float, ...] = ()
+    clear: float = 0.01
+
+    @property
+    def routes(self) -> np.ndarray:
+        """[R, 3] the outputs' routes (``planner.move_routes``; the 26 straight moves when
+        ``first_lengths`` is empty)."""
+        return planner.move_routes(self.first_lengths)
+
+    @property
+    def outputs(self) -> int:
+        return len(self.routes)
 
 
 PRESETS = {
@@ -91,7 +107,7 @@ class _ApproachNet(nn.Module):
         x = jnp.concatenate([code, local], axis=-1)
         for width in c.head:
             x = nn.relu(nn.Dense(width)(x))
-        return nn.Dense(len(DIRECTIONS))(x)
+        return nn.Dense(c.outputs)(x)
 
 
 def make_approach_net(config: ApproachConfig) -> collision.EstimatorNets:
@@ -165,7 +181,7 @@ class ApproachPredictor:
         for name, x in (("object cloud", obj), ("support cloud", sup), ("goal", goal)):
             if not np.isfinite(x).all():
                 raise ValueError(f"approach network: the {name} has NaN or inf values")
-        total = np.zeros(len(DIRECTIONS), np.float64)
+        total = np.zeros(self.config.outputs, np.float64)
         for config, params, probabilities in self._members:
             for seed in range(self.views):
                 o = collision.subsample_cloud(obj, config.local_from, seed)
@@ -178,9 +194,17 @@ class ApproachPredictor:
         self.probabilities(np.zeros((8, 3)), np.ones((8, 3)), np.r_[0, 0, 0, 1, 0, 0, 0.0])
 
     def order(self, object_cloud, support_cloud, goal) -> tuple[np.ndarray, np.ndarray]:
+        if self.config.first_lengths:
+            raise ValueError("a route network ranks routes: use best_routes")
         p = self.probabilities(object_cloud, support_cloud, goal)
         idx = np.argsort(-p, kind="stable")
         return DIRECTIONS[idx], p[idx]
+
+    def best_routes(self, object_cloud, support_cloud, goal) -> tuple[np.ndarray, np.ndarray]:
+        """A route network's (routes [R, 3] best first, their probabilities [R])."""
+        p = self.probabilities(object_cloud, support_cloud, goal)
+        idx = np.argsort(-p, kind="stable")
+        return self.config.routes[idx], p[idx]
 
 
 def usable(directions: np.ndarray, probs: np.ndarray, threshold: float, wall_mounted: bool,
@@ -235,3 +259,20 @@ def approach_labels(scene, goals: np.ndarray, length: float = 0.045,
     bounds = planner.default_bounds(scene)
     goals = np.asarray(goals, float).reshape(-1, 7)
     return np.stack([planner.free_retreats(mesh, g, length, resolution, bounds) for g in goals])
+
+
+def route_labels(scene, goals: np.ndarray, config: ApproachConfig,
+                 tolerance: float = 1e-3) -> np.ndarray:  # fmt: skip
+    """[G, 7] goals -> [G, R] bool: is each route of ``config.routes`` free on the full meshes
+    (penetration > ``tolerance`` collides, inside ``planner.default_bounds``) and does it end at
+    least ``config.clear`` off the support and the wall (``MeshChecker.clearance``)?
+    ``planner.route_table``; ~50 ms a goal for the 532 routes of one first length."""
+    mesh = collision.MeshChecker(scene, tolerance)
+    bounds = planner.default_bounds(scene)
+    routes = config.routes
+    off = lambda pose: float(mesh.clearance(pose)[0]) >= config.clear  # noqa: E731
+    goals = np.asarray(goals, float).reshape(-1, 7)
+    return np.stack([
+        planner.route_table(mesh, g, routes, config.length, config.resolution, bounds, off)
+        for g in goals
+    ]).reshape(len(goals), len(routes))  # fmt: skip

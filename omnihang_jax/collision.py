@@ -860,8 +860,9 @@ def load_estimator(folder: str | os.PathLike, kinds: dict | None = None,
         raise ValueError(f"{path}: unknown estimator kind {meta.get('kind')!r}")
     cls, factory = kinds[meta["kind"]]
     raw = dict(meta["config"])
-    if "head" in raw:
-        raw["head"] = tuple(raw["head"])
+    for key in ("head", "first_lengths"):  # JSON lists back to the configs' tuples
+        if key in raw:
+            raw[key] = tuple(raw[key])
     config = cls(**raw)
     target = factory(config).init(jax.random.key(0))
     with open(os.path.join(folder, WEIGHTS_FILE), "rb") as f:

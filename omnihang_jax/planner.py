@@ -756,6 +756,81 @@ def find_two_move_retreat(
     return None
 
 
+def move_routes(firsts, directions: np.ndarray = RETREAT_DIRECTIONS) -> np.ndarray:
+    """[R, 3] the routes of at most two straight moves a route network scores (fortieth
+    session), rows (first direction index or -1, first length m or 0, last direction index):
+    the one-move routes first (one per direction), then for each first length in ``firsts``
+    every pair of directions that does not go back the way it came (cosine >= -0.5, as
+    :func:`find_two_move_retreat` searches them): 26 + 506 routes for one first length."""
+    rows = [(-1, 0.0, j) for j in range(len(directions))]
+    for first in firsts:
+        for i, d1 in enumerate(directions):
+            for j, d2 in enumerate(directions):
+                if np.dot(d1, d2) >= -0.5:
+                    rows.append((i, float(first), j))
+    return np.array(rows, float).reshape(-1, 3)
+
+
+def route_table(
+    checker: Callable[[np.ndarray], np.ndarray],
+    goal: np.ndarray,
+    routes: np.ndarray,
+    length: float,
+    resolution: float,
+    bounds: tuple[np.ndarray, np.ndarray] | None,
+    off: Callable[[np.ndarray], bool],
+    directions: np.ndarray = RETREAT_DIRECTIONS,
+) -> np.ndarray:
+    """[R] bool: is each route of :func:`move_routes` free on ``checker`` (every state of both
+    moves at ``resolution``, inside ``bounds``) and does ``off`` accept its end? The last move
+    is ``length`` long. Each straight segment is checked once (a shared first move, an end's
+    ``off``). A route network's labels (``approach.route_labels``)."""
+    goal = np.asarray(goal, float)
+    segments: dict = {}
+
+    def free_end(start_key, a, j, L):
+        key = (start_key, j, round(float(L), 6))
+        if key not in segments:
+            end, states = _retreat_states(a, directions[j], float(L), resolution, bounds)
+            segments[key] = None if states is None or any_colliding(checker, states) else end
+        return segments[key]
+
+    ends_off: dict = {}
+    out = np.zeros(len(routes), bool)
+    for r, (i, first, j) in enumerate(np.asarray(routes, float)):
+        i, j = int(i), int(j)
+        start_key, start = "goal", goal
+        if i >= 0:
+            start = free_end("goal", goal, i, first)
+            if start is None:
+                continue
+            start_key = (i, round(float(first), 6))
+        end = free_end(start_key, start, j, length)
+        if end is None:
+            continue
+        key = (start_key, j)
+        if key not in ends_off:
+            ends_off[key] = bool(off(end))
+        out[r] = ends_off[key]
+    return out
+
+
+def route_retreat(goal: np.ndarray, route, length: float,
+                  directions: np.ndarray = RETREAT_DIRECTIONS) -> Retreat:  # fmt: skip
+    """The :class:`Retreat` of one route of :func:`move_routes` (its corner in ``via``), for
+    ``plan_with_retreat(retreat=...)``; no check is made (a route network's choice)."""
+    goal = np.asarray(goal, float)
+    i, first, j = (int(route[0]), float(route[1]), int(route[2]))
+    mid = goal.copy()
+    via = np.zeros((0, 7))
+    if i >= 0:
+        mid[:3] += first * directions[i]
+        via = mid[None].copy()
+    end = mid.copy()
+    end[:3] += length * directions[j]
+    return Retreat(end, np.asarray(directions[j], float), float(length), 0, 0.0, via=via)
+
+
 def lattice_retreat(
     checker: Callable[[np.ndarray], np.ndarray],
     goal: np.ndarray,

@@ -34,7 +34,12 @@ from omnihang_jax import approach
 
 
 def decision(record: dict | None):
-    """A row's ``approach`` record -> the first plan's direction (a tuple) or None."""
+    """A row's ``approach`` record -> the first plan's direction (a tuple), its route
+    (("route", first direction index, first length, last direction index); fortieth session,
+    ``eval_paths --routes``) or None."""
+    route = (record or {}).get("route") or {}
+    if "waypoints" in route:
+        return ("route", *route["best"])
     first = (record or {}).get("first_tried")
     return None if first is None else tuple(round(float(x), 3) for x in first)
 
@@ -56,10 +61,13 @@ def diff(args) -> dict:
         approach=approach.load_predictor(args.approach, args.threshold, args.views),
         approach_open_side=args.open_side,
         approach_check="none",
+        routes=approach.load_predictor(args.routes, args.routes_threshold) if args.routes else None,
     )
     pairs = {}
     for case in cases:
-        _, _, record = eval_paths.learned_approach(case, est)
+        directions, _, record = eval_paths.learned_approach(case, est)
+        if est.routes is not None and (args.routes_mode == "first" or not len(directions)):
+            _, record["route"] = eval_paths.learned_route(case, est)
         new = decision(record)
         cover = next((r for r, rows in refs.items() if case.name in rows
                       and decision(rows[case.name].get("approach")) == new), None)  # fmt: skip
@@ -74,9 +82,13 @@ def diff(args) -> dict:
             threshold=args.threshold,
             open_side=args.open_side,
             views=args.views,
+            routes=args.routes,
+            routes_threshold=None if est.routes is None else est.routes.config.threshold,
+            routes_mode=args.routes_mode,
         ),  # fmt: skip
         pairs=len(pairs),
         used_new=sum(d["new"] is not None for d in pairs.values()),
+        used_route=sum(d["new"] is not None and d["new"][0] == "route" for d in pairs.values()),
         covered={r: sum(d["covered_by"] == r for d in pairs.values()) for r in refs},
         differ=len(differ),
         differ_pairs=differ,
@@ -127,6 +139,9 @@ def main(argv=None):
     d.add_argument("--threshold", type=float, required=True)
     d.add_argument("--open-side", action="store_true")
     d.add_argument("--views", type=int, default=1, help="cloud subsets averaged")
+    d.add_argument("--routes", help="a route network (eval_paths --routes)")
+    d.add_argument("--routes-threshold", type=float)
+    d.add_argument("--routes-mode", choices=("fill", "first"), default="fill")
     d.add_argument("--data", default="datasets/paper")
     d.add_argument("--pairs", type=int, default=80)
     d.add_argument("--pairs-from", default="out/paths_records.jsonl.gz")

@@ -114,7 +114,7 @@ def main(argv=None) -> dict:
         args.data, {"train": args.pairs}, 1, False, shuffle_seed=0,
         only=lambda i: i % eval_paths.VAL_EVERY != 0,
     )["train"]  # fmt: skip
-    labels = train_approach.label_pairs(args.data, files, 0.045, 0.002, 1, False)
+    labels = train_approach.label_pairs(args.data, files, approach.ApproachConfig(), 1, False)
     data = train_approach.ApproachData.from_files(files, labels)
     is_val = train_approach.object_split(data.object_names, args.val_mod)
     val_idx = np.flatnonzero(is_val)
@@ -126,7 +126,8 @@ def main(argv=None) -> dict:
         args.data, {"test": args.test_pairs}, 1, False, shuffle_seed=0, only=records.__contains__,
     )["test"]  # fmt: skip
     test = train_approach.ApproachData.from_files(
-        test_files, train_approach.label_pairs(args.data, test_files, 0.045, 0.002, 1, False)
+        test_files,
+        train_approach.label_pairs(args.data, test_files, approach.ApproachConfig(), 1, False),
     )
     test_wall = walls(test_files)
     out = dict(val_pairs=len(val_idx), test_pairs=len(test_files), views=args.views, weights={})

@@ -232,3 +232,92 @@ def test_ranking_figures_and_the_whole_object_split():
     split = object_split(names, 7)
     assert 10 < split.sum() < 50 and np.array_equal(split, object_split(names, 7))
     assert np.array_equal(object_split(names[::-1], 7), split[::-1])  # by name, not position
+
+
+def _route_data(n, rng, config):
+    """The plates above with route labels: a route is free and off when each of its moves
+    leaves the plate's open side (cosine with the blocked side < -0.6)."""
+    data = _plate_data(n, rng)
+    routes = config.routes
+    dirs = approach.DIRECTIONS
+    side = np.stack([-(dirs[lab].mean(0)) for lab in data.labels])  # the blocked side
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    last_ok = dirs[routes[:, 2].astype(int)] @ side.T < -0.6  # [R, rows]
+    first = np.where(routes[:, :1] < 0, 0, routes[:, :1]).astype(int)[:, 0]
+    first_ok = (dirs[first] @ side.T < -0.6) | (routes[:, :1] < 0)
+    data.labels = (last_ok & first_ok).T
+    return data
+
+
+def test_a_route_network_learns_routes_and_warm_starts_from_a_straight_one(tmp_path):
+    """Fortieth session: the route network (``first_lengths``) has one output per route of
+    ``planner.move_routes``; on synthetic plates it learns which routes leave the open side;
+    ``warm_start`` copies every layer of a straight network and its one-move columns."""
+    import dataclasses
+
+    import jax
+
+    from experiments import train_approach
+
+    cfg = dataclasses.replace(approach.PRESETS["tiny"], first_lengths=(0.015,))
+    assert cfg.outputs == 532 and len(cfg.routes) == 532
+    data = _route_data(48, np.random.default_rng(0), cfg)
+    val = _route_data(12, np.random.default_rng(1), cfg)
+    straight = approach.PRESETS["tiny"]
+    old = approach.make_approach_net(straight).init(jax.random.key(3))
+    approach.save(tmp_path / "straight", straight, old, steps=0)
+    fresh = approach.make_approach_net(cfg).init(jax.random.key(0))
+    warm = train_approach.warm_start(fresh, tmp_path / "straight", cfg, data.labels.mean(0))
+    np.testing.assert_allclose(warm["Dense_1"]["kernel"][:, :26], old["Dense_1"]["kernel"])
+    for key in set(old) - {"Dense_1"}:  # every other layer is the straight network's
+        jax.tree_util.tree_map(np.testing.assert_array_equal, warm[key], old[key])
+    params, log, _ = train_approach.train(
+        data, val, cfg, steps=300, batch=16, learning_rate=3e-3, seed=0, time_budget=600,
+        val_every=300, val_rows=36, progress=False, init=str(tmp_path / "straight"),
+    )  # fmt: skip
+    first, last = log["val_history"][0], log["val_history"][-1]
+    assert last["val_loss"] < 0.7 * first["val_loss"]
+    assert last["top1_free"] >= 0.9
+    approach.save(tmp_path / "routes", cfg, params, steps=300)
+    pred = approach.load_predictor(tmp_path / "routes")
+    assert pred.config.first_lengths == (0.015,)
+    routes, probs = pred.best_routes(val.object_points[0], val.support_points[0], val.goals[0])
+    assert routes.shape == (532, 3) and np.all(np.diff(probs) <= 0)
+    with pytest.raises(ValueError, match="best_routes"):
+        pred.order(val.object_points[0], val.support_points[0], val.goals[0])
+    sweep = train_approach.threshold_sweep(np.array([[0.9, 0.1], [0.6, 0.2]]),
+                                           np.array([[True, False], [False, True]]))  # fmt: skip
+    assert train_approach.rule_threshold(sweep) == 0.65
+
+
+def test_eval_paths_takes_the_route_networks_best_route_at_its_threshold():
+    """``eval_paths --routes`` (fortieth session): the best route, when its probability reaches
+    the threshold, becomes the retreat (a two-move route with its corner in ``via``); below it,
+    none."""
+    from types import SimpleNamespace
+
+    from experiments import eval_paths
+
+    routes = planner.move_routes((0.015,))
+    two = routes[26 + 40]
+
+    class Fake:
+        config = SimpleNamespace(threshold=0.6, length=0.045)
+
+        def __init__(self, p):
+            self.p = p
+
+        def best_routes(self, obj, sup, goal):
+            return np.stack([two, routes[0]]), np.array([self.p, 0.1])
+
+    goal = np.array([0.01, 0.02, 0.03, 1, 0, 0, 0])
+    case = SimpleNamespace(object_points=None, support_points=None, goal=goal)
+    found, rec = eval_paths.learned_route(case, SimpleNamespace(routes=Fake(0.7)))
+    corner = goal[:3] + 0.015 * planner.RETREAT_DIRECTIONS[int(two[0])]
+    np.testing.assert_allclose(found.via[0, :3], corner)
+    np.testing.assert_allclose(
+        found.pregoal[:3], corner + 0.045 * planner.RETREAT_DIRECTIONS[int(two[2])]
+    )
+    assert rec["waypoints"] == 2 and rec["best_p"] == 0.7
+    found, rec = eval_paths.learned_route(case, SimpleNamespace(routes=Fake(0.5)))
+    assert found is None and "waypoints" not in rec

@@ -671,3 +671,40 @@ def test_two_move_retreat_leaves_an_l_shaped_tunnel_and_the_path_turns_its_corne
     np.testing.assert_allclose(res.path[-2], found.via[0])
     np.testing.assert_allclose(res.path[-1], goal)
     assert not planner.any_colliding(exact, planner.interpolate_path(res.path, 0.002, 0.05))
+
+
+def test_route_table_agrees_with_the_two_move_search_in_the_l_shaped_tunnel():
+    """``planner.route_table`` (fortieth session, a route network's labels): in the L-shaped
+    tunnel of the test above no one-move route ends off; +x 1.5 cm stays under the ceiling, so
+    the positive routes are +x 3 cm then an upward move, the first of them in order is the
+    one ``find_two_move_retreat`` returns, and ``route_retreat`` rebuilds it."""
+    boxes = [
+        ([-0.2, -0.2, -0.2], [0.2, 0.2, -0.015]),
+        ([-0.2, -0.2, 0.015], [0.015, 0.2, 0.2]),
+        ([0.05, -0.2, -0.2], [0.2, 0.2, 0.2]),
+        ([-0.2, -0.2, -0.2], [-0.015, 0.2, 0.2]),
+        ([-0.2, 0.015, -0.2], [0.2, 0.2, 0.2]),
+        ([-0.2, -0.2, -0.2], [0.2, -0.015, 0.2]),
+    ]
+    exact = planner.AnalyticChecker(boxes, radius=0.01)
+    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
+    off = lambda pose: pose[2] > 0.04  # noqa: E731
+    bounds = (np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3]))
+    routes = planner.move_routes((0.015, 0.03))
+    assert len(routes) == 26 + 2 * 506
+    table = planner.route_table(exact, goal, routes, 0.045, 0.002, bounds, off)
+    assert not table[:26].any() and table.any()
+    firsts = routes[table]
+    assert set(firsts[:, 1]) == {0.03}  # 1.5 cm is still under the ceiling
+    np.testing.assert_allclose(
+        planner.RETREAT_DIRECTIONS[firsts[:, 0].astype(int)], [[1, 0, 0]] * len(firsts)
+    )
+    assert (planner.RETREAT_DIRECTIONS[firsts[:, 2].astype(int), 2] > 0).all()
+    found = planner.find_two_move_retreat(exact, goal, (0.015, 0.03), 0.045, 0.002, bounds, off)
+    rebuilt = planner.route_retreat(goal, firsts[0], 0.045)
+    np.testing.assert_allclose(rebuilt.via, found.via, atol=1e-9)
+    np.testing.assert_allclose(rebuilt.pregoal, found.pregoal, atol=1e-9)
+    # a one-move route: no corner
+    straight = planner.route_retreat(goal, routes[0], 0.045)
+    assert straight.via.shape == (0, 7)
+    np.testing.assert_allclose(straight.pregoal[:3], 0.045 * planner.RETREAT_DIRECTIONS[0])

@@ -93,6 +93,10 @@ def test_splice_takes_each_row_from_the_run_that_decided_alike(tmp_path):
     spec.loader.exec_module(dec)
     assert dec.decision({"first_tried": [0.7071, 0.0, 0.70711]}) == (0.707, 0.0, 0.707)
     assert dec.decision({"best_p": 0.3}) is None and dec.decision(None) is None
+    # a route network's route (fortieth session) decides over the straight rule's record
+    routed = {"first_tried": [0, 0, 1], "route": {"best": [3, 0.015, 0], "waypoints": 2}}
+    assert dec.decision(routed) == ("route", 3, 0.015, 0)
+    assert dec.decision({"route": {"best": [3, 0.015, 0], "best_p": 0.2}}) is None
     ref = [dict(pair=p, returned=True, collision_free=p != "p1") for p in ("p0", "p1", "p2")]
     ref2 = [dict(pair="p2", returned=False, collision_free=False)]
     new = [dict(pair="p1", returned=True, collision_free=True)]
