@@ -161,6 +161,17 @@ class ApproachData:
                             [self.object_names[i] for i in pairs])  # fmt: skip
 
 
+def label_summary(labels: np.ndarray, config) -> str:
+    """One line on the labels: the positive share per direction (straight approaches), or for
+    a route network the share of goals with a positive one-move / two-move route."""
+    if not config.first_lengths:
+        return f"free share per direction {np.round(labels.mean(0), 2).tolist()}"
+    one = config.routes[:, 0] < 0
+    return (f"goals off in one move {labels[:, one].any(1).mean():.3f}, in one or two moves "
+            f"{labels.any(1).mean():.3f}; mean positive routes a goal {labels.sum(1).mean():.1f} "
+            f"of {labels.shape[1]}")  # fmt: skip
+
+
 def object_split(names: list[str], mod: int) -> np.ndarray:
     """[P] bool: the pair's object is a validation object (crc32 of its name % mod == 0)."""
     return np.array([zlib.crc32(n.encode()) % mod == 0 for n in names])
@@ -394,8 +405,7 @@ def main(argv=None) -> dict:
     val_set = data.subset(np.flatnonzero(is_val)) if is_val.any() else None
     print(f"{len(files)} pairs ({int(is_val.sum())} validation, whole objects), "
           f"{len(train_set.goals)} training goals, {0 if val_set is None else len(val_set.goals)} "
-          f"validation; positive share per output {np.round(data.labels.mean(0), 2).tolist()}",
-          flush=True)  # fmt: skip
+          f"validation; {label_summary(data.labels, config)}", flush=True)  # fmt: skip
     params, log, prior = train(train_set, val_set, config, args.steps, args.batch, args.lr,
                                args.seed, args.time_budget, args.val_every, args.val_rows,
                                progress, args.init)  # fmt: skip
