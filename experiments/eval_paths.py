@@ -1349,6 +1349,8 @@ def main(argv=None) -> dict:
     )  # fmt: skip
     parser.add_argument("--routes-threshold", type=float, metavar="P",
                         help="with --routes: its best route's probability needed (default: its own)")  # fmt: skip
+    parser.add_argument("--routes-views", type=int, default=1, metavar="N",
+                        help="with --routes: its probabilities averaged over N cloud subsets")  # fmt: skip
     parser.add_argument(
         "--routes-mode", choices=("fill", "first"), default="fill",
         help="with --routes: 'fill' asks it only where the straight approach rule gives none, "
@@ -1664,7 +1666,7 @@ def main(argv=None) -> dict:
     if args.routes:
         if not args.approach:
             parser.error("--routes needs --approach (the straight rule it fills in or precedes)")
-        routes = approach.load_predictor(args.routes, args.routes_threshold)
+        routes = approach.load_predictor(args.routes, args.routes_threshold, args.routes_views)
         if not routes.config.first_lengths:
             parser.error(f"--routes {args.routes}: a straight approach network, not a route "
                          "network (experiments.train_approach --first-lengths)")  # fmt: skip
@@ -1771,6 +1773,7 @@ def main(argv=None) -> dict:
             first_lengths_m=list(est.routes.config.first_lengths),
             clear_m=est.routes.config.clear,
             mode=est.routes_mode,
+            views=est.routes.views,
         ),  # fmt: skip
         approach=None
         if est.approach is None

@@ -61,7 +61,9 @@ def diff(args) -> dict:
         approach=approach.load_predictor(args.approach, args.threshold, args.views),
         approach_open_side=args.open_side,
         approach_check="none",
-        routes=approach.load_predictor(args.routes, args.routes_threshold) if args.routes else None,
+        routes=approach.load_predictor(args.routes, args.routes_threshold, args.routes_views)
+        if args.routes
+        else None,
     )
     pairs = {}
     for case in cases:
@@ -85,6 +87,7 @@ def diff(args) -> dict:
             routes=args.routes,
             routes_threshold=None if est.routes is None else est.routes.config.threshold,
             routes_mode=args.routes_mode,
+            routes_views=args.routes_views,
         ),  # fmt: skip
         pairs=len(pairs),
         used_new=sum(d["new"] is not None for d in pairs.values()),
@@ -142,6 +145,7 @@ def main(argv=None):
     d.add_argument("--routes", help="a route network (eval_paths --routes)")
     d.add_argument("--routes-threshold", type=float)
     d.add_argument("--routes-mode", choices=("fill", "first"), default="fill")
+    d.add_argument("--routes-views", type=int, default=1)
     d.add_argument("--data", default="datasets/paper")
     d.add_argument("--pairs", type=int, default=80)
     d.add_argument("--pairs-from", default="out/paths_records.jsonl.gz")

@@ -100,6 +100,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--pairs-from", default="out/paths_records.jsonl.gz")
     ap.add_argument("--pairs", type=int, default=80)
     ap.add_argument("--data", default="datasets/paper")
+    ap.add_argument("--views", type=int, default=1,
+                    help="the route network's probabilities averaged over N cloud subsets")  # fmt: skip
     ap.add_argument(
         "--target",
         type=float,
@@ -119,7 +121,7 @@ def main(argv=None) -> dict:
     est = types.SimpleNamespace(
         approach=approach.load_predictor(args.approach, args.approach_threshold),
         approach_open_side=True, approach_check="none",
-        routes=approach.load_predictor(args.routes),
+        routes=approach.load_predictor(args.routes, views=args.views),
     )  # fmt: skip
     config = est.routes.config
     if args.validation:
