@@ -223,7 +223,8 @@ def warm_start(params, init_folder: str, config, prior: np.ndarray):
     """``params`` with every layer but the last taken from a trained approach network (the
     same architecture); the last layer's columns of the one-move routes from its straight
     approaches' columns, the others' biases at the training prior's logit (fortieth session:
-    a route network started from ``approach_s37_8k``)."""
+    a route network started from ``approach_s37_8k``); from a route network of the same
+    routes, its last layer too."""
     old_config, old, _ = approach.load(init_folder)
     for field in ("pointnet", "local_pointnet", "object_points", "support_points",
                   "local_points", "local_from", "head"):  # fmt: skip
@@ -237,7 +238,9 @@ def warm_start(params, init_folder: str, config, prior: np.ndarray):
     kernel = np.array(new_last["kernel"])
     one_move = np.flatnonzero(config.routes[:, 0] < 0)
     old_kernel, old_bias = np.asarray(old[last]["kernel"]), np.asarray(old[last]["bias"])
-    if old_kernel.shape[1] == len(one_move):
+    if old_kernel.shape == kernel.shape:  # a route network of the same routes: all of it
+        kernel, bias = old_kernel.copy(), old_bias.copy()
+    elif old_kernel.shape[1] == len(one_move):
         kernel[:, one_move] = old_kernel
         bias[one_move] = old_bias
     for key in old:

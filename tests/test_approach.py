@@ -321,3 +321,21 @@ def test_eval_paths_takes_the_route_networks_best_route_at_its_threshold():
     assert rec["waypoints"] == 2 and rec["best_p"] == 0.7
     found, rec = eval_paths.learned_route(case, SimpleNamespace(routes=Fake(0.5)))
     assert found is None and "waypoints" not in rec
+
+
+def test_warm_start_from_a_route_network_keeps_its_last_layer(tmp_path):
+    """Fortieth session: a route network warm-started from one of the same routes takes every
+    layer, the last included (more data, same outputs)."""
+    import dataclasses
+
+    import jax
+
+    from experiments import train_approach
+
+    cfg = dataclasses.replace(approach.PRESETS["tiny"], first_lengths=(0.015,))
+    old = approach.make_approach_net(cfg).init(jax.random.key(5))
+    approach.save(tmp_path / "routes", cfg, old, steps=0)
+    fresh = approach.make_approach_net(cfg).init(jax.random.key(0))
+    warm = train_approach.warm_start(fresh, tmp_path / "routes", cfg, np.full(cfg.outputs, 0.1))
+    for key in old:
+        jax.tree_util.tree_map(np.testing.assert_array_equal, warm[key], old[key])
