@@ -312,6 +312,7 @@ def test_eval_stage3_refuses_a_bad_view(tmp_path, capsys):
         assert f"--view {bad}: expected J/T" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # 75-90 s on 2 cores (fortieth session: the default suite neared 20 min)
 def test_fused_pipeline_gives_the_sequential_pipelines_candidates(params):  # noqa: F811
     """PipelineConfig.fuse: one CEM over every view and start and one ranking pass (two rankers,
     one with near points) give the candidates, scores and answer of one CEM per view and start

@@ -66,6 +66,7 @@ def _fake_values(folder):
     return stage3.VALUE_TINY, p
 
 
+@pytest.mark.slow  # 75-90 s on 2 cores (fortieth session: the default suite neared 20 min)
 def test_evaluation_ranks_by_the_ensemble_and_records_each_v(monkeypatch, tmp_path):
     """evaluate_pipeline(rank_value_dirs=): each record holds the second V of every
     candidate (v_rank); the answers are the rule over the mean log V; the paper's answer

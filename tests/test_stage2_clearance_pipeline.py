@@ -292,6 +292,7 @@ def test_hang_stage2_clearance_option(monkeypatch):
     np.testing.assert_array_equal(got["normals"], sup.normals[None])
 
 
+@pytest.mark.slow  # 75-90 s on 2 cores (fortieth session: the default suite neared 20 min)
 def test_evaluate_pipeline_stage1_rounds_change_only_the_stage1_starts(monkeypatch):
     """``cem_stage1`` (eval_stage3 --stage1-rounds): a second CEM round for the Stage-1
     starts moves their refined candidates; the Stage-2 starts' stay exactly as with one."""
