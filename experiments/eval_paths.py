@@ -1640,6 +1640,10 @@ def main(argv=None) -> dict:
             est = with_fallback(est, args.fallback_far_threshold, args.fallback_time)
         except ValueError as e:
             parser.error(str(e))
+    if args.routes and not args.approach:
+        parser.error("--routes needs --approach (the straight rule it fills in or precedes)")
+    if args.routes and args.oracle_two_moves:
+        parser.error("--routes and --oracle-two-moves both choose the route: one of them")
     if args.oracle_retreat:
         if not retreat:
             parser.error("--oracle-retreat needs --retreat LENGTHS")
@@ -1664,8 +1668,6 @@ def main(argv=None) -> dict:
     elif args.oracle_two_moves:
         parser.error("--oracle-two-moves needs --approach (elsewhere its rule plans)")
     if args.routes:
-        if not args.approach:
-            parser.error("--routes needs --approach (the straight rule it fills in or precedes)")
         routes = approach.load_predictor(args.routes, args.routes_threshold, args.routes_views)
         if not routes.config.first_lengths:
             parser.error(f"--routes {args.routes}: a straight approach network, not a route "

@@ -87,7 +87,7 @@ def label_dir(data: str, config) -> Path:
 def label_pairs(data: str, files: list[Path], config, workers: int, progress: bool = True,
                 goals: int = 0) -> list[Path]:  # fmt: skip
     """The label file of every pair file (derived where missing; resumable). ``goals`` > 0:
-    only each pair's first ``goals`` stable poses (route labels cost ~50 ms a goal)."""
+    only each pair's first ``goals`` stable poses (route labels cost ~30 ms a goal)."""
     out_dir = label_dir(data, config)
     version = ROUTE_LABEL_VERSION if config.first_lengths else LABEL_VERSION
     outs, todo = [], []
@@ -230,12 +230,11 @@ def warm_start(params, init_folder: str, config, prior: np.ndarray):
                   "local_points", "local_from", "head"):  # fmt: skip
         if getattr(old_config, field) != getattr(config, field):
             raise ValueError(f"--init {init_folder}: its {field} differs from the preset's")
-    params = jax.tree_util.tree_map(lambda x: x, dict(params))
+    params = dict(params)  # top-level layers replaced below, none changed in place
     last = f"Dense_{len(config.head)}"
-    new_last = dict(params[last])
     p = np.clip(prior, 1e-4, 1 - 1e-4)
     bias = np.log(p / (1 - p)).astype(np.float32)
-    kernel = np.array(new_last["kernel"])
+    kernel = np.array(params[last]["kernel"])
     one_move = np.flatnonzero(config.routes[:, 0] < 0)
     old_kernel, old_bias = np.asarray(old[last]["kernel"]), np.asarray(old[last]["bias"])
     if old_kernel.shape == kernel.shape:  # a route network of the same routes: all of it
@@ -325,7 +324,8 @@ def threshold_sweep(prob: np.ndarray, labels: np.ndarray, thresholds=None) -> li
 
 
 def rule_threshold(sweep: list[dict], target: float = 0.9) -> float | None:
-    """The lowest threshold of ``sweep`` whose used outputs are >= ``target`` positive."""
+    """The lowest threshold of ``sweep`` whose used outputs are >= ``target`` positive (rows
+    with ``threshold`` and ``used_free``; also ``scripts/probe_route_rule.py``'s rule)."""
     ok = [r["threshold"] for r in sweep if r["used_free"] is not None and r["used_free"] >= target]
     return min(ok) if ok else None
 

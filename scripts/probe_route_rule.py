@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import eval_paths
+from experiments import eval_paths, train_approach
 from omnihang_jax import approach
 
 THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -39,7 +39,7 @@ THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 def validation_cases(data: str, pairs: int, config, val_mod: int = 7):
     """(cases, labels [P, R]) of the validation objects' first goals among the first ``pairs``
     training pairs (``train_approach``'s pair order and whole-object split)."""
-    from experiments import train_approach, train_collision
+    from experiments import train_collision
 
     files = train_collision.derive_collision_pairs(
         data, {"train": pairs}, 1, False, existing_only=True, shuffle_seed=0,
@@ -73,7 +73,9 @@ def sweep(rows: list[dict], mode: str, thresholds=THRESHOLDS) -> list[dict]:
         used = [r for r in pool if r["route_p"] >= t]
         by_kind = Counter(r["kind"] for r in used)
         good_kind = Counter(r["kind"] for r in used if r["route_good"])
-        out.append(dict(threshold=t, used=len(used), good=sum(r["route_good"] for r in used),
+        good = sum(r["route_good"] for r in used)
+        out.append(dict(threshold=t, used=len(used), good=good,
+                        used_free=round(good / len(used), 4) if used else None,
                         by_kind={k: [good_kind[k], n] for k, n in sorted(by_kind.items())}))  # fmt: skip
     return out
 
@@ -83,12 +85,6 @@ def label_kind(labels: np.ndarray, config) -> str:
     if labels[config.routes[:, 0] < 0].any():
         return "off_straight"
     return "off_two_moves" if labels.any() else "neither"
-
-
-def rule(table: list[dict], target: float = 0.9) -> float | None:
-    """The lowest threshold whose routes are >= ``target`` good (None: none is)."""
-    ok = [r["threshold"] for r in table if r["used"] and r["good"] >= target * r["used"]]
-    return min(ok) if ok else None
 
 
 def main(argv=None) -> dict:
@@ -133,19 +129,18 @@ def main(argv=None) -> dict:
     rows, t0 = [], time.perf_counter()
     for k, case in enumerate(cases):
         directions, _, _ = eval_paths.learned_approach(case, est)
-        routes, probs = est.routes.best_routes(case.object_points, case.support_points, case.goal)
+        probs = est.routes.probabilities(case.object_points, case.support_points, case.goal)
         if args.validation:
             labels = known[k]
         else:
             labels = approach.route_labels(case.scene, case.goal[None], config)[0]
-        index = {tuple(r): i for i, r in enumerate(config.routes.tolist())}
-        best = index[tuple(routes[0].tolist())]
+        best = int(np.argmax(probs))
+        route = config.routes[best]
         rows.append(dict(
             pair=case.name, family=case.meta["support_family"],
             kind=kinds.get(case.name) or label_kind(labels, config),
-            straight_used=bool(len(directions)), route=[int(routes[0][0]), float(routes[0][1]),
-            int(routes[0][2])], route_p=round(float(probs[0]), 4),
-            route_two_moves=bool(routes[0][0] >= 0), route_good=bool(labels[best]),
+            straight_used=bool(len(directions)), route=[int(route[0]), float(route[1]), int(route[2])],
+            route_p=round(float(probs[best]), 4), route_two_moves=bool(route[0] >= 0), route_good=bool(labels[best]),
             any_good=bool(labels.any()),
         ))  # fmt: skip
     result = dict(
@@ -154,7 +149,7 @@ def main(argv=None) -> dict:
         seconds=round(time.perf_counter() - t0, 1),
         goals=len(rows),
         kinds=dict(Counter(r["kind"] for r in rows)),
-        rule_threshold=rule(sweep(rows, "fill"), args.target),
+        rule_threshold=train_approach.rule_threshold(sweep(rows, "fill"), args.target),
         rule_target=args.target,
         any_good_by_kind={k: sum(r["any_good"] for r in rows if r["kind"] == k)
                           for k in sorted({r["kind"] for r in rows})},

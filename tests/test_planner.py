@@ -20,6 +20,16 @@ from sim.assets.base import Asset, HangLoop, build_object, build_support  # noqa
 from sim.scene import build_scene  # noqa: E402
 
 FAST = planner.PlannerConfig(time_limit=10.0)
+# An L-shaped tunnel around the origin: a corridor under a ceiling that opens 3 cm to +x into a
+# shaft going up (the two-move retreat and route-table tests)
+L_TUNNEL = [
+    ([-0.2, -0.2, -0.2], [0.2, 0.2, -0.015]),  # floor
+    ([-0.2, -0.2, 0.015], [0.015, 0.2, 0.2]),  # ceiling over the goal, up to x = 0.015
+    ([0.05, -0.2, -0.2], [0.2, 0.2, 0.2]),  # the shaft's far wall
+    ([-0.2, -0.2, -0.2], [-0.015, 0.2, 0.2]),  # behind the goal
+    ([-0.2, 0.015, -0.2], [0.2, 0.2, 0.2]),  # the corridor's sides
+    ([-0.2, -0.2, -0.2], [0.2, -0.015, 0.2]),
+]
 
 
 def test_planner_goes_around_an_obstacle_with_an_exact_checker():
@@ -508,6 +518,19 @@ def test_goal_ball_nce_and_the_hang_hybrid_checker():
         (["--far-clearance", "-0.001"], "far-clearance"),
         (["--clear-path", "-0.01"], "clear-path"),
         (["--shard", "2/2"], "shard"),
+        (["--routes", "weights/approach_routes_s40"], "--routes needs --approach"),
+        (
+            [
+                "--retreat",
+                "0.045",
+                "--approach",
+                "weights/approach_s37_8k",
+                "--routes",
+                "weights/approach_routes_s40",
+                "--oracle-two-moves",
+            ],
+            "one of them",
+        ),  # fmt: skip
     ],
 )
 def test_eval_paths_refuses_bad_planner_settings(flags, message, capsys):
@@ -641,15 +664,7 @@ def test_two_move_retreat_leaves_an_l_shaped_tunnel_and_the_path_turns_its_corne
     --oracle-two-moves``): the goal sits under a ceiling in a corridor that opens 3 cm to +x into
     a shaft going up. No straight move reaches the shaft's top; +x 3 cm then up does, and
     ``plan_with_retreat`` ends its path through that corner."""
-    boxes = [
-        ([-0.2, -0.2, -0.2], [0.2, 0.2, -0.015]),  # floor
-        ([-0.2, -0.2, 0.015], [0.015, 0.2, 0.2]),  # ceiling over the goal, up to x = 0.015
-        ([0.05, -0.2, -0.2], [0.2, 0.2, 0.2]),  # the shaft's far wall
-        ([-0.2, -0.2, -0.2], [-0.015, 0.2, 0.2]),  # behind the goal
-        ([-0.2, 0.015, -0.2], [0.2, 0.2, 0.2]),  # the corridor's sides
-        ([-0.2, -0.2, -0.2], [0.2, -0.015, 0.2]),
-    ]
-    exact = planner.AnalyticChecker(boxes, radius=0.01)
+    exact = planner.AnalyticChecker(L_TUNNEL, radius=0.01)
     goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
     assert not exact(goal[None])[0]
     off = lambda pose: pose[2] > 0.04  # noqa: E731  (out of the shaft's bottom)
@@ -678,15 +693,7 @@ def test_route_table_agrees_with_the_two_move_search_in_the_l_shaped_tunnel():
     tunnel of the test above no one-move route ends off; +x 1.5 cm stays under the ceiling, so
     the positive routes are +x 3 cm then an upward move, the first of them in order is the
     one ``find_two_move_retreat`` returns, and ``route_retreat`` rebuilds it."""
-    boxes = [
-        ([-0.2, -0.2, -0.2], [0.2, 0.2, -0.015]),
-        ([-0.2, -0.2, 0.015], [0.015, 0.2, 0.2]),
-        ([0.05, -0.2, -0.2], [0.2, 0.2, 0.2]),
-        ([-0.2, -0.2, -0.2], [-0.015, 0.2, 0.2]),
-        ([-0.2, 0.015, -0.2], [0.2, 0.2, 0.2]),
-        ([-0.2, -0.2, -0.2], [0.2, -0.015, 0.2]),
-    ]
-    exact = planner.AnalyticChecker(boxes, radius=0.01)
+    exact = planner.AnalyticChecker(L_TUNNEL, radius=0.01)
     goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
     off = lambda pose: pose[2] > 0.04  # noqa: E731
     bounds = (np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3]))
