@@ -288,6 +288,13 @@ class Estimators(NamedTuple):
     # only where the straight approach rule gives none, "first": asked first
     routes: object = None
     routes_mode: str = "fill"
+    # forty-first session: the route is asked of the planner's own observed clouds first:
+    # routes_check "checker" takes the first confident route (best first, at most routes_tries)
+    # whose states the method's checker calls free and whose end the observed clouds show at
+    # least routes_end_gap (m) clear ("none": the best route, taken as free)
+    routes_check: str = "none"
+    routes_end_gap: float = 0.0
+    routes_tries: int = 10
 
 
 def with_fallback(est: Estimators, far_threshold: float, seconds: float) -> Estimators:
@@ -670,11 +677,14 @@ def nce_clouds(case: PairCase, config: collision.NCEConfig) -> tuple[np.ndarray,
             completion.completed_cloud(case.support_points, case.predicted_support))  # fmt: skip
 
 
-def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METHODS) -> dict:
+def checkers_for(
+    case: PairCase, est: Estimators, tolerance: float, methods=METHODS, warm: bool = True
+) -> dict:
     """The checkers of one pair. The HCEs' support normals do not depend on the pose:
     predicted once per pair (``collision.hce_collides`` computes the same per call); nor does
     ``nce_geometric``'s support lookup table (built once per pair, outside the planning
-    clock, only when that method is asked for)."""
+    clock, only when that method is asked for). ``warm``: every padded batch size compiled
+    and run once here, outside a planner's clock (off for a caller that times nothing)."""
     sub = collision.subsample_cloud
     n_obj, n_sup = est.nce_config.object_points, est.nce_config.support_input
     n_nce_obj = est.nce_config.object_input  # the contact NCE is given more (NCEConfig)
@@ -764,7 +774,7 @@ def checkers_for(case: PairCase, est: Estimators, tolerance: float, methods=METH
         for name in ("nce", "nce_geometric"):
             if name in checkers:
                 checkers[name] = planner.CascadeChecker(wall, checkers[name])
-    for name in set(methods) - {"mesh"}:  # compiled outside the planning clock
+    for name in set(methods) - {"mesh"} if warm else ():  # compiled outside the planning clock
         checkers[name].warm_up()
     return checkers
 
@@ -813,18 +823,51 @@ def route_oracle(case: PairCase, mesh, config: planner.PlannerConfig, bounds, la
     return None, None
 
 
-def learned_route(case: PairCase, est):
+def learned_route(
+    case: PairCase, est, check=None, resolution: float = planner.PlannerConfig().resolution
+):
     """(retreat or None, record) from the route network on the observed clouds: its best route
     when its probability reaches the network's threshold (``planner.route_retreat``, the
-    corner in ``via``; taken as free, like the straight rule's best direction)."""
+    corner in ``via``; taken as free, like the straight rule's best direction). With
+    ``est.routes_check`` "checker" (forty-first session) the first confident route, best first
+    and at most ``est.routes_tries``, that ``check`` (the method's own checker) calls free at
+    every state (at ``resolution``) and whose end is ``est.routes_end_gap`` clear between the
+    observed clouds."""
     t0 = time.perf_counter()
     routes, probs = est.routes.best_routes(case.object_points, case.support_points, case.goal)
-    best = routes[0]
+    config = est.routes.config
+    mode = getattr(est, "routes_check", "none")
+    pick, tried = (0 if probs[0] >= config.threshold else None), 0
+    if mode == "checker" and pick is not None:
+        if check is None:
+            raise ValueError("routes_check 'checker' needs the method's checker")
+        pick = None
+        gap_needed = float(getattr(est, "routes_end_gap", 0.0))
+        for k in range(min(int(getattr(est, "routes_tries", 10)), len(routes))):
+            if probs[k] < config.threshold:
+                break
+            tried += 1
+            states = planner.route_states(case.goal, routes[k], config.length, resolution)
+            if planner.any_colliding(check, states):
+                continue
+            if (
+                gap_needed > 0
+                and collision.cloud_gap(
+                    case.object_points, case.support_points, states[-1:], upper=gap_needed
+                )[0]
+                < gap_needed
+            ):
+                continue
+            pick = k
+            break
+    best = routes[0 if pick is None else pick]
     record = dict(best=[int(best[0]), round(float(best[1]), 4), int(best[2])],
-                  best_p=round(float(probs[0]), 4))  # fmt: skip
+                  best_p=round(float(probs[0 if pick is None else pick]), 4))  # fmt: skip
+    if mode != "none":
+        record |= dict(check=mode, tried=tried, rank=pick)
     found = None
-    if probs[0] >= est.routes.config.threshold:
-        found = planner.route_retreat(case.goal, best, est.routes.config.length)
+    if pick is not None:
+        found = planner.route_retreat(case.goal, best, config.length)
         record["waypoints"] = len(found.via) + 1
     record["seconds"] = round(time.perf_counter() - t0, 4)
     return found, record
@@ -895,7 +938,7 @@ def evaluate_pair(
         elif est.approach is not None and name != "mesh":
             directions, retreat_checker, ranked = learned_approach(case, est)
             if est.routes is not None and (est.routes_mode == "first" or not len(directions)):
-                found, ranked["route"] = learned_route(case, est)
+                found, ranked["route"] = learned_route(case, est, check, config.resolution)
                 ranked["seconds"] = round(ranked["seconds"] + ranked["route"]["seconds"], 4)
                 if found is not None:  # the replan after a time-out stays as configured
                     two, directions = found, found.direction[None]
@@ -1357,6 +1400,16 @@ def main(argv=None) -> dict:
         "'first' asks it first (the straight rule where it is not confident)",
     )  # fmt: skip
     parser.add_argument(
+        "--routes-check", choices=("none", "checker"), default="none",
+        help="with --routes: 'checker' takes the first confident route (best first) that the "
+        "method's own checker calls free and whose end is --routes-end-gap clear between the "
+        "observed clouds; 'none' the best route, taken as free",
+    )  # fmt: skip
+    parser.add_argument("--routes-end-gap", type=float, default=0.0, metavar="M",
+                        help="with --routes-check checker: the observed clearance its end needs")  # fmt: skip
+    parser.add_argument("--routes-tries", type=int, default=10, metavar="N",
+                        help="with --routes-check checker: confident routes asked at most")  # fmt: skip
+    parser.add_argument(
         "--oracle-two-moves", action="store_true",
         help="a probe, not a planner: with --approach, on goals that no straight move takes off "
         "the support but two moves do (full meshes, 1 cm clear), plan to that two-move route",
@@ -1673,7 +1726,9 @@ def main(argv=None) -> dict:
             parser.error(f"--routes {args.routes}: a straight approach network, not a route "
                          "network (experiments.train_approach --first-lengths)")  # fmt: skip
         routes.warm_up()
-        est = est._replace(routes=routes, routes_mode=args.routes_mode)
+        est = est._replace(routes=routes, routes_mode=args.routes_mode,
+                           routes_check=args.routes_check, routes_end_gap=args.routes_end_gap,
+                           routes_tries=args.routes_tries)  # fmt: skip
     if args.far_nce:
         far_cfg, far_params, _ = collision.load_estimator(Path(args.far_nce, "nce"))
         if args.far_nce_threshold is not None:
@@ -1776,6 +1831,9 @@ def main(argv=None) -> dict:
             clear_m=est.routes.config.clear,
             mode=est.routes_mode,
             views=est.routes.views,
+            check=est.routes_check,
+            end_gap_m=est.routes_end_gap,
+            tries=est.routes_tries,
         ),  # fmt: skip
         approach=None
         if est.approach is None

@@ -831,6 +831,23 @@ def route_retreat(goal: np.ndarray, route, length: float,
     return Retreat(end, np.asarray(directions[j], float), float(length), 0, 0.0, via=via)
 
 
+def route_states(goal: np.ndarray, route, length: float, resolution: float,
+                 directions: np.ndarray = RETREAT_DIRECTIONS) -> np.ndarray:  # fmt: skip
+    """[n, 7] the states of one route of :func:`move_routes` from ``goal`` at ``resolution``
+    (the first move, if any, then the last; orientation kept; the goal itself excluded, the
+    route's end last): what a planner's own checker is asked before it takes a route network's choice
+    (forty-first session)."""
+    goal = np.asarray(goal, float)
+    i, first, j = (int(route[0]), float(route[1]), int(route[2]))
+    parts, start = [], goal
+    if i >= 0:
+        start, states = _retreat_states(goal, directions[i], first, resolution, None)
+        parts.append(states)
+    _, states = _retreat_states(start, directions[j], float(length), resolution, None)
+    parts.append(states)
+    return np.concatenate(parts)
+
+
 def lattice_retreat(
     checker: Callable[[np.ndarray], np.ndarray],
     goal: np.ndarray,

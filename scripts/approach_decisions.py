@@ -65,11 +65,26 @@ def diff(args) -> dict:
         if args.routes
         else None,
     )
+    est.routes_check, est.routes_end_gap = args.routes_check, args.routes_end_gap
+    est.routes_tries = args.routes_tries
+    planner_est = None
+    if args.routes_check == "checker":  # the best planner's own checker, as eval_paths builds it
+        from omnihang_jax import planner
+
+        geo = planner.HybridSettings.from_selection(args.geometric, 0.0, 0.0).geometric
+        planner_est = eval_paths.load_estimators(
+            args.weights, args.nce_threshold, args.nce_far_threshold, args.nce_goal_ball, geo
+        )
     pairs = {}
     for case in cases:
         directions, _, record = eval_paths.learned_approach(case, est)
         if est.routes is not None and (args.routes_mode == "first" or not len(directions)):
-            _, record["route"] = eval_paths.learned_route(case, est)
+            check = None
+            if planner_est is not None:
+                check = eval_paths.checkers_for(
+                    case, planner_est, 0.001, ("nce_geometric",), warm=False
+                )["nce_geometric"]
+            _, record["route"] = eval_paths.learned_route(case, est, check)
         new = decision(record)
         cover = next((r for r, rows in refs.items() if case.name in rows
                       and decision(rows[case.name].get("approach")) == new), None)  # fmt: skip
@@ -88,6 +103,9 @@ def diff(args) -> dict:
             routes_threshold=None if est.routes is None else est.routes.config.threshold,
             routes_mode=args.routes_mode,
             routes_views=args.routes_views,
+            routes_check=args.routes_check,
+            routes_end_gap=args.routes_end_gap,
+            routes_tries=args.routes_tries,
         ),  # fmt: skip
         pairs=len(pairs),
         used_new=sum(d["new"] is not None for d in pairs.values()),
@@ -146,6 +164,16 @@ def main(argv=None):
     d.add_argument("--routes-threshold", type=float)
     d.add_argument("--routes-mode", choices=("fill", "first"), default="fill")
     d.add_argument("--routes-views", type=int, default=1)
+    d.add_argument("--routes-check", choices=("none", "checker"), default="none",
+                   help="eval_paths --routes-check (checker: the best planner's hybrid, below)")  # fmt: skip
+    d.add_argument("--routes-end-gap", type=float, default=0.0)
+    d.add_argument("--routes-tries", type=int, default=10)
+    d.add_argument("--weights", default="weights/collision_s18_contact",
+                   help="with --routes-check checker: the planner's NCE (eval_paths --weights)")  # fmt: skip
+    d.add_argument("--geometric", default="results/paths_hybrid_s18_joint95_selection.json")
+    d.add_argument("--nce-threshold", type=float, default=0.99)
+    d.add_argument("--nce-far-threshold", type=float, default=0.56)
+    d.add_argument("--nce-goal-ball", type=float, default=0.02)
     d.add_argument("--data", default="datasets/paper")
     d.add_argument("--pairs", type=int, default=80)
     d.add_argument("--pairs-from", default="out/paths_records.jsonl.gz")

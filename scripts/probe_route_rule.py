@@ -56,6 +56,7 @@ def validation_cases(data: str, pairs: int, config, val_mod: int = 7):
             cases.append(types.SimpleNamespace(
                 name=f.stem, meta=dict(support_family=z["support_family"].item()),
                 object_points=z["object_points"], support_points=z["support_points"],
+                support_normals=z["support_normals"],
                 goal=z["stable_poses"][0].astype(np.float64),
                 wall_y=wall if np.isfinite(wall) else None,
             ))  # fmt: skip

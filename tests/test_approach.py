@@ -323,6 +323,45 @@ def test_eval_paths_takes_the_route_networks_best_route_at_its_threshold():
     assert found is None and "waypoints" not in rec
 
 
+def test_eval_paths_checked_route_skips_a_route_the_planners_checker_blocks():
+    """``eval_paths --routes-check checker`` (forty-first session): among the confident routes,
+    best first, the first one the method's own checker calls free at every state and whose end
+    is clear between the observed clouds; none when every confident route is blocked; the
+    unchecked rule takes the best route regardless."""
+    from types import SimpleNamespace
+
+    from experiments import eval_paths
+
+    routes = planner.move_routes((0.015,))
+    z = planner.RETREAT_DIRECTIONS[:, 2]
+    up, down = int(np.argmax(z)), int(np.argmin(z))  # the +z and -z one-move routes
+
+    class Fake:
+        config = SimpleNamespace(threshold=0.5, length=0.045)
+
+        def best_routes(self, obj, sup, goal):
+            return np.stack([routes[down], routes[up]]), np.array([0.9, 0.6])
+
+    floor = lambda poses: np.asarray(poses)[:, 2] < -0.01  # noqa: E731  (a plate below the goal)
+    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
+    obj = np.array([[0.0, 0.0, 0.0]])
+    sup = np.array([[0.0, 0.0, -0.02], [0.0, 0.0, 0.05]])
+    case = SimpleNamespace(object_points=obj, support_points=sup, goal=goal)
+    est = SimpleNamespace(
+        routes=Fake(), routes_check="checker", routes_end_gap=0.0, routes_tries=10
+    )
+    found, rec = eval_paths.learned_route(case, est, floor)
+    assert rec["rank"] == 1 and rec["tried"] == 2 and rec["best_p"] == 0.6
+    np.testing.assert_allclose(found.pregoal[:3], [0, 0, 0.045])
+    # the end 4.5 cm up is 5 mm from the observed support point at 5 cm: a 1-cm end gap refuses it
+    est.routes_end_gap = 0.01
+    found, rec = eval_paths.learned_route(case, est, floor)
+    assert found is None and rec["rank"] is None and "waypoints" not in rec
+    unchecked = SimpleNamespace(routes=Fake())
+    found, rec = eval_paths.learned_route(case, unchecked)
+    np.testing.assert_allclose(found.pregoal[:3], [0, 0, -0.045])
+
+
 def test_warm_start_from_a_route_network_keeps_its_last_layer(tmp_path):
     """Fortieth session: a route network warm-started from one of the same routes takes every
     layer, the last included (more data, same outputs)."""

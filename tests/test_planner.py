@@ -715,3 +715,24 @@ def test_route_table_agrees_with_the_two_move_search_in_the_l_shaped_tunnel():
     straight = planner.route_retreat(goal, routes[0], 0.045)
     assert straight.via.shape == (0, 7)
     np.testing.assert_allclose(straight.pregoal[:3], 0.045 * planner.RETREAT_DIRECTIONS[0])
+
+
+def test_route_states_are_free_exactly_for_the_free_routes_of_the_table():
+    """``planner.route_states`` (forty-first session: what a planner's checker is asked before
+    it takes a route network's choice) walks the route ``route_table`` checks: in the L-shaped
+    tunnel the exact checker calls every state free for the table's routes, and some state
+    colliding for every route it rejects; a two-move route's states pass its corner and end
+    at its pre-goal."""
+    exact = planner.AnalyticChecker(L_TUNNEL, radius=0.01)
+    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
+    routes = planner.move_routes((0.015, 0.03))
+    table = planner.route_table(exact, goal, routes, 0.045, 0.002, None, lambda pose: True)
+    for r in range(0, len(routes), 7):
+        states = planner.route_states(goal, routes[r], 0.045, 0.002)
+        assert (not exact(states).any()) == table[r], routes[r]
+    two = routes[table & (routes[:, 0] >= 0)][0]
+    states = planner.route_states(goal, two, 0.045, 0.005)
+    retreat = planner.route_retreat(goal, two, 0.045)
+    np.testing.assert_allclose(states[-1], retreat.pregoal, atol=1e-9)
+    assert np.isclose(np.linalg.norm(states - retreat.via[0], axis=1), 0, atol=1e-9).any()
+    assert not np.isclose(np.linalg.norm(states - goal, axis=1), 0).any()  # the goal excluded
