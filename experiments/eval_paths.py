@@ -826,48 +826,30 @@ def route_oracle(case: PairCase, mesh, config: planner.PlannerConfig, bounds, la
 def learned_route(
     case: PairCase, est, check=None, resolution: float = planner.PlannerConfig().resolution
 ):
-    """(retreat or None, record) from the route network on the observed clouds: its best route
-    when its probability reaches the network's threshold (``planner.route_retreat``, the
-    corner in ``via``; taken as free, like the straight rule's best direction). With
-    ``est.routes_check`` "checker" (forty-first session) the first confident route, best first
-    and at most ``est.routes_tries``, that ``check`` (the method's own checker) calls free at
-    every state (at ``resolution``) and whose end is ``est.routes_end_gap`` clear between the
-    observed clouds."""
+    """(retreat or None, record) from the route network on the observed clouds
+    (``approach.checked_route``): its best route when its probability reaches the network's
+    threshold (``planner.route_retreat``, the corner in ``via``; taken as free, like the
+    straight rule's best direction). With ``est.routes_check`` "checker" (forty-first session)
+    the first confident route, best first and at most ``est.routes_tries``, that ``check`` (the
+    method's own checker) calls free at every state (at ``resolution``) and whose end is
+    ``est.routes_end_gap`` clear between the observed clouds."""
     t0 = time.perf_counter()
-    routes, probs = est.routes.best_routes(case.object_points, case.support_points, case.goal)
-    config = est.routes.config
     mode = getattr(est, "routes_check", "none")
-    pick, tried = (0 if probs[0] >= config.threshold else None), 0
-    if mode == "checker" and pick is not None:
-        if check is None:
-            raise ValueError("routes_check 'checker' needs the method's checker")
-        pick = None
-        gap_needed = float(getattr(est, "routes_end_gap", 0.0))
-        for k in range(min(int(getattr(est, "routes_tries", 10)), len(routes))):
-            if probs[k] < config.threshold:
-                break
-            tried += 1
-            states = planner.route_states(case.goal, routes[k], config.length, resolution)
-            if planner.any_colliding(check, states):
-                continue
-            if (
-                gap_needed > 0
-                and collision.cloud_gap(
-                    case.object_points, case.support_points, states[-1:], upper=gap_needed
-                )[0]
-                < gap_needed
-            ):
-                continue
-            pick = k
-            break
-    best = routes[0 if pick is None else pick]
+    if mode == "checker" and check is None:
+        raise ValueError("routes_check 'checker' needs the method's checker")
+    choice = approach.checked_route(
+        est.routes, case.object_points, case.support_points, case.goal,
+        check if mode == "checker" else None, float(getattr(est, "routes_end_gap", 0.0)),
+        int(getattr(est, "routes_tries", 10)), resolution,
+    )  # fmt: skip
+    best = choice.best if choice.route is None else choice.route
     record = dict(best=[int(best[0]), round(float(best[1]), 4), int(best[2])],
-                  best_p=round(float(probs[0 if pick is None else pick]), 4))  # fmt: skip
+                  best_p=round(choice.probability, 4))  # fmt: skip
     if mode != "none":
-        record |= dict(check=mode, tried=tried, rank=pick)
+        record |= dict(check=mode, tried=choice.tried, rank=choice.rank)
     found = None
-    if pick is not None:
-        found = planner.route_retreat(case.goal, best, config.length)
+    if choice.route is not None:
+        found = planner.route_retreat(case.goal, choice.route, est.routes.config.length)
         record["waypoints"] = len(found.via) + 1
     record["seconds"] = round(time.perf_counter() - t0, 4)
     return found, record

@@ -949,6 +949,19 @@ HYBRID = dict(
         open_side=True,
         replan="plain",
     ),
+    # forty-first session: before the straight approach, the route network (one or two
+    # straight moves from the hang ending >= 1 cm off the support, fortieth session) is asked
+    # first: its first route at p >= threshold, best first (at most ``tries``), that the hybrid
+    # checker calls free at every state and whose end the observed clouds show >= ``end_gap``
+    # clear (approach.checked_route; the rule chosen on the validation objects' goals). The
+    # plan goes to the route's end and ends along the route. None: off (docs/paths.md "The
+    # route asked of the planner's checker")
+    routes=dict(
+        weights="weights/approach_routes_s40_8k",
+        threshold=0.3,
+        end_gap=0.01,
+        tries=10,
+    ),
 )
 
 FAR_TEST_POINTS = 1024  # observed object points (and as many predicted) in the far test
@@ -1012,6 +1025,21 @@ def hybrid_approach() -> tuple[Any, str]:
 
 
 @functools.lru_cache(maxsize=2)
+def hybrid_routes() -> tuple[Any, str]:
+    """(approach.ApproachPredictor or None, why) of :data:`HYBRID`'s route network."""
+    settings = HYBRID.get("routes")
+    if not settings or not HYBRID.get("approach"):
+        return None, "no route network (HYBRID['routes'] or ['approach'] is off)"
+    folder = Path(settings["weights"])
+    if not (folder / "config.json").exists():
+        return None, f"{folder} missing: no learned route"
+    return _approach(str(folder.resolve()), float(settings["threshold"])), (
+        f"a route of one or two straight moves off the support ({folder}, p >= "
+        f"{settings['threshold']:g}, checked by the planner's checker, its end "
+        f"{settings['end_gap'] * 100:g} cm clear in the observed clouds)"
+    )
+
+
 def _approach(folder: str, threshold: float):
     """The approach network of ``folder`` at ``threshold``, compiled, once per process."""
     from omnihang_jax import approach
@@ -1073,6 +1101,7 @@ def planner_how(
         return None, "no trained neural collision estimator (weights/collision_*/nce)"
     hybrid, hybrid_why = (None, "") if checker != "auto" else hybrid_settings(weights)
     approach_net, approach_why = (None, "") if hybrid is None else hybrid_approach()
+    routes_net, routes_why = (None, "") if approach_net is None else hybrid_routes()
 
     def how(scene, obj: Body, sup: Body, pose: np.ndarray) -> PathPlan | None:
 
@@ -1086,16 +1115,18 @@ def planner_how(
         radius = planner.object_radius(geometry)
         config = planner.PlannerConfig(time_limit=time_limit)
 
-        def attempt(checker, name, seconds=None, approach_to=None):
+        def attempt(checker, name, seconds=None, approach_to=None, route=None):
             limits = config if seconds is None else dataclasses.replace(config, time_limit=seconds)
             with _captured_stderr() as log:  # OMPL's C++ warnings: kept in info, not shown
-                if approach_to is None:
+                if approach_to is None and route is None:
                     res, retreat = planner.plan(checker, start, pose, bounds, radius, limits), None
                 else:  # to the pre-goal, then straight in (the network's choice taken as free)
                     res, retreat = planner.plan_with_retreat(
                         checker, start, pose, bounds, radius,
                         dataclasses.replace(limits, retreat_lengths=(HYBRID["approach"]["length"],)),
-                        retreat_checker=approach.never_colliding, retreat_directions=approach_to,
+                        retreat_checker=approach.never_colliding,
+                        retreat_directions=approach.DIRECTIONS if approach_to is None else approach_to,
+                        retreat=route,
                     )  # fmt: skip
             info = dict(
                 checker=name,
@@ -1132,8 +1163,27 @@ def planner_how(
                 )
                 name = f"the neural collision estimator {weights}"
             nce_checker.warm_up(128)
-            approach_to, approach_info = None, None
-            if approach_net is not None:
+            approach_to, approach_info, route = None, None, None
+            if routes_net is not None:  # the checked route first (forty-first session)
+                t0 = time.perf_counter()
+                rs = HYBRID["routes"]
+                choice = approach.checked_route(
+                    routes_net, obj.points, sup.points, pose, nce_checker, rs["end_gap"],
+                    rs["tries"], config.resolution,
+                )  # fmt: skip
+                checked = dict(
+                    network=routes_why, used=choice.route is not None, p=choice.probability,
+                    rank=choice.rank, tried=choice.tried, seconds=round(time.perf_counter() - t0, 4),
+                )  # fmt: skip
+                if choice.route is not None:
+                    route = planner.route_retreat(pose, choice.route, routes_net.config.length)
+                    checked |= dict(
+                        waypoints=len(route.via) + 1, last=[float(x) for x in route.direction],
+                        corner=[float(x) for x in route.via[-1][:3] - pose[:3]]
+                        if len(route.via) else None,
+                    )  # fmt: skip
+                approach_info = dict(route=checked, used=choice.route is not None)
+            if approach_net is not None and route is None:
                 t0 = time.perf_counter()
                 directions, probs = approach_net.order(obj.points, sup.points, pose)
                 wall = (
@@ -1142,14 +1192,14 @@ def planner_how(
                 keep = approach.usable(directions, probs, approach_net.config.threshold, wall,
                                        HYBRID["approach"]["open_side"])  # fmt: skip
                 approach_info = dict(
-                    network=approach_why, best=[float(x) for x in directions[0]],
-                    best_p=float(probs[0]), used=bool(keep.any()),
-                    seconds=round(time.perf_counter() - t0, 4),
+                    (approach_info or {}), network=approach_why,
+                    best=[float(x) for x in directions[0]], best_p=float(probs[0]),
+                    used=bool(keep.any()), seconds=round(time.perf_counter() - t0, 4),
                 )  # fmt: skip
                 if keep.any():
                     approach_to = directions[keep][:1]
                     approach_info["p"] = float(probs[keep][0])
-            path, info = attempt(nce_checker, name, approach_to=approach_to)
+            path, info = attempt(nce_checker, name, approach_to=approach_to, route=route)
             if (
                 path is None
                 and hybrid is not None
@@ -1157,12 +1207,10 @@ def planner_how(
                 and planner.timed_out(info["status"])
             ):
                 first = info  # a time-out (not an invalid start or goal): one fresh search
-                again = (
-                    None
-                    if HYBRID["approach"] and HYBRID["approach"]["replan"] == "plain"
-                    else approach_to
-                )
-                path, info = attempt(nce_checker, name, replan, approach_to=again)
+                plain = HYBRID["approach"] and HYBRID["approach"]["replan"] == "plain"
+                again, again_route = (None, None) if plain else (approach_to, route)
+                path, info = attempt(nce_checker, name, replan, approach_to=again,
+                                     route=again_route)  # fmt: skip
                 info = dict(info, replanned_after=first)
             if approach_info is not None:
                 info["approach"] = approach_info
