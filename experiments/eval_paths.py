@@ -1677,6 +1677,10 @@ def main(argv=None) -> dict:
             parser.error(str(e))
     if args.routes and not args.approach:
         parser.error("--routes needs --approach (the straight rule it fills in or precedes)")
+    if args.routes_check != "none" and not args.routes:
+        parser.error("--routes-check needs --routes (the route network whose routes it checks)")
+    if args.routes_end_gap < 0 or args.routes_tries < 1:
+        parser.error("--routes-end-gap must be >= 0 and --routes-tries >= 1")
     if args.routes and args.oracle_two_moves:
         parser.error("--routes and --oracle-two-moves both choose the route: one of them")
     if args.oracle_retreat:

@@ -519,6 +519,8 @@ def test_goal_ball_nce_and_the_hang_hybrid_checker():
         (["--clear-path", "-0.01"], "clear-path"),
         (["--shard", "2/2"], "shard"),
         (["--routes", "weights/approach_routes_s40"], "--routes needs --approach"),
+        (["--routes-check", "checker"], "--routes-check needs --routes"),
+        (["--routes-tries", "0"], "--routes-tries"),
         (
             [
                 "--retreat",

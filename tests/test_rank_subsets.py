@@ -61,6 +61,7 @@ def test_subset_zero_is_the_subsample_and_the_others_are_other_points():
         stage3.subset_clouds(clouds, CFG, 4, 4)
 
 
+@pytest.mark.slow  # ~37 s on 2 cores (forty-first session: the default suite took 20.7 min on the VM)
 def test_ensemble_over_subsets_is_the_mean_of_each_subsets_score():
     clouds, poses, _ = _clouds()
     nets = [stage3.make_value(CFG).init(jax.random.key(k)) for k in (3, 4)]

@@ -8,6 +8,7 @@ import dataclasses
 
 import jax
 import numpy as np
+import pytest
 
 from omnihang_jax import dataset_bridge, eval_pipeline, predict, refine, selection, stage3
 from omnihang_jax.stage1 import STAGE1_TINY
@@ -96,6 +97,8 @@ def test_evaluation_records_counts_and_applies_the_rule(monkeypatch):
         assert len(paper["statuses"]) == k
 
 
+@pytest.mark.slow  # ~40 s on 2 cores, a variant never adopted (forty-first session: the
+# default suite took 20.7 min on the VM)
 def test_smooth_stage3_rescored_records(monkeypatch, tmp_path):
     """experiments.smooth_stage3 on an evaluation's records: V recomputed from the pair files
     matches the recorded V of the pooled candidates, and at zero width the smoothed score
