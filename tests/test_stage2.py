@@ -5,6 +5,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from omnihang_jax import data, losses, poses, train
 from omnihang_jax.stage2 import (
@@ -270,6 +271,8 @@ def test_contact_loss_options_match_numpy():
     np.testing.assert_allclose(bce, ref, rtol=1e-4)
 
 
+@pytest.mark.slow  # ~49 s on 2 cores, training options off by default (forty-first session: the
+# default suite took 19.9-20.7 min on the VM)
 def test_predicted_and_mixed_selection_train_without_recompiling():
     """2b with candidates chosen by the net's scores ("predicted") or per pair at random
     ("mixed"): one jit, finite metrics over steps; "mixed" rows are either the GT map or the
