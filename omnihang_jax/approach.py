@@ -256,7 +256,7 @@ def checked_route(predictor: ApproachPredictor, object_cloud, support_cloud, goa
     if check is None:
         return RouteChoice(routes[0], routes[0], float(probs[0]), 0, 0)
     goal = np.asarray(goal, float).reshape(7)
-    tried = 0
+    tried, support = 0, None
     for k in range(min(int(tries), len(routes))):
         if probs[k] < config.threshold:
             break
@@ -265,7 +265,11 @@ def checked_route(predictor: ApproachPredictor, object_cloud, support_cloud, goa
         if planner.any_colliding(check, states):
             continue
         if end_gap > 0:
-            gap = collision.cloud_gap(object_cloud, support_cloud, states[-1:], upper=end_gap)
+            if support is None:  # the support cloud's tree, built once for every route asked
+                from scipy.spatial import cKDTree
+
+                support = cKDTree(np.asarray(support_cloud, float))
+            gap = collision.cloud_gap(object_cloud, support, states[-1:], upper=end_gap)
             if gap[0] < end_gap:
                 continue
         return RouteChoice(routes[k], routes[0], float(probs[k]), k, tried)

@@ -1024,7 +1024,6 @@ def hybrid_approach() -> tuple[Any, str]:
     )
 
 
-@functools.lru_cache(maxsize=2)
 def hybrid_routes() -> tuple[Any, str]:
     """(approach.ApproachPredictor or None, why) of :data:`HYBRID`'s route network."""
     settings = HYBRID.get("routes")
@@ -1040,6 +1039,7 @@ def hybrid_routes() -> tuple[Any, str]:
     )
 
 
+@functools.lru_cache(maxsize=4)  # the straight approach network and the route network
 def _approach(folder: str, threshold: float):
     """The approach network of ``folder`` at ``threshold``, compiled, once per process."""
     from omnihang_jax import approach
