@@ -346,6 +346,7 @@ def derive_collision_pairs(
     existing_only: bool = False,
     shuffle_seed: int | None = None,
     only=None,
+    derive_only=None,
 ) -> dict[str, list[Path]]:
     """Per split in ``limits`` ("test" / "train" -> n): its first n pairs with stable poses
     (round robin over object categories), derived to ``DATA/derived/collision/<split>/`` if
@@ -353,7 +354,9 @@ def derive_collision_pairs(
     files per split; ``existing_only``: derive nothing, return those already there;
     ``shuffle_seed``: pairs in a seeded random order within each category (by default the
     pair order, which takes each category's first object with every support in turn);
-    ``only(pair_index) -> bool``: only those pairs."""
+    ``only(pair_index) -> bool``: only those pairs; ``derive_only(pair_index) -> bool``: of the
+    chosen pairs, derive only those (the chosen list is the same; the others are returned as
+    they are, whether there or not)."""
     from sim import dataset
 
     for split in limits:
@@ -383,7 +386,8 @@ def derive_collision_pairs(
             jobs[split] = [jobs[split][i] for i in order]
         chosen = dataset_bridge.interleave_by_category(jobs[split], pairs)[:n]
         files[split] = [Path(j[1]) for j in chosen]
-        todo += [j for j in chosen if not is_complete(j[1])]
+        todo += [j for j in chosen if not is_complete(j[1])
+                 and (derive_only is None or derive_only(int(j[0]["pair_index"])))]  # fmt: skip
     if existing_only:
         return {split: [p for p in paths if is_complete(p)] for split, paths in files.items()}
     bar = tqdm(total=len(todo), desc="derive", unit="pair", disable=not progress)

@@ -61,11 +61,12 @@ def hybrid_settings(geometric_file: str, near: float, far: float, ball: float):
     return settings._replace(far_threshold=far)
 
 
-def candidate_rows(case, probs, labels, routes_cfg, checker, tries: int, resolution: float):
-    """Per candidate route (probability >= FLOOR, best first, at most ``tries``): its index,
+def candidate_rows(case, probs, labels, routes_cfg, checker, tries: int, resolution: float,
+                   floor: float = FLOOR):  # fmt: skip
+    """Per candidate route (probability >= ``floor``, best first, at most ``tries``): its index,
     probability, truth, whether ``checker`` calls all its states free, its observed end gap."""
     order = np.argsort(-probs, kind="stable")
-    order = order[probs[order] >= FLOOR][:tries]
+    order = order[probs[order] >= floor][:tries]
     if not len(order):
         return []
     tree = cKDTree(np.asarray(case.support_points, float))
@@ -98,13 +99,13 @@ def choose(cands: list[dict], threshold: float, check: str, end_gap: float):
     return None
 
 
-def sweep(rows: list[dict], mode: str) -> list[dict]:
+def sweep(rows: list[dict], mode: str, thresholds=THRESHOLDS, end_gaps=END_GAPS) -> list[dict]:
     """Per rule (check, end gap) and threshold: goals given a route, how many truly good."""
     out = []
     pool = [r for r in rows if mode == "first" or not r["straight_used"]]
     for check in ("none", "checker"):
-        for gap in END_GAPS:
-            for t in THRESHOLDS:
+        for gap in end_gaps:
+            for t in thresholds:
                 picks = [(r, choose(r["candidates"], t, check, gap)) for r in pool]
                 used = [(r, c) for r, c in picks if c is not None]
                 good = sum(c["good"] for _, c in used)
@@ -146,9 +147,17 @@ def main(argv=None) -> dict:
                     help="the validation objects' first goals of P training pairs instead")  # fmt: skip
     ap.add_argument("--rule", default=None, metavar="JSON",
                     help="a validation run's output: its chosen rule is read off here too")  # fmt: skip
+    ap.add_argument("--thresholds", type=float, nargs="+", default=list(THRESHOLDS),
+                    help="the rules' probability thresholds (the lowest is the candidates' floor)")
+    ap.add_argument("--end-gaps", type=float, nargs="+", default=list(END_GAPS), metavar="M")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="processes deriving the validation pairs' files where missing")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
+    floor = min(args.thresholds)
+    if floor <= 0 or max(args.thresholds) >= 1 or min(args.end_gaps) < 0:
+        ap.error("thresholds must lie in (0, 1) and end gaps be >= 0")
 
     est = types.SimpleNamespace(
         approach=approach.load_predictor(args.approach, args.approach_threshold),
@@ -169,7 +178,9 @@ def main(argv=None) -> dict:
         )
         known = None
     else:
-        cases, known = probe_route_rule.validation_cases(args.data, args.validation, routes_cfg)
+        cases, known = probe_route_rule.validation_cases(
+            args.data, args.validation, routes_cfg, workers=args.workers, progress=not args.no_progress
+        )
     rows, t0 = [], time.perf_counter()
     for k, case in enumerate(tqdm(cases, desc="goals", disable=args.no_progress)):
         directions, _, _ = eval_paths.learned_approach(case, est)
@@ -179,7 +190,7 @@ def main(argv=None) -> dict:
         else:
             labels = approach.route_labels(case.scene, case.goal[None], routes_cfg)[0]
         checker = None
-        if probs.max() >= FLOOR:  # built (its support table, its NCE calls) only when asked
+        if probs.max() >= floor:  # built (its support table, its NCE calls) only when asked
             weight = 0.5 * float(np.ptp(case.object_points, axis=0).max())
             checker = planner.hybrid_checker(
                 nce_cfg, nce_params, case.object_points, case.support_points,
@@ -190,9 +201,10 @@ def main(argv=None) -> dict:
             kind=kinds.get(case.name) or probe_route_rule.label_kind(labels, routes_cfg),
             straight_used=bool(len(directions)), any_good=bool(labels.any()),
             candidates=candidate_rows(case, probs, labels, routes_cfg, checker, args.tries,
-                                      args.resolution),
+                                      args.resolution, floor),
         ))  # fmt: skip
-    fill, first = sweep(rows, "fill"), sweep(rows, "first")
+    fill = sweep(rows, "fill", args.thresholds, args.end_gaps)
+    first = sweep(rows, "first", args.thresholds, args.end_gaps)
     result = dict(
         settings=vars(args), seconds=round(time.perf_counter() - t0, 1), goals=len(rows),
         kinds=dict(Counter(r["kind"] for r in rows)),

@@ -31,21 +31,26 @@ from pathlib import Path
 import numpy as np
 
 from experiments import eval_paths, train_approach
-from omnihang_jax import approach
+from omnihang_jax import approach, dataset_bridge
 
 THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 
 
-def validation_cases(data: str, pairs: int, config, val_mod: int = 7):
+def validation_cases(data: str, pairs: int, config, val_mod: int = 7, workers: int = 1,
+                     progress: bool = False):  # fmt: skip
     """(cases, labels [P, R]) of the validation objects' first goals among the first ``pairs``
-    training pairs (``train_approach``'s pair order and whole-object split)."""
+    training pairs (``train_approach``'s pair order and whole-object split); the validation
+    objects' pair files are derived where missing (``workers`` processes), the others never."""
     from experiments import train_collision
 
+    names = dataset_bridge.read_recipe(data)["pairs"]
     files = train_collision.derive_collision_pairs(
-        data, {"train": pairs}, 1, False, existing_only=True, shuffle_seed=0,
+        data, {"train": pairs}, workers, progress, shuffle_seed=0,
         only=lambda i: i % eval_paths.VAL_EVERY != 0,
+        derive_only=lambda i: bool(train_approach.object_split([names[i][0]], val_mod)[0]),
     )["train"]  # fmt: skip
-    labels = train_approach.label_pairs(data, files, config, 1, False, goals=3)
+    files = [f for f in files if train_collision.is_complete(f)]
+    labels = train_approach.label_pairs(data, files, config, workers, progress, goals=3)
     cases, out = [], []
     for f, lf in zip(files, labels):
         with np.load(f) as z:
