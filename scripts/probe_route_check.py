@@ -147,11 +147,20 @@ def main(argv=None) -> dict:
                     help="the validation objects' first goals of P training pairs instead")  # fmt: skip
     ap.add_argument("--rule", default=None, metavar="JSON",
                     help="a validation run's output: its chosen rule is read off here too")  # fmt: skip
-    ap.add_argument("--thresholds", type=float, nargs="+", default=list(THRESHOLDS),
-                    help="the rules' probability thresholds (the lowest is the candidates' floor)")
+    ap.add_argument(
+        "--thresholds",
+        type=float,
+        nargs="+",
+        default=list(THRESHOLDS),
+        help="the rules' probability thresholds (the lowest is the candidates' floor)",
+    )
     ap.add_argument("--end-gaps", type=float, nargs="+", default=list(END_GAPS), metavar="M")
-    ap.add_argument("--workers", type=int, default=1,
-                    help="processes deriving the validation pairs' files where missing")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes deriving the validation pairs' files where missing",
+    )
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -179,7 +188,11 @@ def main(argv=None) -> dict:
         known = None
     else:
         cases, known = probe_route_rule.validation_cases(
-            args.data, args.validation, routes_cfg, workers=args.workers, progress=not args.no_progress
+            args.data,
+            args.validation,
+            routes_cfg,
+            workers=args.workers,
+            progress=not args.no_progress,
         )
     rows, t0 = [], time.perf_counter()
     for k, case in enumerate(tqdm(cases, desc="goals", disable=args.no_progress)):
