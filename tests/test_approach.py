@@ -112,6 +112,7 @@ def test_predictor_orders_directions_and_refuses_nan(tmp_path):
         approach.load(tmp_path / "missing")
 
 
+@pytest.mark.slow  # averaged approach networks, not adopted (thirty-eighth session); the default suite stays under 20 min
 def test_predictor_averages_networks_and_cloud_subsets(tmp_path):
     """Thirty-eighth session: a list of networks and ``views`` > 1 average the probabilities of
     each network on each cloud subset (seeds 0..views-1), computed here one by one."""

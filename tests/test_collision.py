@@ -278,6 +278,7 @@ def test_transit_poses_are_near_the_support_at_the_boundary_and_leave_the_rest_u
     assert np.isnan(near_contact_labels(scene, stable, stable, seed=0)["near_gap"]).all()
 
 
+@pytest.mark.slow  # transit poses for the NCE, not adopted (twenty-third session); the default suite stays under 20 min
 def test_nce_transit_share_draws_transit_rows_and_their_curve_falls():
     """--transit-share: that fraction of every batch comes from the transit rows alone; the
     validation curve reports them apart (val_transit_*), and their loss falls when trained

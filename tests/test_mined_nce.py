@@ -149,6 +149,7 @@ def test_load_collision_data_adds_mined_rows_to_their_pairs(tmp_path):
         load_collision_data(files, mined_dir=tmp_path / "missing")
 
 
+@pytest.mark.slow  # the mined NCE, not adopted (twenty-ninth session); the default suite stays under 20 min
 def test_nce_mined_share_draws_the_mined_rows_and_learns_them():
     """--mined-share: that fraction of every batch comes from the mined rows alone; a tiny
     NCE trained on the rod task's rows as mined rows gets them right above chance."""

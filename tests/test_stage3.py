@@ -163,6 +163,7 @@ def test_cem_keeps_the_top_of_its_final_population():
         stage3.make_cem(score, cfg, keep_top=cfg.population + 1)
 
 
+@pytest.mark.slow  # the smoothed V, not adopted (eleventh session); the default suite stays under 20 min
 def test_smoothed_value_is_v_at_zero_width_and_averages_a_neighbourhood():
     """Zero width: every sample is the pose itself, so the average is V there; a width > 0
     averages V over other poses (the first sample stays the pose itself)."""
