@@ -10,14 +10,14 @@
 # MODE (fill/first) and T (the route threshold) as arguments; SEEDS (default 4), REF_<seed> (the
 # reference run of each seed; seed 4's default is the s37 rule's 49-pair device run), GAP (end
 # gap, m), TRIES, TAG (names the lists and variants) from the environment; PLANNED=1 skips the
-# diff and plans the lists already in out/s42/dev/lists (carried).
+# diff and plans the lists already in LISTS (default out/s42/dev/lists, carried).
 set -uo pipefail
 MODE=$1 T=$2
 SEEDS=${SEEDS:-4} GAP=${GAP:-0.01} TRIES=${TRIES:-10} TAG=${TAG:-$MODE}
 REF_4=${REF_4:-results/paths_s38/s37_device_seed4_49pairs.pairs.jsonl}
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl_min/*.whl .whl_train/*.whl .whl_plan/*.whl 2>/dev/null
 export PYTHONPATH=/tmp/site:$PWD JAX_PLATFORMS=cpu PYTHONUNBUFFERED=1
-L=out/s42/dev/lists
+L=${LISTS:-out/s42/dev/lists}
 C0=--clear-path,0.03,--clear-keep-ball,0.045,--fallback-far-threshold,0.56,--fallback-time,30,--retreat,0.045,--approach-open-side,--approach-replan,plain,--approach,weights/approach_s37_8k,--approach-threshold,0.8,--routes,weights/approach_routes_s40_8k,--routes-check,checker
 mkdir -p $L
 RULE="--routes-threshold $T --routes-mode $MODE --routes-check checker --routes-end-gap $GAP --routes-tries $TRIES"

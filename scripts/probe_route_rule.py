@@ -44,19 +44,21 @@ def validation_cases(data: str, pairs: int, config, val_mod: int = 7, workers: i
     from experiments import train_collision
 
     names = dataset_bridge.read_recipe(data)["pairs"]
+
+    def validation(index: int) -> bool:
+        return bool(train_approach.object_split([names[index][0]], val_mod)[0])
+
     files = train_collision.derive_collision_pairs(
         data, {"train": pairs}, workers, progress, shuffle_seed=0,
-        only=lambda i: i % eval_paths.VAL_EVERY != 0,
-        derive_only=lambda i: bool(train_approach.object_split([names[i][0]], val_mod)[0]),
+        only=lambda i: i % eval_paths.VAL_EVERY != 0, derive_only=validation,
     )["train"]  # fmt: skip
-    files = [f for f in files if train_collision.is_complete(f)]
+    # the pair index leads the file name (dataset_bridge.pair_file_name)
+    files = [f for f in files
+             if validation(int(f.stem.split("_", 1)[0])) and train_collision.is_complete(f)]  # fmt: skip
     labels = train_approach.label_pairs(data, files, config, workers, progress, goals=3)
     cases, out = [], []
     for f, lf in zip(files, labels):
         with np.load(f) as z:
-            name = z["object_name"].item()
-            if not train_approach.object_split([name], val_mod)[0]:
-                continue
             wall = float(z["wall_y"]) if "wall_y" in z.files else float("nan")
             cases.append(types.SimpleNamespace(
                 name=f.stem, meta=dict(support_family=z["support_family"].item()),
