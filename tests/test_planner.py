@@ -738,3 +738,28 @@ def test_route_states_are_free_exactly_for_the_free_routes_of_the_table():
     np.testing.assert_allclose(states[-1], retreat.pregoal, atol=1e-9)
     assert np.isclose(np.linalg.norm(states - retreat.via[0], axis=1), 0, atol=1e-9).any()
     assert not np.isclose(np.linalg.norm(states - goal, axis=1), 0).any()  # the goal excluded
+
+
+def test_lattice_retreat_finds_the_tunnels_way_out_with_one_call_per_node():
+    """``planner.lattice_retreat`` (thirty-ninth session; forty-third: a node's new edges in one
+    checker call): in the L-shaped tunnel the breadth-first route on a 7.5-mm lattice goes +x to
+    the shaft and up, every state of it free, and the checker is called at most once a node."""
+    exact = planner.AnalyticChecker(L_TUNNEL, radius=0.01)
+    calls = []
+
+    def counting(poses):
+        calls.append(len(poses))
+        return exact(poses)
+
+    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
+    off = lambda pose: pose[2] > 0.04  # noqa: E731
+    bounds = (np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3]))
+    found, expanded = planner.lattice_retreat(counting, goal, 0.0075, off, 5000, bounds)
+    assert found is not None and 0 < len(calls) <= expanded
+    assert sum(calls) == found.states_checked
+    assert off(found.pregoal) and found.pregoal[0] > 0.02  # out through the shaft, not the ceiling
+    route = np.concatenate([goal[None], found.via[::-1], found.pregoal[None]])
+    assert not planner.any_colliding(exact, planner.interpolate_path(route, 0.002, 0.05))
+    # nothing within reach: None, after expanding at most the cap
+    none, n = planner.lattice_retreat(exact, goal, 0.0075, lambda pose: False, 50, bounds)
+    assert none is None and n == 50
