@@ -78,13 +78,15 @@ def diff(args) -> dict:
     pairs = {}
     for case in cases:
         directions, _, record = eval_paths.learned_approach(case, est)
-        if est.routes is not None and (args.routes_mode == "first" or not len(directions)):
+        if est.routes is not None and (args.routes_mode != "fill" or not len(directions)):
             check = None
             if planner_est is not None:
                 check = eval_paths.checkers_for(
                     case, planner_est, 0.001, ("nce_geometric",), warm=False
                 )["nce_geometric"]
-            _, record["route"] = eval_paths.learned_route(case, est, check)
+            found, record["route"] = eval_paths.learned_route(case, est, check)
+            if found is None and args.routes_mode == "only":
+                eval_paths.drop_straight(record, directions)
         new = decision(record)
         cover = next((r for r, rows in refs.items() if case.name in rows
                       and decision(rows[case.name].get("approach")) == new), None)  # fmt: skip
@@ -162,7 +164,7 @@ def main(argv=None):
     d.add_argument("--views", type=int, default=1, help="cloud subsets averaged")
     d.add_argument("--routes", help="a route network (eval_paths --routes)")
     d.add_argument("--routes-threshold", type=float)
-    d.add_argument("--routes-mode", choices=("fill", "first"), default="fill")
+    d.add_argument("--routes-mode", choices=("fill", "first", "only"), default="fill")
     d.add_argument("--routes-views", type=int, default=1)
     d.add_argument("--routes-check", choices=("none", "checker"), default="none",
                    help="eval_paths --routes-check (checker: the best planner's hybrid, below)")  # fmt: skip

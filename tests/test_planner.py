@@ -763,3 +763,23 @@ def test_lattice_retreat_finds_the_tunnels_way_out_with_one_call_per_node():
     # nothing within reach: None, after expanding at most the cap
     none, n = planner.lattice_retreat(exact, goal, 0.0075, lambda pose: False, 50, bounds)
     assert none is None and n == 50
+
+
+def test_routes_mode_only_drops_the_straight_approach_and_the_decision_reads_plain():
+    """``eval_paths --routes-mode only`` (forty-third session): where no checked route is found
+    the straight rule's direction is dropped (kept as ``straight_dropped``), so the plan is plain
+    and ``approach_decisions.decision`` reads the row as planned without an approach."""
+    import sys
+
+    from experiments import eval_paths
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import approach_decisions
+
+    record = dict(best=[0.0, 0.0, 1.0], best_p=0.93, tried=1, first_tried=[0.0, 0.0, 1.0])
+    assert approach_decisions.decision(record) == (0.0, 0.0, 1.0)
+    directions = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    kept = eval_paths.drop_straight(record, directions)
+    assert kept.shape == (0, 3) and record["straight_dropped"] == [0.0, 0.0, 1.0]
+    assert approach_decisions.decision(record) is None
+    assert eval_paths.drop_straight({}, directions).shape == (0, 3)  # nothing to drop
