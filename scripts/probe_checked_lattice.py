@@ -37,6 +37,7 @@ from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import probe_route_check  # noqa: E402
+import probe_route_rule  # noqa: E402
 
 from experiments import eval_paths  # noqa: E402
 from omnihang_jax import approach, collision, planner  # noqa: E402
@@ -87,14 +88,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--routes", default="weights/approach_routes_s40_8k")
     ap.add_argument("--routes-threshold", type=float, default=0.3)
     ap.add_argument("--end-gap", type=float, default=0.01, help="observed end gap (m)")
-    ap.add_argument("--approach", default="weights/approach_s37_8k")
-    ap.add_argument("--approach-threshold", type=float, default=0.8)
-    ap.add_argument("--weights", default="weights/collision_s18_contact", help="the contact NCE")
-    ap.add_argument("--geometric", default="results/paths_hybrid_s18_joint95_selection.json")
-    ap.add_argument("--nce-threshold", type=float, default=0.99, help="within the goal ball")
-    ap.add_argument("--nce-far-threshold", type=float, default=0.56)
-    ap.add_argument("--nce-goal-ball", type=float, default=0.02)
-    ap.add_argument("--resolution", type=float, default=planner.PlannerConfig().resolution)
+    probe_route_check.add_planner_args(ap)
     ap.add_argument("--steps", type=float, nargs="+", default=[0.015, 0.0075])
     ap.add_argument("--max-nodes", type=int, default=3000)
     ap.add_argument("--kinds", default="results/paths_s39/dogleg_heldout.json")
@@ -124,10 +118,7 @@ def main(argv=None) -> dict:
         return result
 
     i, n = (int(v) for v in args.shard.split("/"))
-    kinds = {}
-    for r in json.loads(Path(args.kinds).read_text())["pairs"]:
-        kinds[r["pair"]] = ("off_straight" if r["straight_off"] is not None else
-                            "off_two_moves" if r["dogleg_off"] is not None else "threaded")  # fmt: skip
+    kinds = probe_route_rule.goal_kinds(args.kinds)
     cases = eval_paths.load_pairs(
         args.data, args.pairs, records=eval_paths.read_answers(args.pairs_from)
     )[i::n]

@@ -61,6 +61,19 @@ def hybrid_settings(geometric_file: str, near: float, far: float, ball: float):
     return settings._replace(far_threshold=far)
 
 
+def add_planner_args(ap: argparse.ArgumentParser) -> None:
+    """The best planner's straight approach rule and checker settings, as flags (defaults: the
+    adopted planner's; shared with ``probe_checked_lattice.py``)."""
+    ap.add_argument("--approach", default="weights/approach_s37_8k")
+    ap.add_argument("--approach-threshold", type=float, default=0.8)
+    ap.add_argument("--weights", default="weights/collision_s18_contact", help="the contact NCE")
+    ap.add_argument("--geometric", default="results/paths_hybrid_s18_joint95_selection.json")
+    ap.add_argument("--nce-threshold", type=float, default=0.99, help="within the goal ball")
+    ap.add_argument("--nce-far-threshold", type=float, default=0.56)
+    ap.add_argument("--nce-goal-ball", type=float, default=0.02)
+    ap.add_argument("--resolution", type=float, default=planner.PlannerConfig().resolution)
+
+
 def candidate_rows(case, probs, labels, routes_cfg, checker, tries: int, resolution: float,
                    floor: float = FLOOR):  # fmt: skip
     """Per candidate route (probability >= ``floor``, best first, at most ``tries``): its index,
@@ -129,14 +142,7 @@ def chosen_rule(table: list[dict], target: float) -> dict | None:
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--routes", required=True, help="the route network's folder")
-    ap.add_argument("--approach", default="weights/approach_s37_8k")
-    ap.add_argument("--approach-threshold", type=float, default=0.8)
-    ap.add_argument("--weights", default="weights/collision_s18_contact", help="the contact NCE")
-    ap.add_argument("--geometric", default="results/paths_hybrid_s18_joint95_selection.json")
-    ap.add_argument("--nce-threshold", type=float, default=0.99, help="within the goal ball")
-    ap.add_argument("--nce-far-threshold", type=float, default=0.56)
-    ap.add_argument("--nce-goal-ball", type=float, default=0.02)
-    ap.add_argument("--resolution", type=float, default=planner.PlannerConfig().resolution)
+    add_planner_args(ap)
     ap.add_argument("--tries", type=int, default=10, help="candidate routes looked at a goal")
     ap.add_argument("--kinds", default="results/paths_s39/dogleg_heldout.json")
     ap.add_argument("--pairs-from", default="out/paths_records.jsonl.gz")
@@ -179,9 +185,7 @@ def main(argv=None) -> dict:
                                args.nce_goal_ball)  # fmt: skip
     kinds = {}
     if not args.validation:
-        for r in json.loads(Path(args.kinds).read_text())["pairs"]:
-            kinds[r["pair"]] = ("off_straight" if r["straight_off"] is not None else
-                                "off_two_moves" if r["dogleg_off"] is not None else "threaded")  # fmt: skip
+        kinds = probe_route_rule.goal_kinds(args.kinds)
         cases = eval_paths.load_pairs(
             args.data, args.pairs, records=eval_paths.read_answers(args.pairs_from)
         )

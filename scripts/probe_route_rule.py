@@ -88,6 +88,16 @@ def sweep(rows: list[dict], mode: str, thresholds=THRESHOLDS) -> list[dict]:
     return out
 
 
+def goal_kinds(path) -> dict[str, str]:
+    """pair -> its goal's kind ("off_straight", "off_two_moves", "threaded") from a
+    ``probe_dogleg.py`` output (thirty-ninth session)."""
+    return {
+        r["pair"]: "off_straight" if r["straight_off"] is not None
+        else "off_two_moves" if r["dogleg_off"] is not None else "threaded"
+        for r in json.loads(Path(path).read_text())["pairs"]
+    }  # fmt: skip
+
+
 def label_kind(labels: np.ndarray, config) -> str:
     """A goal's kind from its route labels (validation goals have no probe_dogleg row)."""
     if labels[config.routes[:, 0] < 0].any():
@@ -117,11 +127,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
 
-    kinds_src = [] if args.validation else json.loads(Path(args.kinds).read_text())["pairs"]
-    kinds = {}
-    for r in kinds_src:
-        kinds[r["pair"]] = ("off_straight" if r["straight_off"] is not None else
-                            "off_two_moves" if r["dogleg_off"] is not None else "threaded")  # fmt: skip
+    kinds = {} if args.validation else goal_kinds(args.kinds)
     est = types.SimpleNamespace(
         approach=approach.load_predictor(args.approach, args.approach_threshold),
         approach_open_side=True, approach_check="none",
