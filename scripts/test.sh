@@ -8,4 +8,14 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
+# A persistent XLA compilation cache for this run only (fresh, removed at exit), shared by the
+# workers and the subprocesses tests start: a test that builds a network another test compiled
+# already loads it instead of compiling (forty-third session: 220 -> 175 s on four training-heavy
+# modules side by side; the whole suite 10.9 -> 9.3 min on a 2-core VM). JAX_COMPILATION_CACHE_DIR set by the caller is kept (and not removed).
+if [ -z "${JAX_COMPILATION_CACHE_DIR:-}" ]; then
+    JAX_COMPILATION_CACHE_DIR=$(mktemp -d -t omnihang-xla-XXXXXX)
+    trap 'rm -rf "$JAX_COMPILATION_CACHE_DIR"' EXIT
+    export JAX_COMPILATION_CACHE_DIR
+fi
+export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=${JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS:-0.2}
 .venv/bin/python -m pytest -q -n "${PYTEST_WORKERS:-2}" --durations=25 "$@"
