@@ -58,3 +58,18 @@ def test_route_truth_walks_the_whole_route_and_summary_counts_by_kind():
     assert table["all"] == dict(goals=3, found=2, good=1, free=1, good_of_found=0.5)
     assert table["kind:off_straight"]["found"] == 0
     assert table["kind:off_straight"]["good_of_found"] is None
+
+
+def test_cem_iteration_summary_reads_the_histories():
+    """``scripts/probe_cem_iterations.py`` (issue 12): from best-log-V histories, the share of
+    candidates the later iterations improve, and whether the best candidate is already found."""
+    probe = _load("probe_cem_iterations")
+    log = np.log
+    # one pair, two candidates, 4 iterations: the first improves at iteration 4 and overtakes
+    h = np.array([[[log(0.5), log(0.6), log(0.6), log(0.9)],
+                   [log(0.7), log(0.8), log(0.8), log(0.8)]]])  # fmt: skip
+    out = probe.summarise(h, upto=(2, 3))
+    assert out["3"]["candidates_improved_after"] == 0.5
+    assert out["3"]["same_best_candidate"] == 0.0  # after 3 the second leads; at 4 the first
+    assert np.isclose(out["3"]["mean_gain_in_v"], (0.3 + 0.0) / 2, atol=1e-5)
+    assert np.isclose(out["3"]["best_candidate_gain_in_v"], 0.9 - 0.8, atol=1e-5)
