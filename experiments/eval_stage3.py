@@ -55,6 +55,11 @@ def main(argv=None) -> dict:
     )  # fmt: skip
     parser.add_argument("--rounds", type=int, default=1, help="CEM rounds (1 = facts)")
     parser.add_argument(
+        "--cem-iterations", type=int, default=stage3.CEMConfig().iterations, metavar="N",
+        help="CEM iterations a round (default 10: the facts'); fewer leave latency for more views "
+        "(forty-third session: CEM has not converged at 10, docs/stage3.md)",
+    )  # fmt: skip
+    parser.add_argument(
         "--stage1-rounds", type=int, default=None, metavar="N",
         help="CEM rounds of the Stage-1 starts only (default: --rounds); e.g. 2 widens the "
         "Stage-1 starts' reach to +-4 cm while the Stage-2 starts keep one round",
@@ -119,6 +124,8 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     if args.rounds < 1 or (args.stage1_rounds is not None and args.stage1_rounds < 1):
         parser.error("--rounds and --stage1-rounds must be >= 1")
+    if args.cem_iterations < 1:
+        parser.error(f"--cem-iterations {args.cem_iterations}: must be >= 1")
     if args.rank_subsets < 1:
         parser.error("--rank-subsets must be >= 1")
     parts = args.view.split("/")
@@ -155,16 +162,19 @@ def main(argv=None) -> dict:
             parser.error(f"--rank-value {v}: not a value folder (config.json + params.msgpack)")
     records, timings = eval_pipeline.evaluate_pipeline(
         files, args.weights, args.value, dataset_dir, num_proposals=args.proposals,
-        cem=CEMConfig(rounds=args.rounds), batch=args.batch, workers=args.workers,
+        cem=CEMConfig(rounds=args.rounds, iterations=args.cem_iterations), batch=args.batch,
+        workers=args.workers,
         progress=not args.no_progress, stage2_clearance=args.stage2_clearance, select=select,
         pool_starts=args.pool_starts, rank_value_dirs=rank_values, seed=args.seed,
         rank_with_value=args.rank_with_value,
-        cem_stage1=None if args.stage1_rounds is None else CEMConfig(rounds=args.stage1_rounds),
+        cem_stage1=None if args.stage1_rounds is None else CEMConfig(
+            rounds=args.stage1_rounds, iterations=args.cem_iterations),
         rank_subsets=args.rank_subsets, view=view,
     )  # fmt: skip
     summary = eval_pipeline.summarize_pipeline(records, args.proposals)
     summary.update(label=args.label, timings=timings, weights=args.weights, value=args.value,
                    cem_rounds=args.rounds, cem_rounds_stage1=args.stage1_rounds,
+                   cem_iterations=args.cem_iterations,
                    num_proposals=args.proposals, seed=args.seed,
                    stage2_clearance_m=args.stage2_clearance,
                    select=dataclasses.asdict(select),

@@ -306,13 +306,16 @@ def test_views_and_rank_subsets_do_not_combine_silently():
         stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg)
 
 
-def test_eval_stage3_refuses_a_bad_view(tmp_path, capsys):
+def test_eval_stage3_refuses_a_bad_view_and_no_cem_iterations(tmp_path, capsys):
     from experiments import eval_stage3
 
     for bad in ("3/3", "a/4", "1"):
         with pytest.raises(SystemExit):
             eval_stage3.main(["--out", str(tmp_path / "x.json"), "--view", bad])
         assert f"--view {bad}: expected J/T" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        eval_stage3.main(["--out", str(tmp_path / "x.json"), "--cem-iterations", "0"])
+    assert "--cem-iterations 0: must be >= 1" in capsys.readouterr().err
 
 
 @pytest.mark.slow  # 75-90 s on 2 cores (fortieth session: the default suite neared 20 min)
