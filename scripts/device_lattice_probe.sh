@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Issue 13 (forty-third session), a device call: scripts/probe_checked_lattice.py over the 80
 # held-out goals in N shards at once (default 8, sharing the GPU: the hybrid checker's networks
-# run there), the shards' outputs and logs tarred into $OUT/lattice.tgz, the summary beside it. END_S bounds the whole call.
+# run there), the shards' outputs and logs tarred into $OUT/lattice.tgz, the summary beside it
+# ($OUT/checked_lattice.json). END_S bounds each shard (a shard killed keeps the goals it wrote).
 #   bash scripts/device_lattice_probe.sh [extra probe args]
 set -uo pipefail
 N=${N:-8} END_S=${END_S:-540}

@@ -11,7 +11,8 @@ bash scripts/setup.sh
 # A persistent XLA compilation cache for this run only (fresh, removed at exit), shared by the
 # workers and the subprocesses tests start: a test that builds a network another test compiled
 # already loads it instead of compiling (forty-third session: 220 -> 175 s on four training-heavy
-# modules side by side; the whole suite 10.9 -> 9.3 min on a 2-core VM). JAX_COMPILATION_CACHE_DIR set by the caller is kept (and not removed).
+# modules side by side; the whole suite 10.9 -> 9.3 min on a 2-core VM). A JAX_COMPILATION_CACHE_DIR
+# set by the caller is used as it is (and not removed).
 if [ -z "${JAX_COMPILATION_CACHE_DIR:-}" ]; then
     JAX_COMPILATION_CACHE_DIR=$(mktemp -d -t omnihang-xla-XXXXXX)
     trap 'rm -rf "$JAX_COMPILATION_CACHE_DIR"' EXIT
