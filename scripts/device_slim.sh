@@ -4,7 +4,8 @@
 # files no device job reads (older runs' records, CPU weights, variant pair files) aside;
 # after it, put them back (git shows them unchanged). Never commit while they are aside.
 #
-#   bash scripts/device_slim.sh out     # before run(...)
+#   bash scripts/device_slim.sh out     # before run(...); MORE=1, plus PATHS=1 for a planner
+#                                       # call or STAGE3=1 for a Stage-3 val / eval / bench call
 #   bash scripts/device_slim.sh in      # after
 set -euo pipefail
 ASIDE=${ASIDE:-/tmp/device_aside}
@@ -119,6 +120,21 @@ if [ -n "${MORE:-}" ]; then
     LIST+=(results/hanging_success_stage3_s32_k10_view3of4_seed1.pairs.jsonl.gz
         results/hanging_success_stage3_s32_k10_view3of4_seed2.pairs.jsonl.gz
         results/union_rules_s32_views2.json results/union_rules_s32_views3.json)
+    # (forty-fourth session: what the thirty-eighth to forty-third sessions moved aside by hand
+    # before every device_paths.sh call; read by no eval / val / bench / paths call. The lattice
+    # probe, scripts/device_lattice_probe.sh, reads results/paths_s39/dogleg_heldout.json: put it
+    # back by hand for that call)
+    LIST+=(results/paths_s38 results/paths_s39 results/paths_s40 weights/approach_s35
+        weights/approach_s35_6k weights/approach_routes_s40 results/validation_where_s9
+        results/paths_s41/route_check_validation.json results/paths_s42/route_check_validation_low.json)
+fi
+# STAGE3=1 (forty-fourth session; device_full.sh val / eval / bench with MORE=1): the planner's
+# records and approach networks go too. With MORE=1 alone the tree was 56.7 MiB in disk blocks,
+# over the 64 MiB with the wheels (12.2 MiB), and PATHS=1 moves the pipeline's weights aside
+if [ -n "${STAGE3:-}" ]; then
+    LIST+=(results/paths_s41 results/paths_s42 results/paths_s43 results/paths_scenes
+        weights/approach_s37_8k weights/approach_routes_s40_8k results/probe_symmetry_s41_key0.json
+        results/ranker_pairs_e.jsonl)
 fi
 # PATHS=1 (twenty-fourth session; device_paths.sh): as NCE=1, and the best hybrid's selection
 # file stays too
@@ -151,6 +167,11 @@ out)
     mkdir -p "$ASIDE"
     for p in "${LIST[@]}"; do
         [ -e "$p" ] || continue
+        # an entry inside a folder also listed goes with that folder (moving the folder onto
+        # the part of it already aside would nest it: forty-fourth session)
+        inside=
+        for q in "${LIST[@]}"; do case $p in "$q"/*) inside=1 ;; esac; done
+        [ -n "$inside" ] && continue
         mkdir -p "$ASIDE/$(dirname "$p")" && mv "$p" "$ASIDE/$p"
     done
     (git ls-files -z; git ls-files -z --others --exclude-standard) | xargs -0 stat -c %s 2>/dev/null |
