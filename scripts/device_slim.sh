@@ -106,7 +106,8 @@ if [ -n "${MORE:-}" ]; then
     # (twenty-seventh session: the two views' held-out and validation records, 23 MB)
     LIST+=(results/hanging_success_stage3_s27_k10_view0.pairs.jsonl.gz
         results/hanging_success_stage3_s27_k10_view1of2.pairs.jsonl.gz)
-    for f in results/validation_where_s26/*.pairs.jsonl.gz results/validation_where_s27/*.pairs.jsonl.gz; do
+    for f in results/validation_where_s26/*.pairs.jsonl.gz results/validation_where_s27/*.pairs.jsonl.gz \
+        results/validation_where_s44/*.pairs.jsonl.gz; do
         LIST+=("$f")
     done
     # (thirtieth session: the NCE variants of the twenty-eighth and twenty-ninth sessions, moved
