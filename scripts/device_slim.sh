@@ -121,26 +121,34 @@ if [ -n "${MORE:-}" ]; then
     LIST+=(results/hanging_success_stage3_s32_k10_view3of4_seed1.pairs.jsonl.gz
         results/hanging_success_stage3_s32_k10_view3of4_seed2.pairs.jsonl.gz
         results/union_rules_s32_views2.json results/union_rules_s32_views3.json)
-    # (forty-fourth session: what the thirty-eighth to forty-third sessions moved aside by hand
-    # before every device_paths.sh call; read by no eval / val / bench / paths call. The lattice
-    # probe, scripts/device_lattice_probe.sh, reads results/paths_s39/dogleg_heldout.json: put it
-    # back by hand for that call)
-    LIST+=(results/paths_s38 results/paths_s39 results/paths_s40 weights/approach_s35
-        weights/approach_s35_6k weights/approach_routes_s40 results/validation_where_s9
-        results/paths_s41/route_check_validation.json results/paths_s42/route_check_validation_low.json)
 fi
-# STAGE3=1 (forty-fourth session; device_full.sh val / eval / bench with MORE=1): the planner's
-# records and approach networks go too. With MORE=1 alone the tree was 56.7 MiB in disk blocks,
-# over the 64 MiB with the wheels (12.2 MiB), and PATHS=1 moves the pipeline's weights aside
+# (forty-fourth session) what the thirty-eighth to forty-third sessions moved aside by hand before
+# every device_paths.sh call, 7 MiB: the earlier planner probes' records and approach networks,
+# read by no eval / val / bench / device_paths.sh call. Put back by hand what a call reads: a
+# seed-4 scripts/device_paths_diff.sh reads REF_4 in results/paths_s38, the lattice probe
+# (scripts/device_lattice_probe.sh) results/paths_s39/dogleg_heldout.json
+HAND=(results/paths_s38 results/paths_s39 results/paths_s40 weights/approach_s35
+    weights/approach_s35_6k weights/approach_routes_s40
+    results/paths_s41/route_check_validation.json results/paths_s42/route_check_validation_low.json)
+# STAGE3=1 (forty-fourth session; device_full.sh val / eval / bench, with MORE=1): the planner's
+# records and approach networks go too (PATHS=1 would move the pipeline's weights aside). With
+# MORE=1 alone the tree was 56.7 MiB in disk blocks, over the 64 MiB with the wheels (12.2 MiB);
+# with STAGE3=1 51.7 (63.9 with the wheels: little room left). Of results/validation_where_s9
+# only val_s9_counts.pairs.jsonl.gz stays: the eval call's rerank step reads it
 if [ -n "${STAGE3:-}" ]; then
-    LIST+=(results/paths_s41 results/paths_s42 results/paths_s43 results/paths_scenes
+    LIST+=("${HAND[@]}" results/paths_s41 results/paths_s42 results/paths_s43 results/paths_scenes
         weights/approach_s37_8k weights/approach_routes_s40_8k results/probe_symmetry_s41_key0.json
         results/ranker_pairs_e.jsonl)
+    for f in results/validation_where_s9/*; do
+        [ "$f" = results/validation_where_s9/val_s9_counts.pairs.jsonl.gz ] || LIST+=("$f")
+    done
 fi
 # PATHS=1 (twenty-fourth session; device_paths.sh): as NCE=1, and the best hybrid's selection
 # file stays too
 if [ -n "${PATHS:-}" ]; then
     NCE=1
+    # (forty-fourth session) the hand-moved items, and the Stage-3 validation records no planner reads
+    LIST+=("${HAND[@]}" results/validation_where_s9)
     KEEP=()
     for p in "${LIST[@]}"; do [ "$p" = results/paths_hybrid_s18_joint95_selection.json ] || KEEP+=("$p"); done
     LIST=("${KEEP[@]}")
