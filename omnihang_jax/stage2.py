@@ -519,7 +519,7 @@ def make_stage2(config: Stage2Config) -> Stage2Network:
 
     return Stage2Network(
         config=config,
-        init=init,
+        init=jax.jit(init),  # one compilation, not op-by-op dispatch (the same parameters)
         contact=contact,
         correspond=correspond,
         refine=refine,
