@@ -203,6 +203,7 @@ def test_stage1_variants_learn_and_propose_pose6(changes):
     print(f"{changes}: set loss {before:.3f} -> {after:.3f}")
     assert np.isfinite(after) and before / after >= 3.0, (before, after)
     net = make_stage1(stage1)
-    p6 = np.asarray(net.propose(state.params, batch.object_points, batch.support_points, key, 3))
+    propose = jax.jit(net.propose, static_argnums=4)  # eager dispatch is slower than a compile
+    p6 = np.asarray(propose(state.params, batch.object_points, batch.support_points, key, 3))
     assert p6.shape == (4, 3, 6) and np.all(np.isfinite(p6))
     assert np.all(np.linalg.norm(p6[..., 3:], axis=-1) <= np.pi + 1e-4)

@@ -296,11 +296,12 @@ def test_ensemble_stacks_networks_of_one_config():
     first = np.random.default_rng(0).normal(size=poses.shape[:2]).astype(np.float32)
     alone = jax.jit(stage3.make_ensemble_score(configs, with_first=False))
     got = np.asarray(alone(first, nets, clouds, poses))
-    each = []
+    each, scorers = [], {}  # one jitted reference scorer per config (eager dispatch is slow)
     for c, p in zip(configs, nets, strict=True):
-        small, value = stage3.subsample_clouds(full, c), stage3.make_value(c)
+        small = stage3.subsample_clouds(full, c)
+        score = scorers.setdefault(c, jax.jit(stage3.make_value(c).score))
         each.append(np.stack([
-            np.asarray(value.score(p, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
+            np.asarray(score(p, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
             for i in range(len(poses))
         ]))  # fmt: skip
     np.testing.assert_allclose(got, np.mean(each, axis=0), rtol=1e-5, atol=1e-5)
