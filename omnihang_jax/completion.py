@@ -555,6 +555,17 @@ def carve(predicted, observed, eye, behind: float = 0.002, cell_factor: float = 
     went through empty space) or when it lies more than ``behind`` in front of the observed
     surface there: either way the camera would have seen it. Kept: points behind the observed
     surface (its hidden back). Returns (kept points [K, 3], kept mask [M])."""
+    pred = np.asarray(predicted, float)
+    keep = depth_map(observed, eye, cell_factor)(pred) >= -behind
+    return pred[keep], keep
+
+
+def depth_map(observed, eye, cell_factor: float = 1.5):
+    """The observed cloud [N, 3] seen from ``eye`` (same frame) as a depth map over viewing
+    directions (:func:`carve`'s): cells ``cell_factor`` x the cloud's median angular spacing,
+    each cell the nearest depth within its 3 x 3 neighbourhood. Returns ``behind(points [M, 3])
+    -> [M]``: how far each point lies behind the observed surface along its ray from the eye
+    (m; negative in front of it), ``-inf`` where the camera saw nothing in that direction."""
     from scipy.spatial import cKDTree
 
     # distinct points: a cloud drawn with replacement repeats points, which must change
@@ -563,7 +574,6 @@ def carve(predicted, observed, eye, behind: float = 0.002, cell_factor: float = 
     obs = np.unique(np.asarray(observed, float), axis=0)
     if len(obs) < 2:
         raise ValueError("carving needs an observed cloud of two distinct points or more")
-    pred = np.asarray(predicted, float)
     eye = np.asarray(eye, float).reshape(3)
     fwd = (obs - eye).mean(axis=0)
     fwd /= np.linalg.norm(fwd)
@@ -592,11 +602,15 @@ def carve(predicted, observed, eye, behind: float = 0.002, cell_factor: float = 
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
             near = np.minimum(near, np.roll(np.roll(grid, di, 0), dj, 1))
-    pab, pdepth, ahead = project(pred)
-    pij = np.floor(pab / cell).astype(np.int64) - lo
-    inside = ahead & np.all((pij >= 0) & (pij < np.array(shape)), axis=1)
-    front = np.full(len(pred), np.inf)
-    pij = np.where(inside[:, None], pij, 0)
-    front[inside] = near[pij[inside, 0], pij[inside, 1]]
-    keep = inside & np.isfinite(front) & (pdepth >= front - behind)
-    return pred[keep], keep
+
+    def behind(points):
+        pts = np.asarray(points, float).reshape(-1, 3)
+        pab, pdepth, ahead = project(pts)
+        pij = np.floor(pab / cell).astype(np.int64) - lo
+        inside = ahead & np.all((pij >= 0) & (pij < np.array(shape)), axis=1)
+        front = np.full(len(pts), np.inf)
+        pij = np.where(inside[:, None], pij, 0)
+        front[inside] = near[pij[inside, 0], pij[inside, 1]]
+        return np.where(inside & np.isfinite(front), pdepth - front, -np.inf)
+
+    return behind

@@ -110,8 +110,20 @@ def variant_counts(c: dict, variant: str) -> np.ndarray:
     return c["x"] + c["y"] + c["xy"]
 
 
-def key_runs(runs: list[list[dict]], data: Path, new: float, progress: bool):
-    """Per run of one key: (rows, [N, 2K] committed key, [N, 2K] stable, counts [N] of dicts)."""
+def key_runs(
+    runs: list[list[dict]],
+    data: Path,
+    new: float,
+    progress: bool,
+    counts_fn=None,
+    variants=VARIANTS,
+    combine=None,
+):
+    """Per run of one key: (rows, [N, 2K] committed key, [N, 2K] stable, counts: variant ->
+    [N, G, 2K]). ``counts_fn(row, clouds, poses) -> {part: [G, P]}`` (default: the mirrored
+    counts) and ``combine(parts, variant) -> [G, P]`` make the probe's variants."""
+    counts_fn = counts_fn or (lambda r, clouds, poses: pair_counts(clouds, poses, new))
+    combine = combine or variant_counts
     out = []
     for rows in runs:
         k = proposals_of(rows)
@@ -120,8 +132,8 @@ def key_runs(runs: list[list[dict]], data: Path, new: float, progress: bool):
         counts = []
         for r in tqdm(rows, desc="mirrored counts", disable=not progress, leave=False):
             poses = np.asarray(r["poses_all"], float)[idx]
-            counts.append(pair_counts(load_clouds(data, r), poses, new))
-        counts = {v: np.stack([variant_counts(c, v) for c in counts]) for v in VARIANTS}
+            counts.append(counts_fn(r, load_clouds(data, r), poses))
+        counts = {v: np.stack([combine(c, v) for c in counts]) for v in variants}
         out.append((rows, keys, stable, counts))  # counts: variant -> [N, G, 2K]
     return out
 
@@ -143,17 +155,17 @@ def union_success(parts, variant: str | None, g: int, rule: str, value: float) -
     return category_means(rows0, stable[np.arange(len(rows0)), keys.argmax(1)])
 
 
-def table(split_parts: list, progress: bool) -> list[dict]:
+def table(split_parts: list, progress: bool, variants=VARIANTS, grid=GRID) -> list[dict]:
     """Every rule's success under each key of a split and their mean."""
     rules = [(None, 0, "committed", 0.0)]
-    for v in VARIANTS:
-        for g in range(len(GRID)):
+    for v in variants:
+        for g in range(len(grid)):
             rules += [(v, g, "lex", float(m)) for m in MAX_POINTS]
             rules += [(v, g, "soft", lam) for lam in PENALTIES]
     out = []
     for v, g, rule, value in tqdm(rules, desc="rules", disable=not progress, leave=False):
         per_key = [union_success(parts, v, g, rule, value) for parts in split_parts]
-        d, rad = GRID[g]
+        d, rad = grid[g]
         out.append(dict(variant=v, depth=d, radius=rad, rule=rule, value=value,
                         per_key=[round(p["mean"], 3) for p in per_key],
                         mean=round(float(np.mean([p["mean"] for p in per_key])), 3),
@@ -162,13 +174,13 @@ def table(split_parts: list, progress: bool) -> list[dict]:
     return out
 
 
-def separation(split_parts) -> dict:
+def separation(split_parts, variants=VARIANTS, g=None) -> dict:
     """How the mirrored counts tell penetrating from hanging candidates that the observed test
     passes (key > -50: no observed inside point), over a split's first key: per plane variant
-    at the grid's (2 mm, 5 mm), the share of each with a count > 0."""
-    g = GRID.index((0.002, 0.005))
+    at the grid's ``g``-th setting (default (2 mm, 5 mm)), the share of each with a count > 0."""
+    g = GRID.index((0.002, 0.005)) if g is None else g
     out = {}
-    for v in VARIANTS:
+    for v in variants:
         pen, ok = [], []
         for rows, key, st, counts in split_parts[0]:
             k = proposals_of(rows)

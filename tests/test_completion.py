@@ -177,6 +177,21 @@ def test_carving_keeps_the_hidden_back_and_drops_what_the_camera_saw_empty():
     assert len(kept) == mask.sum()
 
 
+def test_depth_map_measures_how_far_behind_the_seen_surface_along_the_ray():
+    """The sphere's camera-facing half seen from y = -0.5: its centre lies one radius behind
+    the surface along the ray, the hidden back point a diameter, a point in front negative,
+    and a direction the camera saw empty is -inf (scripts/probe_shadow.py's slab test)."""
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r = 0.05
+    seen = r * u[u[:, 1] < -0.05]
+    behind = completion.depth_map(seen, [0.0, -0.5, 0.0])
+    got = behind(np.array([[0, 0, 0], [0, r, 0], [0, -r - 0.01, 0], [0.2, 0, 0]], float))
+    np.testing.assert_allclose(got[:3], [r, 2 * r, -0.01], atol=0.003)
+    assert got[3] == -np.inf
+
+
 def test_the_hang_commands_far_test_on_completed_clouds(tmp_path):
     from omnihang_jax import hang
 
