@@ -26,7 +26,6 @@ candidate of the records was simulated.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -35,7 +34,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from probe_symmetry import HELDOUT, MAX_POINTS, VALIDATION, key_runs, separation, table  # noqa: E402
+from probe_symmetry import (  # noqa: E402
+    HELDOUT,
+    MAX_POINTS,
+    VALIDATION,
+    finish,
+    key_runs,
+    separation,
+    table,
+)
 
 from experiments.rerank_stage3 import read_records  # noqa: E402
 from omnihang_jax import collision, completion  # noqa: E402
@@ -100,29 +107,11 @@ def main(argv=None) -> dict:
             key_runs([read_records(p) for p in key], data, 0.0, progress, counts_fn, VARIANTS, combine)
             for key in runs[: args.keys]
         ]  # fmt: skip
-        rows = table(parts, progress, VARIANTS, SLABS)
-        for r in rows:  # the grid's two numbers are a slab here
-            r["behind_from"], r["behind_to"] = r.pop("depth"), r.pop("radius")
-        tables[split] = rows
+        tables[split] = table(parts, progress, VARIANTS, SLABS, ("behind_from", "behind_to"))
         result[f"separation_{split}"] = separation(parts, VARIANTS, g) | {"slab": list(SLABS[g])}
-        print(f"{split}: {len(rows)} rules, {time.perf_counter() - t0:.0f} s", flush=True)
-    best = max(tables["validation"][1:], key=lambda r: r["mean"])
-    fields = ("variant", "behind_from", "behind_to", "rule", "value")
-    held = next(x for x in tables["heldout"] if all(x[k] == best[k] for k in fields))
-    result |= dict(
-        committed={s: t[0] for s, t in tables.items()},
-        chosen_on_validation=dict(rule=best, heldout=held),
-        best_heldout=max(tables["heldout"][1:], key=lambda r: r["mean"]),
-        seconds=round(time.perf_counter() - t0, 1),
-        validation=tables["validation"], heldout=tables["heldout"],
-    )  # fmt: skip
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
-    show = {k: result[k] for k in ("committed", "chosen_on_validation", "best_heldout")}
-    show |= {k: result[k] for k in result if k.startswith("separation")}
-    json.dump(show, sys.stdout, indent=1)
-    print()
-    return result
+        print(f"{split}: {len(tables[split])} rules, {time.perf_counter() - t0:.0f} s", flush=True)
+    return finish(result, tables, ("variant", "behind_from", "behind_to", "rule", "value"),
+                  args.out, t0)  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -155,8 +155,11 @@ def union_success(parts, variant: str | None, g: int, rule: str, value: float) -
     return category_means(rows0, stable[np.arange(len(rows0)), keys.argmax(1)])
 
 
-def table(split_parts: list, progress: bool, variants=VARIANTS, grid=GRID) -> list[dict]:
-    """Every rule's success under each key of a split and their mean."""
+def table(
+    split_parts: list, progress: bool, variants=VARIANTS, grid=GRID, names=("depth", "radius")
+) -> list[dict]:
+    """Every rule's success under each key of a split and their mean (a grid setting's two
+    numbers under ``names``)."""
     rules = [(None, 0, "committed", 0.0)]
     for v in variants:
         for g in range(len(grid)):
@@ -166,7 +169,7 @@ def table(split_parts: list, progress: bool, variants=VARIANTS, grid=GRID) -> li
     for v, g, rule, value in tqdm(rules, desc="rules", disable=not progress, leave=False):
         per_key = [union_success(parts, v, g, rule, value) for parts in split_parts]
         d, rad = grid[g]
-        out.append(dict(variant=v, depth=d, radius=rad, rule=rule, value=value,
+        out.append(dict(variant=v, **dict(zip(names, (d, rad), strict=True)), rule=rule, value=value,
                         per_key=[round(p["mean"], 3) for p in per_key],
                         mean=round(float(np.mean([p["mean"] for p in per_key])), 3),
                         per_category={c: round(float(np.mean([p["per_category"][c] for p in per_key])), 2)
@@ -213,25 +216,23 @@ def main(argv=None) -> dict:
         tables[split] = table(parts, progress)
         result[f"separation_{split}"] = separation(parts)
         print(f"{split}: {len(tables[split])} rules, {time.perf_counter() - t0:.0f} s", flush=True)
-    committed = {s: t[0] for s, t in tables.items()}
+    return finish(result, tables, ("variant", "depth", "radius", "rule", "value"), args.out, t0)
+
+
+def finish(result: dict, tables: dict, fields: tuple, out: str, t0: float) -> dict:
+    """The rule chosen on validation read held out (matched on ``fields``), the committed and
+    best held-out rows beside it, written to ``out`` and summarised on stdout."""
     best = max(tables["validation"][1:], key=lambda r: r["mean"])
-
-    def match(t, r):
-        return next(
-            x
-            for x in t
-            if all(x[k] == r[k] for k in ("variant", "depth", "radius", "rule", "value"))
-        )
-
+    held = next(x for x in tables["heldout"] if all(x[k] == best[k] for k in fields))
     result |= dict(
-        committed=committed,
-        chosen_on_validation=dict(rule=best, heldout=match(tables["heldout"], best)),
+        committed={s: t[0] for s, t in tables.items()},
+        chosen_on_validation=dict(rule=best, heldout=held),
         best_heldout=max(tables["heldout"][1:], key=lambda r: r["mean"]),
         seconds=round(time.perf_counter() - t0, 1),
         validation=tables["validation"], heldout=tables["heldout"],
     )  # fmt: skip
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(json.dumps(result, indent=1) + "\n")
     show = {k: result[k] for k in ("committed", "chosen_on_validation", "best_heldout")}
     show |= {k: result[k] for k in result if k.startswith("separation")}
     json.dump(show, sys.stdout, indent=1)
