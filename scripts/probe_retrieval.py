@@ -1,0 +1,179 @@
+"""Issue 12 probe (forty-sixth session): does the nearest TRAINING object's whole surface, fitted
+to the observed object cloud, show the penetrations the answer rule cannot see?
+
+The ranking's blind spot is the object's own hidden part (forty-fifth session: the support's
+hidden half flags penetrating and hanging candidates alike). The library's objects come from a
+few procedural families per category, so a held-out object's hidden side may be told, to a few
+millimetres, by the training object most like its observed side. For each pair this probe
+retrieves, among the training objects that are not validation objects
+(`scripts/retrieval_surfaces.py`), the K surfaces that best explain the observed object cloud
+(score: mean distance observed -> surface plus ``--beta`` x the mean distance surface ->
+observed, each clipped at 1 cm; the best ``TOP`` refined by a translation-only ICP), keeps their
+points more than ``--new`` from every observed point (the hidden side, as that object would
+have it) and, for every pooled refined candidate of the records, counts those points inside the
+OBSERVED support (`experiments.rerank_completed.inside_grid`).
+
+The surfaces are compared in the object frame as the library builds it (an object's frame is
+its family's canonical one): a bound on retrieval with a known frame, not a method; a deployed
+one would estimate the frame from the cloud. If the bound is level, the frame is not worth
+estimating. Rules, choice (three validation keys) and one held-out reading as
+``scripts/probe_symmetry.py``; variants ``top1`` (the best surface), ``top3`` (the sum over the
+best three).
+
+    python scripts/retrieval_surfaces.py --out out/s46/surfaces.npz              # ~5 min
+    python scripts/probe_retrieval.py --surfaces out/s46/surfaces.npz --out results/probe_retrieval_s46.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from probe_symmetry import (  # noqa: E402
+    HELDOUT,
+    MAX_POINTS,
+    VALIDATION,
+    finish,
+    key_runs,
+    separation,
+    table,
+)
+
+from experiments.rerank_completed import GRID, inside_grid  # noqa: E402
+from experiments.rerank_stage3 import read_records  # noqa: E402
+from omnihang_jax import collision  # noqa: E402
+
+VARIANTS = ("top1", "top3")
+CLIP = 0.01
+TOP = 3
+N_OBS = 1024
+N_COARSE = 512  # surface points of the first pass (half as many observed)
+N_HIDDEN = 1024  # hidden points posed per surface
+
+
+class Retrieval:
+    """The base surfaces' trees; ``fit(observed)`` -> the best ``TOP`` (name, aligned surface,
+    score), best first."""
+
+    def __init__(self, names, surfaces, beta: float):
+        self.names = list(names)
+        self.surfaces = [np.asarray(s, float) for s in surfaces]
+        self.trees = [cKDTree(s) for s in self.surfaces]
+        coarse = [s[collision.subsample_indices(len(s), N_COARSE, 0)] for s in self.surfaces]
+        self.coarse = [(c, cKDTree(c)) for c in coarse]
+        self.beta = beta
+
+    def coarse_score(self, i: int, obs: np.ndarray, obs_tree: cKDTree) -> float:
+        """:meth:`score` on ``N_COARSE`` points of each (the first pass over the base)."""
+        surf, tree = self.coarse[i]
+        d_om, _ = tree.query(obs, k=1)
+        d_mo, _ = obs_tree.query(surf, k=1)
+        return float(np.minimum(d_om, CLIP).mean() + self.beta * np.minimum(d_mo, CLIP).mean())
+
+    def score(self, i: int, obs: np.ndarray, obs_tree: cKDTree, shift=np.zeros(3)) -> float:
+        d_om, _ = self.trees[i].query(obs - shift, k=1)
+        d_mo, _ = obs_tree.query(self.surfaces[i] + shift, k=1)
+        return float(np.minimum(d_om, CLIP).mean() + self.beta * np.minimum(d_mo, CLIP).mean())
+
+    def icp(self, i: int, obs: np.ndarray, steps: int = 5) -> np.ndarray:
+        """A translation that moves surface ``i`` onto the observed points (nearest pairs
+        within 2 cm)."""
+        shift = np.zeros(3)
+        for _ in range(steps):
+            d, k = self.trees[i].query(obs - shift, k=1)
+            near = d < 0.02
+            if near.sum() < 10:
+                break
+            shift = shift + np.mean((obs - shift)[near] - self.surfaces[i][k[near]], axis=0)
+        return shift
+
+    def fit(self, observed: np.ndarray, exclude: str | None = None) -> list[tuple]:
+        obs = observed[collision.subsample_indices(len(observed), N_OBS, 0)]
+        tree = cKDTree(obs)
+        few = obs[collision.subsample_indices(len(obs), N_COARSE // 2, 1)]
+        first = [(self.coarse_score(i, few, cKDTree(few)), i) for i in range(len(self.names))
+                 if self.names[i] != exclude]  # fmt: skip
+        out = []
+        for _, i in sorted(first)[: 3 * TOP]:
+            shift = self.icp(i, obs)
+            out.append((self.score(i, obs, tree, shift), i, shift))
+        out.sort(key=lambda x: x[0])
+        return [(self.names[i], self.surfaces[i] + shift, s) for s, i, shift in out[:TOP]]
+
+
+def hidden_points(surface: np.ndarray, observed: np.ndarray, new: float) -> np.ndarray:
+    d, _ = cKDTree(observed).query(surface, k=1)
+    hidden = surface[d > new]
+    return hidden[collision.subsample_indices(len(hidden), N_HIDDEN, 0)] if len(hidden) > N_HIDDEN else hidden
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default="datasets/paper")
+    ap.add_argument("--surfaces", default="out/s46/surfaces.npz")
+    ap.add_argument("--beta", type=float, default=0.5)
+    ap.add_argument("--new", type=float, default=0.003, help="m: a surface point is hidden beyond")
+    ap.add_argument("--keys", type=int, default=3, help="CEM keys read (1-3)")
+    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    with np.load(args.surfaces) as z:
+        retrieval = Retrieval(z["names"], z["surfaces"], args.beta)
+    base = set(retrieval.names)
+    data, progress = Path(args.data), not args.no_progress
+    cache: dict[int, list] = {}
+    fits: dict[str, list] = {}
+
+    def counts_fn(row, clouds, poses):
+        i = int(row["pair_index"])
+        if row["object"] in base:
+            raise SystemExit(f"{row['object_name']} is in the retrieval base: not a held-out object")
+        if i not in cache:
+            obs = np.asarray(clouds["object_points"], float)
+            got = retrieval.fit(obs)
+            fits[str(i)] = [(n, round(s * 1000, 2)) for n, _, s in got]
+            cache[i] = [hidden_points(s, obs, args.new) for _, s, _ in got]
+        sup = np.asarray(clouds["support_points"], float)
+        nrm = np.asarray(clouds["support_normals"], float)
+        out = {}
+        for j, pts in enumerate(cache[i]):
+            out[j] = (inside_grid(collision.posed_points(poses, pts), sup, nrm) if len(pts)
+                      else np.zeros((len(GRID), len(poses)), np.int32))  # fmt: skip
+        return out
+
+    def combine(c: dict, variant: str) -> np.ndarray:
+        return c[0] if variant == "top1" else sum(c.values())
+
+    result = dict(settings=vars(args), grid=[list(x) for x in GRID], max_points=list(MAX_POINTS))
+    tables = {}
+    for split, runs in (("validation", VALIDATION), ("heldout", HELDOUT)):
+        parts = [
+            key_runs([read_records(p) for p in key], data, 0.0, progress, counts_fn, VARIANTS, combine)
+            for key in runs[: args.keys]
+        ]  # fmt: skip
+        tables[split] = table(parts, progress, VARIANTS)
+        result[f"separation_{split}"] = separation(parts, VARIANTS)
+        cat = {}
+        for r in parts[0][0][0]:
+            got = fits[str(int(r["pair_index"]))]
+            cat.setdefault(r["category"], []).append(got[0][0].rsplit("_", 1)[0])
+        result[f"retrieved_same_category_{split}"] = {
+            c: round(float(np.mean([n == c for n in v])), 3) for c, v in sorted(cat.items())
+        }
+        result[f"median_fit_mm_{split}"] = round(float(np.median(
+            [fits[str(int(r["pair_index"]))][0][1] for r in parts[0][0][0]])), 2)  # fmt: skip
+        print(f"{split}: {len(tables[split])} rules, {time.perf_counter() - t0:.0f} s", flush=True)
+    result["fits"] = fits
+    return finish(result, tables, ("variant", "depth", "radius", "rule", "value"), args.out, t0)
+
+
+if __name__ == "__main__":
+    main()
