@@ -6,7 +6,8 @@ hidden half flags penetrating and hanging candidates alike). The library's objec
 few procedural families per category, so a held-out object's hidden side may be told, to a few
 millimetres, by the training object most like its observed side. For each pair this probe
 retrieves, among the training objects that are not validation objects
-(`scripts/retrieval_surfaces.py`), the K surfaces that best explain the observed object cloud
+(`scripts/retrieval_surfaces.py`; never the pair's own object: 712 held-out pairs are a
+training object on a held-out support), the K surfaces that best explain the observed object cloud
 (score: mean distance observed -> surface plus ``--beta`` x the mean distance surface ->
 observed, each clipped at 1 cm; the best ``TOP`` refined by a translation-only ICP), keeps their
 points more than ``--new`` from every observed point (the hidden side, as that object would
@@ -17,8 +18,8 @@ The surfaces are compared in the object frame as the library builds it (an objec
 its family's canonical one): a bound on retrieval with a known frame, not a method; a deployed
 one would estimate the frame from the cloud. If the bound is level, the frame is not worth
 estimating. Rules, choice (three validation keys) and one held-out reading as
-``scripts/probe_symmetry.py``; variants ``top1`` (the best surface), ``top3`` (the sum over the
-best three).
+``scripts/probe_symmetry.py``; the variant ``top1``: the best surface's hidden points
+(``N_HIDDEN`` of them). Each split's table head is also written beside ``--out`` as it finishes.
 
     python scripts/retrieval_surfaces.py --out out/s46/surfaces.npz              # ~5 min
     python scripts/probe_retrieval.py --surfaces out/s46/surfaces.npz --out results/probe_retrieval_s46.json
@@ -27,6 +28,7 @@ best three).
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -50,12 +52,12 @@ from experiments.rerank_completed import GRID, inside_grid  # noqa: E402
 from experiments.rerank_stage3 import read_records  # noqa: E402
 from omnihang_jax import collision  # noqa: E402
 
-VARIANTS = ("top1", "top3")
+VARIANTS = ("top1",)
 CLIP = 0.01
 TOP = 3
 N_OBS = 1024
 N_COARSE = 512  # surface points of the first pass (half as many observed)
-N_HIDDEN = 1024  # hidden points posed per surface
+N_HIDDEN = 512  # hidden points posed per surface
 
 
 class Retrieval:
@@ -120,27 +122,25 @@ def main(argv=None) -> dict:
     ap.add_argument("--surfaces", default="out/s46/surfaces.npz")
     ap.add_argument("--beta", type=float, default=0.5)
     ap.add_argument("--new", type=float, default=0.003, help="m: a surface point is hidden beyond")
-    ap.add_argument("--keys", type=int, default=3, help="CEM keys read (1-3)")
+    ap.add_argument("--keys", type=int, default=3, help="CEM keys read on validation (1-3)")
+    ap.add_argument("--heldout-keys", type=int, default=3, help="... and held out")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     with np.load(args.surfaces) as z:
         retrieval = Retrieval(z["names"], z["surfaces"], args.beta)
-    base = set(retrieval.names)
     data, progress = Path(args.data), not args.no_progress
     cache: dict[int, list] = {}
     fits: dict[str, list] = {}
 
     def counts_fn(row, clouds, poses):
         i = int(row["pair_index"])
-        if row["object"] in base:
-            raise SystemExit(f"{row['object_name']} is in the retrieval base: not a held-out object")
         if i not in cache:
             obs = np.asarray(clouds["object_points"], float)
-            got = retrieval.fit(obs)
+            got = retrieval.fit(obs, exclude=row["object"])  # never the pair's own object
             fits[str(i)] = [(n, round(s * 1000, 2)) for n, _, s in got]
-            cache[i] = [hidden_points(s, obs, args.new) for _, s, _ in got]
+            cache[i] = [hidden_points(s, obs, args.new) for _, s, _ in got[: len(VARIANTS)]]
         sup = np.asarray(clouds["support_points"], float)
         nrm = np.asarray(clouds["support_normals"], float)
         out = {}
@@ -150,14 +150,14 @@ def main(argv=None) -> dict:
         return out
 
     def combine(c: dict, variant: str) -> np.ndarray:
-        return c[0] if variant == "top1" else sum(c.values())
+        return c[0]
 
     result = dict(settings=vars(args), grid=[list(x) for x in GRID], max_points=list(MAX_POINTS))
     tables = {}
     for split, runs in (("validation", VALIDATION), ("heldout", HELDOUT)):
         parts = [
             key_runs([read_records(p) for p in key], data, 0.0, progress, counts_fn, VARIANTS, combine)
-            for key in runs[: args.keys]
+            for key in runs[: args.keys if split == "validation" else args.heldout_keys]
         ]  # fmt: skip
         tables[split] = table(parts, progress, VARIANTS)
         result[f"separation_{split}"] = separation(parts, VARIANTS)
@@ -171,6 +171,9 @@ def main(argv=None) -> dict:
         result[f"median_fit_mm_{split}"] = round(float(np.median(
             [fits[str(int(r["pair_index"]))][0][1] for r in parts[0][0][0]])), 2)  # fmt: skip
         print(f"{split}: {len(tables[split])} rules, {time.perf_counter() - t0:.0f} s", flush=True)
+        Path(args.out).with_suffix(f".{split}.json").write_text(json.dumps(dict(
+            committed=tables[split][0], best=max(tables[split][1:], key=lambda r: r["mean"]),
+            **{k: v for k, v in result.items() if k.endswith(split)}), indent=1) + "\n")
     result["fits"] = fits
     return finish(result, tables, ("variant", "depth", "radius", "rule", "value"), args.out, t0)
 
