@@ -34,7 +34,11 @@ from experiments.eval_paths import read_rows  # noqa: E402
 
 def pipeline_s(row: dict) -> float:
     """Seconds from the approach search to the cleared path (what a first-wins race compares)."""
-    return row["planning_s"] + row.get("clear_s", 0.0) + (row.get("approach") or {}).get("seconds", 0.0)
+    return (
+        row["planning_s"]
+        + row.get("clear_s", 0.0)
+        + (row.get("approach") or {}).get("seconds", 0.0)
+    )
 
 
 RULES = {

@@ -113,7 +113,11 @@ class Retrieval:
 def hidden_points(surface: np.ndarray, observed: np.ndarray, new: float) -> np.ndarray:
     d, _ = cKDTree(observed).query(surface, k=1)
     hidden = surface[d > new]
-    return hidden[collision.subsample_indices(len(hidden), N_HIDDEN, 0)] if len(hidden) > N_HIDDEN else hidden
+    return (
+        hidden[collision.subsample_indices(len(hidden), N_HIDDEN, 0)]
+        if len(hidden) > N_HIDDEN
+        else hidden
+    )
 
 
 def main(argv=None) -> dict:
@@ -171,9 +175,17 @@ def main(argv=None) -> dict:
         result[f"median_fit_mm_{split}"] = round(float(np.median(
             [fits[str(int(r["pair_index"]))][0][1] for r in parts[0][0][0]])), 2)  # fmt: skip
         print(f"{split}: {len(tables[split])} rules, {time.perf_counter() - t0:.0f} s", flush=True)
-        Path(args.out).with_suffix(f".{split}.json").write_text(json.dumps(dict(
-            committed=tables[split][0], best=max(tables[split][1:], key=lambda r: r["mean"]),
-            **{k: v for k, v in result.items() if k.endswith(split)}), indent=1) + "\n")
+        Path(args.out).with_suffix(f".{split}.json").write_text(
+            json.dumps(
+                dict(
+                    committed=tables[split][0],
+                    best=max(tables[split][1:], key=lambda r: r["mean"]),
+                    **{k: v for k, v in result.items() if k.endswith(split)},
+                ),
+                indent=1,
+            )
+            + "\n"
+        )
     result["fits"] = fits
     return finish(result, tables, ("variant", "depth", "radius", "rule", "value"), args.out, t0)
 

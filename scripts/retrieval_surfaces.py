@@ -36,7 +36,9 @@ def surface(name: str) -> np.ndarray:
     scene = build_scene(lib.objects[name], next(iter(lib.supports.values())))
     coarse = dataclasses.replace(cam, width=cam.width // 2, height=cam.height // 2)
     rng = np.random.default_rng([0, *name.encode()])
-    return camera.surface_cloud(scene, "object", rng, coarse, n_dirs=_W["n_dirs"]).astype(np.float32)
+    return camera.surface_cloud(scene, "object", rng, coarse, n_dirs=_W["n_dirs"]).astype(
+        np.float32
+    )
 
 
 def main(argv=None) -> None:

@@ -141,11 +141,17 @@ def test_multistart_keeps_the_first_path_of_the_runs_that_returned_one():
                     estimator_dense_flags=flags, clear_gap_after_m=0.01 * s)  # fmt: skip
 
     a = {"p0": row(True, False, 9.0), "p1": row(False, False, 60.0), "p2": row(False, False, 60.0)}
-    b = {"p0": row(True, True, 2.0, flags=3), "p1": row(True, True, 5.0), "p2": row(False, False, 60.0)}
+    b = {
+        "p0": row(True, True, 2.0, flags=3),
+        "p1": row(True, True, 5.0),
+        "p2": row(False, False, 60.0),
+    }
     out = ms.multistart({"a": a, "b": b}, "first")["by_k"]
     assert out["k1"]["readings"]["a"]["collision_free"] == 0
     both = out["k2"]["readings"]["a + b"]
-    assert both == dict(pairs=3, returned=2, collision_free=2, precision=100.0, recall=66.7, f1=80.0)
+    assert both == dict(
+        pairs=3, returned=2, collision_free=2, precision=100.0, recall=66.7, f1=80.0
+    )
     # fewest flags on the dense path first: p0 keeps a's colliding path
     both = ms.multistart({"a": a, "b": b}, "fewest_flags")["by_k"]["k2"]["readings"]["a + b"]
     assert both["returned"] == 2 and both["collision_free"] == 1
