@@ -60,6 +60,14 @@ N_COARSE = 512  # surface points of the first pass (half as many observed)
 N_HIDDEN = 512  # hidden points posed per surface
 
 
+def chamfer_score(surface, tree, obs, obs_tree, beta: float) -> float:
+    """Mean distance observed -> surface plus ``beta`` x surface -> observed, each clipped at
+    ``CLIP`` (``tree``: the surface's, ``obs_tree``: the observed points')."""
+    d_om, _ = tree.query(obs, k=1)
+    d_mo, _ = obs_tree.query(surface, k=1)
+    return float(np.minimum(d_om, CLIP).mean() + beta * np.minimum(d_mo, CLIP).mean())
+
+
 class Retrieval:
     """The base surfaces' trees; ``fit(observed)`` -> the best ``TOP`` (name, aligned surface,
     score), best first."""
@@ -71,18 +79,6 @@ class Retrieval:
         coarse = [s[collision.subsample_indices(len(s), N_COARSE, 0)] for s in self.surfaces]
         self.coarse = [(c, cKDTree(c)) for c in coarse]
         self.beta = beta
-
-    def coarse_score(self, i: int, obs: np.ndarray, obs_tree: cKDTree) -> float:
-        """:meth:`score` on ``N_COARSE`` points of each (the first pass over the base)."""
-        surf, tree = self.coarse[i]
-        d_om, _ = tree.query(obs, k=1)
-        d_mo, _ = obs_tree.query(surf, k=1)
-        return float(np.minimum(d_om, CLIP).mean() + self.beta * np.minimum(d_mo, CLIP).mean())
-
-    def score(self, i: int, obs: np.ndarray, obs_tree: cKDTree, shift=np.zeros(3)) -> float:
-        d_om, _ = self.trees[i].query(obs - shift, k=1)
-        d_mo, _ = obs_tree.query(self.surfaces[i] + shift, k=1)
-        return float(np.minimum(d_om, CLIP).mean() + self.beta * np.minimum(d_mo, CLIP).mean())
 
     def icp(self, i: int, obs: np.ndarray, steps: int = 5) -> np.ndarray:
         """A translation that moves surface ``i`` onto the observed points (nearest pairs
@@ -97,17 +93,27 @@ class Retrieval:
         return shift
 
     def fit(self, observed: np.ndarray, exclude: str | None = None) -> list[tuple]:
+        """A first pass over the whole base on ``N_COARSE`` points of each surface (half as many
+        observed), then the best ``3 x TOP`` aligned by :meth:`icp` and scored on all points."""
         obs = observed[collision.subsample_indices(len(observed), N_OBS, 0)]
         tree = cKDTree(obs)
         few = obs[collision.subsample_indices(len(obs), N_COARSE // 2, 1)]
-        first = [(self.coarse_score(i, few, cKDTree(few)), i) for i in range(len(self.names))
-                 if self.names[i] != exclude]  # fmt: skip
+        few_tree = cKDTree(few)
+        first = sorted(
+            (chamfer_score(*self.coarse[i], few, few_tree, self.beta), i)
+            for i in range(len(self.names))
+            if self.names[i] != exclude
+        )
         out = []
-        for _, i in sorted(first)[: 3 * TOP]:
+        for _, i in first[: 3 * TOP]:
             shift = self.icp(i, obs)
-            out.append((self.score(i, obs, tree, shift), i, shift))
+            # the surface moved by ``shift`` against obs == obs moved by -shift against the surface
+            aligned = self.surfaces[i] + shift
+            out.append(
+                (chamfer_score(aligned, self.trees[i], obs - shift, tree, self.beta), i, aligned)
+            )
         out.sort(key=lambda x: x[0])
-        return [(self.names[i], self.surfaces[i] + shift, s) for s, i, shift in out[:TOP]]
+        return [(self.names[i], aligned, s) for s, i, aligned in out[:TOP]]
 
 
 def hidden_points(surface: np.ndarray, observed: np.ndarray, new: float) -> np.ndarray:
@@ -144,23 +150,19 @@ def main(argv=None) -> dict:
             obs = np.asarray(clouds["object_points"], float)
             got = retrieval.fit(obs, exclude=row["object"])  # never the pair's own object
             fits[str(i)] = [(n, round(s * 1000, 2)) for n, _, s in got]
-            cache[i] = [hidden_points(s, obs, args.new) for _, s, _ in got[: len(VARIANTS)]]
+            cache[i] = hidden_points(got[0][1], obs, args.new)  # the best surface's hidden side
+        if len(cache[i]) == 0:
+            return {"top1": np.zeros((len(GRID), len(poses)), np.int32)}
         sup = np.asarray(clouds["support_points"], float)
         nrm = np.asarray(clouds["support_normals"], float)
-        out = {}
-        for j, pts in enumerate(cache[i]):
-            out[j] = (inside_grid(collision.posed_points(poses, pts), sup, nrm) if len(pts)
-                      else np.zeros((len(GRID), len(poses)), np.int32))  # fmt: skip
-        return out
-
-    def combine(c: dict, variant: str) -> np.ndarray:
-        return c[0]
+        return {"top1": inside_grid(collision.posed_points(poses, cache[i]), sup, nrm)}
 
     result = dict(settings=vars(args), grid=[list(x) for x in GRID], max_points=list(MAX_POINTS))
     tables = {}
     for split, runs in (("validation", VALIDATION), ("heldout", HELDOUT)):
         parts = [
-            key_runs([read_records(p) for p in key], data, 0.0, progress, counts_fn, VARIANTS, combine)
+            key_runs([read_records(p) for p in key], data, 0.0, progress, counts_fn, VARIANTS,
+                     lambda c, v: c[v])
             for key in runs[: args.keys if split == "validation" else args.heldout_keys]
         ]  # fmt: skip
         tables[split] = table(parts, progress, VARIANTS)
