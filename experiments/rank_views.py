@@ -12,7 +12,8 @@ rankers chosen over several CEM keys, and two probes of the pooled candidates.
     # 3. the probes (no network): cross-view consensus, and four half-size runs
     python -m experiments.rank_views probes --runs runs.json --out results/ranker_s31/probes.json
 
-``runs.json`` maps a key name to its two view runs: ``{"val0": [VIEW0, VIEW1of2], ...}``;
+``runs.json`` maps a key name to its view runs: ``{"val0": [VIEW0, VIEW1of2], ...}``, or the
+three of the default pipeline (views 0, 1/2, 3/4: ``VIEW_SETS``, forty-seventh session);
 names starting with ``val`` are validation-object runs (the choice is made on their mean),
 ``held`` held-out runs (reported). Thirty-first session (issue 12, docs/stage3.md).
 
@@ -45,15 +46,19 @@ from experiments.rerank_stage3 import (
 from omnihang_jax import selection
 
 COMMITTED = ("s20", "big1", "near")  # stage3.RANK_VALUES, in v_rank's order
-VIEWS = 2
+# a key's view runs, in order: the twenty-seventh session's two views, the default's three
+VIEW_SETS = {2: ((0, 1), (1, 2)), 3: ((0, 1), (1, 2), (3, 4))}
 
 
 def load_key(runs: list[str]) -> dict:
-    """The two view runs of one key -> arrays over the pooled candidates: keys / clear /
-    stable [N, V, 2K], poses [N, V, 2K, 7], ranks [N, V, R, 2K] (the committed rankers' recorded P),
-    category, files."""
-    if len(runs) != VIEWS:
-        raise ValueError(f"a key needs its {VIEWS} view runs (view 0, view 1/2), got {len(runs)}")
+    """The view runs of one key (``VIEW_SETS``) -> arrays over the pooled candidates: keys /
+    clear / stable [N, V, 2K], poses [N, V, 2K, 7], ranks [N, V, R, 2K] (the committed rankers'
+    recorded P), category, files, views."""
+    if len(runs) not in VIEW_SETS:
+        raise ValueError(
+            f"a key needs its view runs ({' or '.join(map(str, VIEW_SETS))}: view 0, view 1/2"
+            f"[, view 3/4]), got {len(runs)}"
+        )
     rows = [read_records(p) for p in runs]
     order = [r["pair_index"] for r in rows[0]]
     if any([r["pair_index"] for r in rr] != order for rr in rows[1:]):
@@ -78,7 +83,21 @@ def load_key(runs: list[str]) -> dict:
         ),
         category=[r["category"] for r in rows[0]],
         files=[r["file"] for r in rows[0]],
+        views=np.asarray(VIEW_SETS[len(runs)], np.int64),
     )
+
+
+def pack(d: dict, path: str | Path) -> None:
+    """What :func:`score` reads of a key (files, poses, views) -> one ``.npz``."""
+    np.savez_compressed(path, files=np.asarray(d["files"]), poses=d["poses"], views=d["views"])
+
+
+def load_pack(path: str | Path) -> dict:
+    with np.load(path) as z:
+        d = {"files": [str(f) for f in z["files"]], "poses": z["poses"], "views": z["views"]}
+    if d["poses"].shape[:2] != (len(d["files"]), len(d["views"])):
+        raise ValueError(f"{path}: poses {d['poses'].shape} for {len(d['files'])} pairs")
+    return d
 
 
 def category_mean(category, ok) -> float:
@@ -117,12 +136,12 @@ def score(ranker: str, d: dict, clouds_dir: str, batch: int = 8) -> np.ndarray:
     config, params = refine.load_value(ranker)
     scorer = make_scorer(config)
     out = np.zeros(d["poses"].shape[:3], np.float32)
-    for v in range(VIEWS):
-        bank = SimpleNamespace(clouds=stage3.subset_clouds(stacked, config, v, VIEWS))
+    for v, (j, t) in enumerate(d["views"]):
+        bank = SimpleNamespace(clouds=stage3.subset_clouds(stacked, config, int(j), int(t)))
         t0 = time.time()
         table = {"files": d["files"], "poses": d["poses"][:, v]}
         out[:, v] = score_table(scorer, params, bank, table, batch)
-        print(f"view {v}/{VIEWS}: {len(d['files'])} pairs in {time.time() - t0:.0f} s", flush=True)
+        print(f"view {j}/{t}: {len(d['files'])} pairs in {time.time() - t0:.0f} s", flush=True)
     if not np.all(np.isfinite(out)):
         raise RuntimeError(f"{ranker}: non-finite scores")
     return out
@@ -155,7 +174,8 @@ def consensus_probe(d: dict, translation: float, rotation: float, cross_only: bo
     within ``translation`` m and ``rotation`` rad; ``cross_only``: of the other view only)."""
     n = len(d["category"])
     p = d["poses"].reshape(n, -1, 7)
-    view = np.repeat(np.arange(VIEWS), p.shape[1] // VIEWS)
+    nv = d["poses"].shape[1]
+    view = np.repeat(np.arange(nv), p.shape[1] // nv)
     dt = np.linalg.norm(p[:, :, None, :3] - p[:, None, :, :3], axis=-1)
     dot = np.abs(np.sum(p[:, :, None, 3:] * p[:, None, :, 3:], -1)).clip(0, 1)
     near = (dt < translation) & (2 * np.arccos(dot) < rotation)
@@ -186,10 +206,19 @@ def main(argv=None) -> dict:
     sc = sub.add_parser("score", help="a ranker's log P of one key's pooled candidates (.npy)")
     sc.add_argument("--ranker", required=True, help="a value folder (config.json, params)")
     sc.add_argument("--name", required=True)
-    sc.add_argument("--key", nargs=VIEWS + 1, required=True, metavar="X",
-                    help="KEY_NAME VIEW0_RECORDS VIEW1of2_RECORDS")  # fmt: skip
+    sc.add_argument("--key", nargs="+", metavar="X",
+                    help="KEY_NAME VIEW0_RECORDS VIEW1of2_RECORDS [VIEW3of4_RECORDS]")  # fmt: skip
+    sc.add_argument(
+        "--table",
+        nargs="+",
+        metavar="NPZ",
+        help="instead of --key: pack's KEY_NAME.npz files (the key named by the file)",
+    )
     sc.add_argument("--clouds", required=True, help="folder of the pairs' derived files")
     sc.add_argument("--out", required=True, help="folder: NAME_KEY.npy")
+    pk = sub.add_parser("pack", help="every key's candidates as KEY.npz (for score --table)")
+    pk.add_argument("--runs", required=True, help="JSON: key name -> its view runs' records")
+    pk.add_argument("--out", required=True, help="folder")
     se = sub.add_parser("sets", help="sets of rankers chosen on the validation keys")
     pr = sub.add_parser("probes", help="cross-view consensus; four half-size runs")
     for p in (se, pr):
@@ -200,14 +229,26 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
 
     if args.command == "score":
-        name_key, runs = args.key[0], args.key[1:]
-        out = Path(args.out) / f"{args.name}_{name_key}.npy"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        np.save(out, score(args.ranker, load_key(runs), args.clouds))
-        print(f"wrote {out}")
-        return {"out": str(out)}
+        if bool(args.key) == bool(args.table):
+            raise SystemExit("score: give --key KEY RUNS... or --table NPZ...")
+        todo = [(args.key[0], lambda: load_key(args.key[1:]))] if args.key else [
+            (Path(t).stem, lambda t=t: load_pack(t)) for t in args.table]  # fmt: skip
+        outs = []
+        for name_key, load in todo:
+            out = Path(args.out) / f"{args.name}_{name_key}.npy"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            np.save(out, score(args.ranker, load(), args.clouds))
+            print(f"wrote {out}", flush=True)
+            outs.append(str(out))
+        return {"out": outs}
 
     runs = json.loads(Path(args.runs).read_text())
+    if args.command == "pack":
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        for name, paths in runs.items():
+            pack(load_key(paths), Path(args.out) / f"{name}.npz")
+            print(f"packed {name}", flush=True)
+        return {"out": args.out}
     keys = {name: load_key(paths) for name, paths in runs.items()}
     if args.command == "sets":
         extra = {}

@@ -12,6 +12,9 @@
     python -m experiments.train_ranker train --records out/rank_a.npz out/rank_b.npz \\
         --data /tmp/full/ds --init weights/value_s16_hardneg --out out/ranker \\
         --val-records results/validation_where_s15/val_k16.pairs.jsonl.gz
+    # 2b. the view runs of the same pairs as one pool a pair (the default's three views):
+    python -m experiments.train_ranker union out/rank_f_v0.npz out/rank_f_v1of2.npz \
+        out/rank_f_v3of4.npz out/rank_f.npz
     # 4. its scores on any run's records, and the answer rule's success with them:
     python -m experiments.train_ranker score --ranker out/ranker/value --records R.npz \\
         --data DS --split test --out scores.npz
@@ -148,6 +151,21 @@ def concat_tables(tables: list[dict]) -> dict:
         raise ValueError(f"records of runs with different K: {sorted(ks)}")
     out = {f: np.concatenate([t[f] for t in tables]) for f in keys}
     out["k"] = np.asarray(ks.pop())
+    return out
+
+
+def union_tables(tables: list[dict]) -> dict:
+    """The view runs of the SAME pairs (e.g. views 0, 1/2, 3/4 of the default pipeline) -> one
+    table whose pool per pair is every run's candidates side by side, [N, V x 2K]: what the
+    pipeline's answer is chosen among (forty-seventh session)."""
+    first = tables[0]
+    for t in tables[1:]:
+        if not np.array_equal(t["pair_index"], first["pair_index"]):
+            raise ValueError("union: the runs hold different pairs (or another order)")
+        if int(t["k"]) != int(first["k"]):
+            raise ValueError(f"union: runs of different K ({int(first['k'])}, {int(t['k'])})")
+    out = {f: np.concatenate([t[f] for t in tables], axis=1) for f in SLIM_FIELDS}
+    out |= {f: first[f] for f in ("files", "category", "pair_index", "k")}
     return out
 
 
@@ -444,6 +462,8 @@ def main(argv=None) -> dict:
     sl = sub.add_parser("slim", help="records -> compact .npz of the answer pool")
     sl.add_argument("records")
     sl.add_argument("out")
+    un = sub.add_parser("union", help="slim tables of view runs of the same pairs -> one pool")
+    un.add_argument("tables", nargs="+", help="slim .npz (or records) of each view run, then OUT")
     tr = sub.add_parser("train", help="fine-tune V as the answer's ranker")
     tr.add_argument("--records", nargs="+", required=True, help="training-pair records")
     tr.add_argument("--data", required=True, help="dataset folder with derived/<split>/")
@@ -508,6 +528,14 @@ def main(argv=None) -> dict:
         table = slim_records(read_records(args.records))
         np.savez_compressed(args.out, **table)
         return {"pairs": len(table["files"]), "out": args.out}
+    if args.command == "union":
+        if len(args.tables) < 3:
+            parser.error("union: give at least two tables and the output")
+        table = union_tables([load_table(p) for p in args.tables[:-1]])
+        np.savez_compressed(args.tables[-1], **table)
+        print(f"{len(table['files'])} pairs, {table['poses'].shape[1]} candidates each -> "
+              f"{args.tables[-1]}")  # fmt: skip
+        return {"pairs": len(table["files"]), "candidates": int(table["poses"].shape[1])}
     if args.command == "train":
         if args.steps < 1 or args.pairs_per_batch < 1:
             parser.error("--steps and --pairs-per-batch must be >= 1")

@@ -54,3 +54,35 @@ def test_rank_views_reproduces_the_union_and_chooses_an_informed_ranker(tmp_path
     assert len(res["table"]) == 2**4 - 1
     with pytest.raises(ValueError, match="view runs"):
         rank_views.load_key(runs["val0"][:1])
+
+
+def test_three_view_keys_pack_and_score_from_the_table(tmp_path, monkeypatch):
+    """A key of three view runs (the default's 0, 1/2, 3/4) loads with its views; pack's table
+    round-trips what score reads, and score --table scores each view on its own subset."""
+    rng = np.random.default_rng(1)
+    stable = [rng.random((6, 4 * K + 1)) < 0.4 for _ in range(3)]
+    paths = [_write_run(tmp_path / f"v{v}.jsonl.gz", rng, 6, stable[v]) for v in range(3)]
+    d = rank_views.load_key(paths)
+    assert d["poses"].shape == (6, 3, 2 * K, 7)
+    assert d["views"].tolist() == [[0, 1], [1, 2], [3, 4]]
+    want = union_views.union([read_records(p) for p in paths])["union"]["mean"]
+    committed = np.mean(list(rank_views.committed_scores(d).values()), 0)
+    assert rank_views.answer(d, committed) == pytest.approx(want)
+    rank_views.pack(d, tmp_path / "held0.npz")
+    back = rank_views.load_pack(tmp_path / "held0.npz")
+    assert back["files"] == d["files"]
+    np.testing.assert_array_equal(back["poses"], d["poses"])
+    seen = []
+
+    def fake_score(ranker, table, clouds_dir):  # what score() receives from the table
+        seen.append(table)
+        return np.zeros(table["poses"].shape[:3], np.float32)
+
+    monkeypatch.setattr(rank_views, "score", fake_score)
+    res = rank_views.main(["score", "--ranker", "r", "--name", "x", "--table",
+                           str(tmp_path / "held0.npz"), "--clouds", ".", "--out", str(tmp_path)])  # fmt: skip
+    assert res["out"] == [str(tmp_path / "x_held0.npy")]
+    assert np.load(tmp_path / "x_held0.npy").shape == (6, 3, 2 * K)
+    assert seen[0]["views"].tolist() == [[0, 1], [1, 2], [3, 4]]
+    with pytest.raises(SystemExit):
+        rank_views.main(["score", "--ranker", "r", "--name", "x", "--clouds", ".", "--out", "o"])

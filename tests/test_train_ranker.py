@@ -319,3 +319,37 @@ def _plane_pairs_poses(full):
     quat = rng.normal(size=(b, 6, 4))
     quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
     return np.concatenate([xyz, quat], axis=-1).astype(np.float32)
+
+
+def test_union_puts_the_view_runs_of_the_same_pairs_side_by_side(tmp_path):
+    """union: the pool per pair is every run's candidates in run order; the rule on the union
+    picks the best clear candidate over all runs; runs of other pairs are refused."""
+    k = 2
+    tables = []
+    for v in range(3):
+        clouds, poses, stable = _synthetic(n_pairs=5, p=2 * k, seed=v)
+        rows = _records(clouds, poses, stable, k)
+        rec = tmp_path / f"v{v}.pairs.jsonl.gz"
+        with gzip.open(rec, "wt") as f:
+            f.write("".join(json.dumps(r) + "\n" for r in rows))
+        train_ranker.main(["slim", str(rec), str(tmp_path / f"v{v}.npz")])
+        tables.append(train_ranker.load_table(tmp_path / f"v{v}.npz"))
+    res = train_ranker.main(["union", *(str(tmp_path / f"v{v}.npz") for v in range(3)),
+                             str(tmp_path / "u.npz")])  # fmt: skip
+    assert res == {"pairs": 5, "candidates": 6 * k}
+    u = train_ranker.load_table(tmp_path / "u.npz")
+    for f in train_ranker.SLIM_FIELDS:
+        np.testing.assert_array_equal(u[f][:, 2 * k : 4 * k], tables[1][f])
+    assert list(u["files"]) == list(tables[0]["files"])
+    # an oracle score on the union hangs wherever some run's clear candidate hangs
+    oracle = np.where(u["stable"], 0.0, -9.0).astype(np.float32)
+    clear_hang = (u["stable"] & (u["counts"] <= selection.CHOSEN.max_points)).any(1)
+    ok = u["stable"][np.arange(5), np.argmax(np.where(u["counts"] <= selection.CHOSEN.max_points,
+                                                      oracle, -99.0), 1)]  # fmt: skip
+    assert np.array_equal(ok, clear_hang)
+    assert train_ranker.rule_success(u, oracle)["mean"] >= max(
+        train_ranker.rule_success(t, np.where(t["stable"], 0.0, -9.0))["mean"] for t in tables
+    )
+    other = dict(tables[1], pair_index=tables[1]["pair_index"] + 1)
+    with pytest.raises(ValueError, match="different pairs"):
+        train_ranker.union_tables([tables[0], other])
