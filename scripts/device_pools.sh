@@ -15,7 +15,8 @@
 #            the evaluation protocol); a view whose records are already on the machine is
 #            skipped, and a view starts only with MIN_VIEW_S (190 s) left. Records back in $OUT
 #            (val_POOL_NAME_vJofT.pairs.jsonl.gz) and kept in /tmp/full/records.
-#   train    records for the views still missing (if the time allows), then every view's records
+#   train    records for the views still missing (if the time allows; POOL_IN: a folder of slim
+#            tables NAME_vJofT.npz carried from an earlier machine's records), then every view's records
 #            made slim and joined into one pool a pair (train_ranker union ->
 #            $OUT/rank_POOL_NAME.npz), then scripts/device_ranker.sh train on it with
 #            RANK_VARIANTS (e.g. "f20=--init=weights/value_s20_ranker,--steps=1200"); the
@@ -58,21 +59,32 @@ if [ "$CALL" = records ]; then
 fi
 
 if [ "$CALL" = train ]; then
-    records
     P=$C/pools
     mkdir -p "$P/in"
+    # POOL_IN: slim tables of views recorded on an earlier machine (NAME_vJofT.npz, carried)
+    [ -n "${POOL_IN:-}" ] && cp "$POOL_IN"/*.npz "$P/" 2>/dev/null
+    for v in ${POOL_VIEWS:-0/1 1/2 3/4}; do
+        [ -e "$P/${NAME}_$(tag_of "$v").npz" ] || { records; break; }
+    done
     tables=
     for v in ${POOL_VIEWS:-0/1 1/2 3/4}; do
         t=$(tag_of "$v") rec=$C/records/val_${NAME}_$(tag_of "$v").pairs.jsonl.gz
-        [ -e "$rec" ] || { log "error: no records of view $v"; exit 3; }
+        [ -e "$rec" ] || [ -e "$P/${NAME}_$t.npz" ] || { log "error: no records of view $v"; exit 3; }
         [ -e "$P/${NAME}_$t.npz" ] || $PY -m experiments.train_ranker slim "$rec" "$P/${NAME}_$t.npz" >>"$C/logs/pools_slim.log" 2>&1
         tables="$tables $P/${NAME}_$t.npz"
     done
+    # the held-out pairs for a score call on this machine, derived on the CPU while the GPU trains
+    if ls "${KEYS_IN:-out/s47/keys}"/held*.npz >/dev/null 2>&1 && [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -lt 1794 ]; then
+        (timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split test \
+            --workers 8 --pairs-from results/heldout_pairs.jsonl --no-progress >>"$C/logs/derive_test.log" 2>&1) &
+        DTEST=$!
+    fi
     $PY -m experiments.train_ranker union $tables "$P/in/rank_$NAME.npz" 2>&1 | tee -a "$OUT/$LOG"
     cp "$P/in/rank_$NAME.npz" "$OUT/"
     RANK_IN="$P/in ${RANK_IN_EXTRA:-out/s47/in}" END_S=$(($(left) - 5)) \
         RANK_TRAIN_BUDGET=$(($(left) - 45)) bash scripts/device_ranker.sh train >/dev/null 2>&1
     cat "$OUT/ranker.log" >>"$OUT/$LOG" 2>/dev/null
+    [ -n "${DTEST:-}" ] && { wait "$DTEST"; log "held-out pairs derived: $(ls "$C/ds/derived/test" | wc -l)"; }
     log "done"
     exit 0
 fi
