@@ -13,7 +13,7 @@
         --data /tmp/full/ds --init weights/value_s16_hardneg --out out/ranker \\
         --val-records results/validation_where_s15/val_k16.pairs.jsonl.gz
     # 2b. the view runs of the same pairs as one pool a pair (the default's three views):
-    python -m experiments.train_ranker union out/rank_f_v0.npz out/rank_f_v1of2.npz \
+    python -m experiments.train_ranker union out/rank_f_v0.npz out/rank_f_v1of2.npz \\
         out/rank_f_v3of4.npz out/rank_f.npz
     # 4. its scores on any run's records, and the answer rule's success with them:
     python -m experiments.train_ranker score --ranker out/ranker/value --records R.npz \\

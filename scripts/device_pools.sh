@@ -2,10 +2,12 @@
 # Issue 12 (forty-seventh session): rankers fine-tuned on the DEFAULT pipeline's own answer pools
 # (three views x K = 10 x two starts = 60 candidates a pair) of training pairs, on one GPU.
 #
-#   MORE=1 STAGE3=1 bash scripts/device_slim.sh out
+#   MORE=1 STAGE3=1 POOLS=1 bash scripts/device_slim.sh out      # (+ POOLS_WEIGHTS=... for train/score)
 #   run(carry=[".whl_min", ".whl_train", "out/s47/in"], command="bash scripts/device_pools.sh records")
 #   run(..., command="bash scripts/device_pools.sh train")    # warm: the records stay on the machine
 #   run(carry=[..., "out/s47/keys"], command="bash scripts/device_pools.sh score")   # warm
+#   (a fresh machine for train: the records made slim on the VM, carried as POOL_IN; train then
+#   score in one call, as the forty-seventh session's calls 2 and 3 did)
 #   bash scripts/device_slim.sh in
 #
 # CALL
@@ -24,7 +26,7 @@
 #   score    every trained ranker (/tmp/full/ranker/NAME/value, or RANKERS="NAME ...") on the
 #            carried key tables (KEYS_IN, out/s47/keys: experiments.rank_views pack's val*.npz
 #            and held*.npz) as the pipeline would score them -> $OUT/NAME_KEY.npy; derives the
-#            held-out pairs (and the validation pairs) first if absent.
+#            held-out pairs first if absent (the validation pairs: by the train call before it).
 set -uo pipefail
 CALL=${1:?usage: device_pools.sh records|train|score}
 C=/tmp/full
@@ -34,6 +36,12 @@ LOG=pools.log
 NAME=${POOL_NAME:-pool_f}
 PAIRS=${POOL_PAIRS:-results/ranker_pairs_f.jsonl}
 tag_of() { echo "v$(echo "$1" | sed 's|0/1|0|; s|/|of|')"; }  # 0/1 -> v0, 1/2 -> v1of2
+derive_test() {  # WORKERS: the held-out pairs a score call reads, unless already derived
+    [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -ge 1794 ] && return 0
+    timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split test \
+        --workers "$1" --pairs-from results/heldout_pairs.jsonl --no-progress >>"$C/logs/derive_test.log" 2>&1
+    log "held-out pairs derived: $(ls "$C/ds/derived/test" | wc -l)"
+}
 
 records() {
     for v in ${POOL_VIEWS:-0/1 1/2 3/4}; do
@@ -68,15 +76,15 @@ if [ "$CALL" = train ]; then
     done
     tables=
     for v in ${POOL_VIEWS:-0/1 1/2 3/4}; do
-        t=$(tag_of "$v") rec=$C/records/val_${NAME}_$(tag_of "$v").pairs.jsonl.gz
+        t=$(tag_of "$v")
+        rec=$C/records/val_${NAME}_$t.pairs.jsonl.gz
         [ -e "$rec" ] || [ -e "$P/${NAME}_$t.npz" ] || { log "error: no records of view $v"; exit 3; }
         [ -e "$P/${NAME}_$t.npz" ] || $PY -m experiments.train_ranker slim "$rec" "$P/${NAME}_$t.npz" >>"$C/logs/pools_slim.log" 2>&1
         tables="$tables $P/${NAME}_$t.npz"
     done
     # the held-out pairs for a score call on this machine, derived on the CPU while the GPU trains
-    if ls "${KEYS_IN:-out/s47/keys}"/held*.npz >/dev/null 2>&1 && [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -lt 1794 ]; then
-        (timeout -k 5 $(($(left) - 20)) $PY -m experiments.derive_dataset --data "$C/ds" --split test \
-            --workers 8 --pairs-from results/heldout_pairs.jsonl --no-progress >>"$C/logs/derive_test.log" 2>&1) &
+    if ls "${KEYS_IN:-out/s47/keys}"/held*.npz >/dev/null 2>&1; then
+        derive_test 8 &
         DTEST=$!
     fi
     $PY -m experiments.train_ranker union $tables "$P/in/rank_$NAME.npz" 2>&1 | tee -a "$OUT/$LOG"
@@ -84,19 +92,14 @@ if [ "$CALL" = train ]; then
     RANK_IN="$P/in ${RANK_IN_EXTRA:-out/s47/in}" END_S=$(($(left) - 5)) \
         RANK_TRAIN_BUDGET=$(($(left) - 45)) bash scripts/device_ranker.sh train >/dev/null 2>&1
     cat "$OUT/ranker.log" >>"$OUT/$LOG" 2>/dev/null
-    [ -n "${DTEST:-}" ] && { wait "$DTEST"; log "held-out pairs derived: $(ls "$C/ds/derived/test" | wc -l)"; }
+    [ -n "${DTEST:-}" ] && wait "$DTEST"
     log "done"
     exit 0
 fi
 
 if [ "$CALL" = score ]; then
     K=${KEYS_IN:-out/s47/keys}
-    need_test=$(ls "$K"/held*.npz 2>/dev/null | head -1)
-    if [ -n "$need_test" ] && [ "$(ls "$C/ds/derived/test" 2>/dev/null | wc -l)" -lt 1794 ]; then
-        timeout -k 5 $(($(left) - 60)) $PY -m experiments.derive_dataset --data "$C/ds" --split test \
-            --workers 16 --pairs-from results/heldout_pairs.jsonl --no-progress >>"$C/logs/derive_test.log" 2>&1
-        log "held-out pairs derived: $(ls "$C/ds/derived/test" | wc -l)"
-    fi
+    ls "$K"/held*.npz >/dev/null 2>&1 && derive_test 16
     for name in ${RANKERS:-$(ls "$C/ranker" 2>/dev/null)}; do
         [ -d "$C/ranker/$name/value" ] || continue
         for split in val held; do

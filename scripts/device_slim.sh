@@ -171,6 +171,16 @@ if [ -n "${COMPLETION:-}" ]; then
 fi
 # RANKER=1 (device_ranker.sh calls): the pipeline's weights but CEM's V (the ranker's init)
 [ -n "${RANKER:-}" ] && LIST+=(weights/where_small_paper weights/value_s20_ranker weights/value_s21_big1 weights/value_s21_near)
+# POOLS=1 (forty-seventh session; scripts/device_pools.sh): every results/ entry but the pair lists
+# a records / train / score call reads (the held-out and validation lists, ranker_pairs_*.jsonl);
+# POOLS_WEIGHTS="where_small_paper value_s16_hardneg ..." also moves those weights/ folders (a
+# train / score call reads only the rankers it starts from; the records call needs them all)
+if [ -n "${POOLS:-}" ]; then
+    for f in results/*; do
+        case $f in results/heldout_pairs.jsonl | results/validation_pairs.jsonl | results/ranker_pairs_*.jsonl) ;; *) LIST+=("$f") ;; esac
+    done
+    for w in ${POOLS_WEIGHTS:-}; do LIST+=("weights/$w"); done
+fi
 case ${1:-} in
 out)
     mkdir -p "$ASIDE"
