@@ -48,12 +48,14 @@ def _init(recipe: dict, library_overrides: dict) -> None:
     _W.update(library=build_library(lib_cfg, progress=False), camera=config.camera)
 
 
-def render_asset(job: tuple[str, str, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """(views [V, P, 3], surface [T, 3]) of one asset, deterministic in its name and ``seed``."""
+def render_asset(job: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """(views [V, P, 3], surface [T, 3]) of one asset, deterministic in its name and ``seed``
+    (``job``: kind, name, views, points, seed[, target points T, default 2048])."""
     from sim import camera
     from sim.scene import build_scene
 
-    kind, name, views, points, seed = job
+    kind, name, views, points, seed = job[:5]
+    target_points = job[5] if len(job) > 5 else 2048
     lib = _W["library"]
     if kind == "object":
         scene = build_scene(lib.objects[name], next(iter(lib.supports.values())))
@@ -73,23 +75,24 @@ def render_asset(job: tuple[str, str, int, int, int]) -> tuple[np.ndarray, np.nd
         )
         out.append(cloud.points)
     coarse = dataclasses.replace(cam, width=cam.width // 2, height=cam.height // 2)
-    surface = camera.surface_cloud(scene, kind, rng, coarse)
+    surface = camera.surface_cloud(scene, kind, rng, coarse, n_points=target_points)
     return np.stack(out), surface
 
 
 def build_views(data: str, kind: str, names: list[str], views: int, points: int, workers: int,
                 cache: Path | None, library_overrides: dict | None = None,
-                seed: int = 0) -> completion.CompletionData:  # fmt: skip
+                seed: int = 0, target_points: int = 2048) -> completion.CompletionData:  # fmt: skip
     """Render (or read from ``cache``) the views and surfaces of ``names``."""
     if cache is not None and cache.exists():
         with np.load(cache) as f:
             got = completion.CompletionData(f["inputs"], f["targets"], f["names"])
-        if list(got.names) == list(names) and got.inputs.shape[1:3] == (views, points):
+        same = got.inputs.shape[1:3] == (views, points) and got.targets.shape[1] == target_points
+        if list(got.names) == list(names) and same:
             return got
         print(f"{cache}: another set of assets or views; rendering again", flush=True)
     recipe = dataset_bridge.read_recipe(data)
     overrides = library_overrides or {}
-    jobs = [(kind, n, views, points, seed) for n in names]
+    jobs = [(kind, n, views, points, seed, target_points) for n in names]
     from tqdm.auto import tqdm
 
     if workers <= 1:
@@ -115,6 +118,27 @@ def build_views(data: str, kind: str, names: list[str], views: int, points: int,
     return got
 
 
+def network_config(kind: str, args) -> completion.CompletionConfig:
+    """The network of ``--n-coarse`` / ``--fold`` / ``--fold-size`` / ``--width`` (defaults: the
+    twenty-fifth session's)."""
+    base = completion.CompletionConfig(kind=kind)
+    w = max(1, int(args.width))
+    change: dict = dict(
+        encoder=tuple(w * x for x in base.encoder),
+        encoder2=tuple(w * x for x in base.encoder2),
+        decoder=tuple(w * x for x in base.decoder),
+        fine=tuple(w * x for x in base.fine),
+    )
+    if args.n_coarse:
+        change["n_coarse"] = int(args.n_coarse)
+    if args.fold:
+        a, b = (int(x) for x in args.fold.lower().split("x"))
+        change["fold"] = (a, b)
+    if args.fold_size:
+        change["fold_size"] = float(args.fold_size)
+    return dataclasses.replace(base, **change)
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -127,6 +151,27 @@ def main(argv=None) -> dict:
     ap.add_argument("--points", type=int, default=2048, help="points kept per view")
     ap.add_argument("--objects", type=int, default=None, help="at most this many training objects")
     ap.add_argument("--supports", type=int, default=None, help="... and supports (quick looks)")
+    ap.add_argument(
+        "--target-points",
+        type=int,
+        default=2048,
+        help="points of each whole-surface target (denser: finer Chamfer)",
+    )
+    ap.add_argument("--n-coarse", type=int, default=None, help="CompletionConfig.n_coarse")
+    ap.add_argument("--fold", default=None, help="CompletionConfig.fold, e.g. 4x4")
+    ap.add_argument("--fold-size", type=float, default=None, help="CompletionConfig.fold_size")
+    ap.add_argument(
+        "--width",
+        type=int,
+        default=1,
+        help="every layer of the encoder, decoder and folding MLP this many times wider",
+    )
+    ap.add_argument(
+        "--tol",
+        type=float,
+        default=0.005,
+        help="m: coverage / accuracy tolerance of the metrics (and twice it)",
+    )
     ap.add_argument("--steps", type=int, default=20000)
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--lr", type=float, default=1e-3)
@@ -164,20 +209,23 @@ def main(argv=None) -> dict:
         if limit:
             test_names = test_names[: max(1, limit // 4)]
 
-        def cache(split, views, kind=kind, n=len(train_names)):
+        tp = args.target_points
+        tail = "" if tp == 2048 else f"_t{tp}"
+
+        def cache(split, views, kind=kind, n=len(train_names), tail=tail):
             if args.no_cache:
                 return None
-            return Path(args.data, DERIVED, f"{kind}_{split}_v{views}_n{n}.npz")
+            return Path(args.data, DERIVED, f"{kind}_{split}_v{views}_n{n}{tail}.npz")
 
         all_train = build_views(args.data, kind, train_names, views, args.points, args.workers,
-                                cache("train", views))  # fmt: skip
+                                cache("train", views), target_points=tp)  # fmt: skip
         test = build_views(args.data, kind, test_names, 4, args.points, args.workers,
-                           cache("test", 4))  # fmt: skip
+                           cache("test", 4), target_points=tp)  # fmt: skip
         idx = {n: i for i, n in enumerate(train_names)}
         fit = all_train.take([idx[n] for n in fit_names])
         val = all_train.take([idx[n] for n in val_names])
-        cfg = completion.CompletionConfig(kind=kind)
-        tc = completion.CompletionTrainConfig(steps=args.steps, batch=args.batch, lr=args.lr,
+        cfg = network_config(kind, args)
+        tc = completion.CompletionTrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, tol=args.tol,
                                               eval_every=min(args.eval_every, args.steps))  # fmt: skip
         summary = completion.train_completion(cfg, fit, val, out / kind, tc,
                                               progress=not args.no_progress)  # fmt: skip

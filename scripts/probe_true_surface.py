@@ -1,0 +1,250 @@
+"""Issue 12 probe (forty-eighth session): what a PERFECT completion of the object would give the
+answer rule, as a bound before a completion trained for millimetre accuracy is built.
+
+Four hidden-side priors were level against the rankers (mirror, completion, camera-ray slab,
+retrieval; docs/stage3.md, sessions 26, 41, 45, 46). Each was an estimate of the object's hidden
+side; none measured what the hidden side itself, known exactly, is worth. This probe takes each
+pair's OWN object's whole outer surface (``sim.camera.surface_cloud``, the completion networks'
+target, in the object frame the clouds are in), keeps its points more than ``--new`` from every
+observed object point (what the view hid) and, for every pooled refined candidate of the
+three-view default's records, counts those points inside the OBSERVED support
+(``experiments.rerank_completed.inside_grid``, on the points within 2 cm of the support cloud's
+box). Variant ``hidden``: those points; ``hidden_nX`` (``--noise``): the same points moved by
+isotropic Gaussian noise of X mm per axis; ``hidden_sX`` (``--shift``): the whole hidden side moved
+X mm in one random direction per pair. Stand-ins for a completion's error (scattered and
+coherent), so that the bound says how accurate a completion must be; ``completed_<net>``
+(``--completion``): a completion network's predicted points more than ``--new`` from every
+observed point, the method the bound is for (with each network's hidden points measured against
+the true hidden side: median distance to it, share of it covered within 2 / 3 / 5 mm). Rules, choice on the three validation keys and one held-out reading as
+``scripts/probe_symmetry.py``.
+
+It is an oracle: the surface is the ground truth. If it is level, no completion of the object,
+however accurate, lifts the answer rule, and the lever closes; if it reaches the aim, a
+millimetre completion is worth its sessions.
+
+    python -m experiments.derive_dataset --data datasets/paper --split train --pairs-from VAL.jsonl --clouds-only
+    python -m experiments.derive_dataset --data datasets/paper --split test --pairs-from TEST.jsonl --clouds-only
+    python scripts/probe_true_surface.py --out results/probe_true_surface_s48.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+from tqdm.auto import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from probe_symmetry import (  # noqa: E402
+    HELDOUT,
+    VALIDATION,
+    finish,
+    key_runs,
+    separation,
+    table,
+)
+
+from experiments.rerank_completed import GRID  # noqa: E402
+from experiments.rerank_stage3 import read_records  # noqa: E402
+from omnihang_jax import collision  # noqa: E402
+
+N_SURFACE = 32768  # surface points rendered per object (~1 mm from the observed ones)
+N_POSED = 4096  # hidden surface points posed per candidate
+MARGIN = 0.02  # m: posed points farther than this outside the support cloud's box are not tested
+
+_W: dict = {}
+
+
+def _init(data: str, n_dirs: int) -> None:
+    from omnihang_jax import dataset_bridge
+    from sim.library import build_library
+
+    cfg = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(data))
+    _W.update(library=build_library(cfg.library, progress=False), camera=cfg.camera, n_dirs=n_dirs)
+
+
+def surface(name: str) -> np.ndarray:
+    """[N_SURFACE, 3] the object's whole outer surface in its own frame (full-resolution
+    cameras, so the points are a few millimetres apart)."""
+    from sim import camera
+    from sim.scene import build_scene
+
+    lib = _W["library"]
+    scene = build_scene(lib.objects[name], next(iter(lib.supports.values())))
+    rng = np.random.default_rng([0, *name.encode()])
+    return camera.surface_cloud(
+        scene, "object", rng, _W["camera"], n_dirs=_W["n_dirs"], n_points=N_SURFACE
+    ).astype(np.float32)
+
+
+def inside_near(posed: np.ndarray, surface: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """:func:`inside_grid` on the posed points within ``MARGIN`` of the support cloud's box only
+    (the rest cannot meet the support; the test alone would count a point far behind a
+    partial support as inside)."""
+    lo, hi = surface.min(0) - MARGIN, surface.max(0) + MARGIN
+    near = np.all((posed > lo) & (posed < hi), axis=-1)  # [P, N]
+    out = np.zeros((len(GRID), len(posed)), np.int32)
+    if not near.any():
+        return out
+    flat = posed[near]
+    dist, k = cKDTree(surface).query(flat, k=1)
+    along = np.einsum("ij,ij->i", flat - surface[k], normals[k])
+    lateral2 = dist**2 - along**2
+    which = np.nonzero(near)[0]  # the candidate of each tested point
+    for g, (d, r) in enumerate(GRID):
+        out[g] = np.bincount(which[(along < -d) & (lateral2 < r**2)], minlength=len(posed))
+    return out
+
+
+def surfaces(names: list[str], data: str, n_dirs: int, workers: int, cache: Path) -> dict:
+    """name -> surface, rendered once and kept in ``cache`` (an .npz)."""
+    have: dict = {}
+    if cache.exists():
+        with np.load(cache) as z:
+            have = {str(n): s for n, s in zip(z["names"], z["surfaces"], strict=True)}
+    todo = [n for n in names if n not in have]
+    if todo:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(workers, ctx, initializer=_init, initargs=(data, n_dirs)) as ex:
+            got = list(tqdm(ex.map(surface, todo), total=len(todo), desc="true surfaces"))
+        have.update(zip(todo, got, strict=True))
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(
+            cache, names=np.asarray(list(have)), surfaces=np.stack(list(have.values()))
+        )
+    return have
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default="datasets/paper")
+    ap.add_argument("--new", type=float, default=0.003, help="m: a surface point is hidden beyond")
+    ap.add_argument("--n-dirs", type=int, default=20, help="cameras over the sphere per surface")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--cache", default="out/s48/true_surfaces.npz")
+    ap.add_argument("--keys", type=int, default=3, help="CEM keys read on validation (1-3)")
+    ap.add_argument("--heldout-keys", type=int, default=3, help="... and held out")
+    ap.add_argument("--noise", default="", help="m, comma-separated: noisy variants' sigmas")
+    ap.add_argument("--shift", default="", help="m, comma-separated: shifted variants' lengths")
+    ap.add_argument(
+        "--completion",
+        default="",
+        help="comma-separated completion folders (omnihang_jax.completion.load_completion): "
+        "variants completed_<folder name>, the network's hidden points",
+    )
+    ap.add_argument(
+        "--no-true", action="store_true", help="only the noisy / shifted / completed variants"
+    )
+    ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    sigmas = [float(x) for x in args.noise.split(",") if x]
+    shifts = [float(x) for x in args.shift.split(",") if x]
+    variants = ([] if args.no_true else ["hidden"]) + [f"hidden_n{1e3 * x:g}" for x in sigmas]
+    variants += [f"hidden_s{1e3 * x:g}" for x in shifts]
+    nets = {}
+    for folder in (x for x in args.completion.split(",") if x):
+        from omnihang_jax import completion
+
+        cfg, params, _ = completion.load_completion(folder)
+        nets[f"completed_{Path(folder).parent.name}_{Path(folder).name}"] = (
+            cfg, params, completion.complete_fn(cfg))  # fmt: skip
+    variants += list(nets)
+    if not variants:
+        raise SystemExit("--no-true needs --noise, --shift or --completion")
+    quality: dict[str, list] = {v: [] for v in nets}
+    data, progress = Path(args.data), not args.no_progress
+    records = {
+        split: [[read_records(p) for p in key] for key in runs[:n]]
+        for split, runs, n in (("validation", VALIDATION, args.keys),
+                               ("heldout", HELDOUT, args.heldout_keys))
+    }  # fmt: skip
+    names = sorted({r["object"] for s in records.values() for r in s[0][0]})
+    true = surfaces(names, args.data, args.n_dirs, args.workers, Path(args.cache))
+    print(f"{len(true)} true surfaces, {time.perf_counter() - t0:.0f} s", flush=True)
+    fit: dict[str, float] = {}
+    cache: dict[int, dict] = {}
+
+    def counts_fn(row, clouds, poses):
+        i = int(row["pair_index"])
+        if i not in cache:
+            obs = np.asarray(clouds["object_points"], float)
+            surf = true[row["object"]].astype(float)
+            d_obs, _ = cKDTree(surf).query(obs, k=1)  # how well the frames agree
+            fit[str(i)] = float(np.median(d_obs))
+            d, _ = cKDTree(obs).query(surf, k=1)
+            pick = collision.subsample_indices
+            hidden = surf[d > args.new]
+            hidden = hidden[pick(len(hidden), N_POSED, 0)] if len(hidden) > N_POSED else hidden
+            rng = np.random.default_rng(i)
+            cache[i] = {"hidden": hidden} if "hidden" in variants else {}
+            for x in sigmas:
+                cache[i][f"hidden_n{1e3 * x:g}"] = hidden + rng.normal(0.0, x, hidden.shape)
+            for x in shifts:  # the whole hidden side off by x in one random direction
+                u = rng.normal(size=3)
+                cache[i][f"hidden_s{1e3 * x:g}"] = hidden + x * u / np.linalg.norm(u)
+            obs_tree, true_tree = cKDTree(obs), cKDTree(surf)
+            for v, (cfg, params, fn) in nets.items():  # as completion.predict_points: seed 0
+                sub = obs[
+                    np.random.default_rng(0).choice(
+                        len(obs), cfg.n_input, replace=len(obs) < cfg.n_input
+                    )
+                ]
+                pred = np.asarray(fn(params, sub[None].astype(np.float32)))[0].astype(float)
+                pred = pred[obs_tree.query(pred, k=1)[0] > args.new]
+                cache[i][v] = pred
+                near, _ = (
+                    cKDTree(pred).query(hidden, k=1)
+                    if len(pred)
+                    else (np.full(len(hidden), np.inf), 0)
+                )
+                quality[v].append(dict(
+                    to_true_mm=1e3 * float(np.median(true_tree.query(pred, k=1)[0])) if len(pred) else None,
+                    covered_2mm=float(np.mean(near < 0.002)), covered_3mm=float(np.mean(near < 0.003)),
+                    covered_5mm=float(np.mean(near < 0.005)), points=len(pred)))  # fmt: skip
+        sup = np.asarray(clouds["support_points"], float)
+        nrm = np.asarray(clouds["support_normals"], float)
+        out = {}
+        for v, pts in cache[i].items():
+            out[v] = (
+                inside_near(collision.posed_points(poses, pts), sup, nrm)
+                if len(pts)
+                else np.zeros((len(GRID), len(poses)), np.int32)
+            )
+        return out
+
+    result = dict(settings=vars(args), grid=[list(x) for x in GRID])
+    tables = {}
+    for split, runs in records.items():
+        parts = [key_runs(key, data, 0.0, progress, counts_fn, variants, lambda c, v: c[v])
+                 for key in runs]  # fmt: skip
+        tables[split] = table(parts, progress, variants)
+        result[f"separation_{split}"] = separation(parts, variants)
+        med = [fit[str(int(r["pair_index"]))] for r in parts[0][0][0]]
+        result[f"median_observed_to_true_mm_{split}"] = round(1000 * float(np.median(med)), 3)
+        for v, q in quality.items():  # the completion's hidden points against the true hidden side
+            result[f"quality_{v}_{split}"] = {
+                k: round(float(np.mean([x[k] for x in q if x[k] is not None])), 4) for k in q[0]
+            }
+            q.clear()
+        print(f"{split}: {len(tables[split])} rules, {time.perf_counter() - t0:.0f} s", flush=True)
+        best = {v: max((r for r in tables[split][1:] if r["variant"] == v), key=lambda r: r["mean"])
+                for v in variants}  # fmt: skip
+        Path(args.out).with_suffix(f".{split}.json").write_text(
+            json.dumps(dict(committed=tables[split][0], best_per_variant=best,
+                            separation=result[f"separation_{split}"]), indent=1) + "\n"
+        )  # fmt: skip
+    return finish(result, tables, ("variant", "depth", "radius", "rule", "value"), args.out, t0)
+
+
+if __name__ == "__main__":
+    main()

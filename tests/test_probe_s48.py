@@ -1,0 +1,61 @@
+"""The forty-eighth session's issue-12 probe (scripts/probe_true_surface.py: the true hidden side
+of the object in the answer rule, a bound on completion) and the completion trainer's network
+flags (experiments.train_completion)."""
+
+import argparse
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / f"scripts/{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _plate(n, rng):
+    """A support: the plane z = 0 seen from above, normals +z, 10 cm square."""
+    p = np.c_[rng.uniform(-0.05, 0.05, (n, 2)), np.zeros(n)]
+    return p, np.tile([0.0, 0.0, 1.0], (n, 1))
+
+
+def test_inside_near_counts_what_the_rule_counts_near_the_support_and_nothing_far():
+    from experiments.rerank_completed import GRID, inside_grid
+
+    pt = _load("probe_true_surface")
+    rng = np.random.default_rng(0)
+    sup, nrm = _plate(2000, rng)
+    # candidate 0 sinks 4 mm into the plate, candidate 1 rests 1 mm above it,
+    # candidate 2 is 5 cm under it (behind the partial support: the plain test would count it)
+    body = np.c_[rng.uniform(-0.01, 0.01, (300, 2)), np.zeros(300)]
+    posed = np.stack([body + [0, 0, -0.004], body + [0, 0, 0.001], body + [0, 0, -0.05]])
+    got = pt.inside_near(posed, sup, nrm)
+    want = inside_grid(posed, sup, nrm)
+    assert got.shape == (len(GRID), 3)
+    np.testing.assert_array_equal(got[:, :2], want[:, :2])  # the same counts within the margin
+    g1 = GRID.index((0.001, 0.003))
+    assert got[g1, 0] == 300 and got[g1, 1] == 0
+    assert want[g1, 2] == 300 and got[g1, 2] == 0  # far behind: tested no more
+
+
+def test_train_completion_network_flags_make_the_config():
+    from experiments.train_completion import network_config
+    from omnihang_jax.completion import CompletionConfig
+
+    base = CompletionConfig(kind="object")
+    ns = argparse.Namespace(n_coarse=None, fold=None, fold_size=None, width=1)
+    assert network_config("object", ns) == base
+    ns = argparse.Namespace(n_coarse=512, fold="2x4", fold_size=0.03, width=2)
+    cfg = network_config("support", ns)
+    assert cfg.kind == "support" and cfg.n_coarse == 512 and cfg.fold == (2, 4)
+    assert cfg.n_output == 4096 and cfg.fold_size == pytest.approx(0.03)
+    assert cfg.encoder == tuple(2 * x for x in base.encoder)
+    assert cfg.decoder == tuple(2 * x for x in base.decoder)
