@@ -87,6 +87,9 @@ LIST=(
 # MORE=1 (twenty-second session): with three rankers (13.5 MB) the eval call's tree is ~59 MiB;
 # these are read by no device_full.sh eval / bench call either (the ranker's scores and pair
 # lists, the planner's records, tests and docs)
+# (forty-eighth session: the second object completion, 6.9 MB, read by no device call but a
+# COMPLETION=1 one)
+LIST+=(weights/completion_s48)
 if [ -n "${MORE:-}" ]; then
     # (tests/ and docs/ go whole: drop the entries inside them, or `mv tests` would nest)
     KEEP=()
@@ -166,7 +169,7 @@ fi
 # shape-completion networks stay
 if [ -n "${COMPLETION:-}" ]; then
     KEEP=()
-    for p in "${LIST[@]}"; do [ "$p" = weights/completion_s25 ] || KEEP+=("$p"); done
+    for p in "${LIST[@]}"; do [ "$p" = weights/completion_s25 ] || [ "$p" = weights/completion_s48 ] || KEEP+=("$p"); done
     LIST=("${KEEP[@]}")
 fi
 # RANKER=1 (device_ranker.sh calls): the pipeline's weights but CEM's V (the ranker's init)

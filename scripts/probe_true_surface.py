@@ -104,6 +104,33 @@ def inside_near(posed: np.ndarray, surface: np.ndarray, normals: np.ndarray) -> 
     return out
 
 
+def penetration_oracle(runs: list[list[list[dict]]]) -> dict:
+    """The union's answer per key when every candidate the simulator found penetrating is dropped
+    before the committed rule ranks (a perfect penetration test), beside the committed answer and
+    "some candidate hangs"."""
+    from experiments.rerank_stage3 import category_means, proposals_of, rule_keys
+
+    out = {"committed": [], "no_penetrating": [], "some_candidate_hangs": []}
+    for key in runs:
+        keys, pens, stables = [], [], []
+        for rows in key:
+            k = proposals_of(rows)
+            kk, st = rule_keys(rows, k)
+            statuses = [r["stage1_3"]["statuses"] + r["all_stages"]["statuses"][-k:] for r in rows]
+            keys.append(kk)
+            stables.append(st)
+            pens.append(np.asarray(statuses) == "penetrating")
+        kk, pen, st = (np.concatenate(x, 1) for x in (keys, pens, stables))
+        n, rows = np.arange(len(kk)), key[0]
+        out["committed"].append(category_means(rows, st[n, kk.argmax(1)])["mean"])
+        out["no_penetrating"].append(
+            category_means(rows, st[n, np.where(pen, -1e9, kk).argmax(1)])["mean"]
+        )
+        out["some_candidate_hangs"].append(category_means(rows, st.any(1))["mean"])
+    return {k: dict(per_key=[round(float(x), 3) for x in v], mean=round(float(np.mean(v)), 3))
+            for k, v in out.items()}  # fmt: skip
+
+
 def surfaces(names: list[str], data: str, n_dirs: int, workers: int, cache: Path) -> dict:
     """name -> surface, rendered once and kept in ``cache`` (an .npz)."""
     have: dict = {}
@@ -143,6 +170,16 @@ def main(argv=None) -> dict:
     ap.add_argument(
         "--no-true", action="store_true", help="only the noisy / shifted / completed variants"
     )
+    ap.add_argument(
+        "--quality-only",
+        action="store_true",
+        help="only measure the --completion networks' hidden points (no rules)",
+    )
+    ap.add_argument(
+        "--oracle-only",
+        action="store_true",
+        help="only the perfect penetration test's figure (from the records, seconds)",
+    )
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -168,6 +205,11 @@ def main(argv=None) -> dict:
         for split, runs, n in (("validation", VALIDATION, args.keys),
                                ("heldout", HELDOUT, args.heldout_keys))
     }  # fmt: skip
+    if args.oracle_only:
+        result = {split: penetration_oracle(runs) for split, runs in records.items()}
+        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+        print(json.dumps(result, indent=1))
+        return result
     names = sorted({r["object"] for s in records.values() for r in s[0][0]})
     true = surfaces(names, args.data, args.n_dirs, args.workers, Path(args.cache))
     print(f"{len(true)} true surfaces, {time.perf_counter() - t0:.0f} s", flush=True)
@@ -223,6 +265,21 @@ def main(argv=None) -> dict:
         return out
 
     result = dict(settings=vars(args), grid=[list(x) for x in GRID])
+    if args.quality_only:  # the completions' hidden points against the true ones, no rules
+        from experiments.rerank_completed import load_clouds
+
+        for split, runs in records.items():
+            for row in runs[0][0]:
+                counts_fn(row, load_clouds(data, row), np.zeros((0, 7)))
+            for v, q in quality.items():
+                result[f"quality_{v}_{split}"] = {
+                    k: round(float(np.nanmean([np.nan if x[k] is None else x[k] for x in q])), 4)
+                    for k in q[0]
+                }
+                q.clear()
+        Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
+        print(json.dumps({k: v for k, v in result.items() if k.startswith("quality")}, indent=1))
+        return result
     tables = {}
     for split, runs in records.items():
         parts = [key_runs(key, data, 0.0, progress, counts_fn, variants, lambda c, v: c[v])
@@ -233,7 +290,8 @@ def main(argv=None) -> dict:
         result[f"median_observed_to_true_mm_{split}"] = round(1000 * float(np.median(med)), 3)
         for v, q in quality.items():  # the completion's hidden points against the true hidden side
             result[f"quality_{v}_{split}"] = {
-                k: round(float(np.mean([x[k] for x in q if x[k] is not None])), 4) for k in q[0]
+                k: round(float(np.nanmean([np.nan if x[k] is None else x[k] for x in q])), 4)
+                for k in q[0]
             }
             q.clear()
         print(f"{split}: {len(tables[split])} rules, {time.perf_counter() - t0:.0f} s", flush=True)
