@@ -83,17 +83,31 @@ def facing_normals(points: np.ndarray, cloud: np.ndarray, eye: np.ndarray) -> np
     return normals
 
 
-def inside_grid(posed: np.ndarray, surface: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def inside_grid(
+    posed: np.ndarray, surface: np.ndarray, normals: np.ndarray, margin: float | None = None
+) -> np.ndarray:
     """posed [P, N, 3] points, a surface [M, 3] with outward normals -> [G, P] counts of
-    :data:`GRID` (the test of ``collision.inside_points``)."""
+    :data:`GRID` (the test of ``collision.inside_points``). With ``margin`` (m) only the points
+    within that far of the surface's bounding box are tested: the rest cannot meet it, and the
+    test alone would count a point far behind a partial surface as inside."""
+    out = np.zeros((len(GRID), posed.shape[0]), np.int32)
     if len(surface) == 0 or posed.shape[1] == 0:
-        return np.zeros((len(GRID), posed.shape[0]), np.int32)
-    flat = posed.reshape(-1, 3)
+        return out
+    if margin is None:
+        tested = np.ones(posed.shape[:2], bool)
+    else:
+        lo, hi = surface.min(0) - margin, surface.max(0) + margin
+        tested = np.all((posed > lo) & (posed < hi), axis=-1)  # [P, N]
+    if not tested.any():
+        return out
+    flat = posed[tested]
     dist, k = cKDTree(surface).query(flat, k=1)
-    along = np.einsum("ij,ij->i", flat - surface[k], normals[k]).reshape(posed.shape[:2])
-    length = dist.reshape(posed.shape[:2])
-    lateral2 = length**2 - along**2
-    return np.stack([((along < -d) & (lateral2 < r**2)).sum(1) for d, r in GRID]).astype(np.int32)
+    along = np.einsum("ij,ij->i", flat - surface[k], normals[k])
+    lateral2 = dist**2 - along**2
+    which = np.nonzero(tested)[0]  # the candidate of each tested point
+    for g, (d, r) in enumerate(GRID):
+        out[g] = np.bincount(which[(along < -d) & (lateral2 < r**2)], minlength=len(posed))
+    return out
 
 
 def candidate_counts(nets, clouds: dict, eyes, poses: np.ndarray, seed: int = 0) -> dict:

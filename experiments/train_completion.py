@@ -50,12 +50,11 @@ def _init(recipe: dict, library_overrides: dict) -> None:
 
 def render_asset(job: tuple) -> tuple[np.ndarray, np.ndarray]:
     """(views [V, P, 3], surface [T, 3]) of one asset, deterministic in its name and ``seed``
-    (``job``: kind, name, views, points, seed[, target points T, default 2048])."""
+    (``job``: kind, name, views, points, seed, target points T)."""
     from sim import camera
     from sim.scene import build_scene
 
-    kind, name, views, points, seed = job[:5]
-    target_points = job[5] if len(job) > 5 else 2048
+    kind, name, views, points, seed, target_points = job
     lib = _W["library"]
     if kind == "object":
         scene = build_scene(lib.objects[name], next(iter(lib.supports.values())))

@@ -8,8 +8,8 @@ pair's OWN object's whole outer surface (``sim.camera.surface_cloud``, the compl
 target, in the object frame the clouds are in), keeps its points more than ``--new`` from every
 observed object point (what the view hid) and, for every pooled refined candidate of the
 three-view default's records, counts those points inside the OBSERVED support
-(``experiments.rerank_completed.inside_grid``, on the points within 2 cm of the support cloud's
-box). Variant ``hidden``: those points; ``hidden_nX`` (``--noise``): the same points moved by
+(``experiments.rerank_completed.inside_grid`` with ``margin``: the points within 2 cm of the
+support cloud's box). Variant ``hidden``: those points; ``hidden_nX`` (``--noise``): the same points moved by
 isotropic Gaussian noise of X mm per axis; ``hidden_sX`` (``--shift``): the whole hidden side moved
 X mm in one random direction per pair. Stand-ins for a completion's error (scattered and
 coherent), so that the bound says how accurate a completion must be; ``completed_<net>``
@@ -52,7 +52,7 @@ from probe_symmetry import (  # noqa: E402
     table,
 )
 
-from experiments.rerank_completed import GRID  # noqa: E402
+from experiments.rerank_completed import GRID, inside_grid  # noqa: E402
 from experiments.rerank_stage3 import read_records  # noqa: E402
 from omnihang_jax import collision  # noqa: E402
 
@@ -85,25 +85,6 @@ def surface(name: str) -> np.ndarray:
     ).astype(np.float32)
 
 
-def inside_near(posed: np.ndarray, surface: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """:func:`inside_grid` on the posed points within ``MARGIN`` of the support cloud's box only
-    (the rest cannot meet the support; the test alone would count a point far behind a
-    partial support as inside)."""
-    lo, hi = surface.min(0) - MARGIN, surface.max(0) + MARGIN
-    near = np.all((posed > lo) & (posed < hi), axis=-1)  # [P, N]
-    out = np.zeros((len(GRID), len(posed)), np.int32)
-    if not near.any():
-        return out
-    flat = posed[near]
-    dist, k = cKDTree(surface).query(flat, k=1)
-    along = np.einsum("ij,ij->i", flat - surface[k], normals[k])
-    lateral2 = dist**2 - along**2
-    which = np.nonzero(near)[0]  # the candidate of each tested point
-    for g, (d, r) in enumerate(GRID):
-        out[g] = np.bincount(which[(along < -d) & (lateral2 < r**2)], minlength=len(posed))
-    return out
-
-
 def penetration_oracle(runs: list[list[list[dict]]]) -> dict:
     """The union's answer per key when every candidate the simulator found penetrating is dropped
     before the committed rule ranks (a perfect penetration test), beside the committed answer and
@@ -129,6 +110,15 @@ def penetration_oracle(runs: list[list[list[dict]]]) -> dict:
         out["some_candidate_hangs"].append(category_means(rows, st.any(1))["mean"])
     return {k: dict(per_key=[round(float(x), 3) for x in v], mean=round(float(np.mean(v)), 3))
             for k, v in out.items()}  # fmt: skip
+
+
+def mean_quality(rows: list[dict]) -> dict:
+    """The mean of each per-pair quality field, over the pairs where it is defined (a pair with
+    no hidden or no predicted point has none)."""
+    return {
+        k: round(float(np.nanmean([np.nan if x[k] is None else x[k] for x in rows])), 4)
+        for k in rows[0]
+    }
 
 
 def surfaces(names: list[str], data: str, n_dirs: int, workers: int, cache: Path) -> dict:
@@ -221,9 +211,9 @@ def main(argv=None) -> dict:
         if i not in cache:
             obs = np.asarray(clouds["object_points"], float)
             surf = true[row["object"]].astype(float)
-            d_obs, _ = cKDTree(surf).query(obs, k=1)  # how well the frames agree
-            fit[str(i)] = float(np.median(d_obs))
-            d, _ = cKDTree(obs).query(surf, k=1)
+            obs_tree, true_tree = cKDTree(obs), cKDTree(surf)
+            fit[str(i)] = float(np.median(true_tree.query(obs, k=1)[0]))  # the frames agree?
+            d, _ = obs_tree.query(surf, k=1)
             pick = collision.subsample_indices
             hidden = surf[d > args.new]
             hidden = hidden[pick(len(hidden), N_POSED, 0)] if len(hidden) > N_POSED else hidden
@@ -234,7 +224,6 @@ def main(argv=None) -> dict:
             for x in shifts:  # the whole hidden side off by x in one random direction
                 u = rng.normal(size=3)
                 cache[i][f"hidden_s{1e3 * x:g}"] = hidden + x * u / np.linalg.norm(u)
-            obs_tree, true_tree = cKDTree(obs), cKDTree(surf)
             for v, (cfg, params, fn) in nets.items():  # as completion.predict_points: seed 0
                 sub = obs[
                     np.random.default_rng(0).choice(
@@ -244,21 +233,22 @@ def main(argv=None) -> dict:
                 pred = np.asarray(fn(params, sub[None].astype(np.float32)))[0].astype(float)
                 pred = pred[obs_tree.query(pred, k=1)[0] > args.new]
                 cache[i][v] = pred
-                near, _ = (
-                    cKDTree(pred).query(hidden, k=1)
+                near = (
+                    cKDTree(pred).query(hidden, k=1)[0]
                     if len(pred)
-                    else (np.full(len(hidden), np.inf), 0)
+                    else np.full(len(hidden), np.inf)
                 )
+                cover = {f"covered_{t}mm": float(np.mean(near < t / 1e3)) if len(hidden) else None
+                         for t in (2, 3, 5)}  # fmt: skip
                 quality[v].append(dict(
                     to_true_mm=1e3 * float(np.median(true_tree.query(pred, k=1)[0])) if len(pred) else None,
-                    covered_2mm=float(np.mean(near < 0.002)), covered_3mm=float(np.mean(near < 0.003)),
-                    covered_5mm=float(np.mean(near < 0.005)), points=len(pred)))  # fmt: skip
+                    **cover, points=len(pred)))  # fmt: skip
         sup = np.asarray(clouds["support_points"], float)
         nrm = np.asarray(clouds["support_normals"], float)
         out = {}
         for v, pts in cache[i].items():
             out[v] = (
-                inside_near(collision.posed_points(poses, pts), sup, nrm)
+                inside_grid(collision.posed_points(poses, pts), sup, nrm, margin=MARGIN)
                 if len(pts)
                 else np.zeros((len(GRID), len(poses)), np.int32)
             )
@@ -272,10 +262,7 @@ def main(argv=None) -> dict:
             for row in runs[0][0]:
                 counts_fn(row, load_clouds(data, row), np.zeros((0, 7)))
             for v, q in quality.items():
-                result[f"quality_{v}_{split}"] = {
-                    k: round(float(np.nanmean([np.nan if x[k] is None else x[k] for x in q])), 4)
-                    for k in q[0]
-                }
+                result[f"quality_{v}_{split}"] = mean_quality(q)
                 q.clear()
         Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
         print(json.dumps({k: v for k, v in result.items() if k.startswith("quality")}, indent=1))
@@ -289,10 +276,7 @@ def main(argv=None) -> dict:
         med = [fit[str(int(r["pair_index"]))] for r in parts[0][0][0]]
         result[f"median_observed_to_true_mm_{split}"] = round(1000 * float(np.median(med)), 3)
         for v, q in quality.items():  # the completion's hidden points against the true hidden side
-            result[f"quality_{v}_{split}"] = {
-                k: round(float(np.nanmean([np.nan if x[k] is None else x[k] for x in q])), 4)
-                for k in q[0]
-            }
+            result[f"quality_{v}_{split}"] = mean_quality(q)
             q.clear()
         print(f"{split}: {len(tables[split])} rules, {time.perf_counter() - t0:.0f} s", flush=True)
         best = {v: max((r for r in tables[split][1:] if r["variant"] == v), key=lambda r: r["mean"])

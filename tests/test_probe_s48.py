@@ -1,6 +1,6 @@
 """The forty-eighth session's issue-12 probe (scripts/probe_true_surface.py: the true hidden side
-of the object in the answer rule, a bound on completion) and the completion trainer's network
-flags (experiments.train_completion)."""
+of the object in the answer rule, a bound on completion; the answer rule's inside test with a
+margin) and the completion trainer's network flags (experiments.train_completion)."""
 
 import argparse
 import importlib.util
@@ -27,23 +27,25 @@ def _plate(n, rng):
     return p, np.tile([0.0, 0.0, 1.0], (n, 1))
 
 
-def test_inside_near_counts_what_the_rule_counts_near_the_support_and_nothing_far():
+def test_inside_grid_with_a_margin_counts_what_the_rule_counts_near_the_support_only():
     from experiments.rerank_completed import GRID, inside_grid
 
-    pt = _load("probe_true_surface")
+    pt = _load("probe_true_surface")  # the probe's margin
     rng = np.random.default_rng(0)
     sup, nrm = _plate(2000, rng)
     # candidate 0 sinks 4 mm into the plate, candidate 1 rests 1 mm above it,
     # candidate 2 is 5 cm under it (behind the partial support: the plain test would count it)
     body = np.c_[rng.uniform(-0.01, 0.01, (300, 2)), np.zeros(300)]
     posed = np.stack([body + [0, 0, -0.004], body + [0, 0, 0.001], body + [0, 0, -0.05]])
-    got = pt.inside_near(posed, sup, nrm)
+    got = inside_grid(posed, sup, nrm, margin=pt.MARGIN)
     want = inside_grid(posed, sup, nrm)
     assert got.shape == (len(GRID), 3)
     np.testing.assert_array_equal(got[:, :2], want[:, :2])  # the same counts within the margin
     g1 = GRID.index((0.001, 0.003))
     assert got[g1, 0] == 300 and got[g1, 1] == 0
     assert want[g1, 2] == 300 and got[g1, 2] == 0  # far behind: tested no more
+    far = np.stack([body + [1.0, 0, 0]])  # nowhere near: nothing tested, nothing counted
+    assert not inside_grid(far, sup, nrm, margin=pt.MARGIN).any()
 
 
 def test_train_completion_network_flags_make_the_config():
