@@ -14,8 +14,9 @@ isotropic Gaussian noise of X mm per axis; ``hidden_sX`` (``--shift``): the whol
 X mm in one random direction per pair. Stand-ins for a completion's error (scattered and
 coherent), so that the bound says how accurate a completion must be; ``completed_<net>``
 (``--completion``): a completion network's predicted points more than ``--new`` from every
-observed point, the method the bound is for (with each network's hidden points measured against
-the true hidden side: median distance to it, share of it covered within 2 / 3 / 5 mm). Rules, choice on the three validation keys and one held-out reading as
+observed point, the method the bound is for; ``points_<name>`` (``--points``, forty-ninth
+session): per-pair points read from files, the distance field's (``scripts/field_points.py``),
+likewise (with each model's hidden points measured against the true hidden side: median distance to it, share of it covered within 2 / 3 / 5 mm). Rules, choice on the three validation keys and one held-out reading as
 ``scripts/probe_symmetry.py``.
 
 It is an oracle: the surface is the ground truth. If it is level, no completion of the object,
@@ -158,6 +159,12 @@ def main(argv=None) -> dict:
         "variants completed_<folder name>, the network's hidden points",
     )
     ap.add_argument(
+        "--points",
+        default="",
+        help="comma-separated NAME=PREFIX: variants points_NAME, per-pair object points a model "
+        "put on the hidden side (scripts/field_points.py extract writes PREFIX.partNN.npz)",
+    )
+    ap.add_argument(
         "--no-true", action="store_true", help="only the noisy / shifted / completed variants"
     )
     ap.add_argument(
@@ -186,9 +193,18 @@ def main(argv=None) -> dict:
         nets[f"completed_{Path(folder).parent.name}_{Path(folder).name}"] = (
             cfg, params, completion.complete_fn(cfg))  # fmt: skip
     variants += list(nets)
+    given = {}  # points_NAME -> pair index -> [M, 3] (a model's points, read from files)
+    for item in (x for x in args.points.split(",") if x):
+        from field_points import load_points
+
+        name, _, prefix = item.partition("=")
+        if not prefix:
+            raise SystemExit(f"--points: NAME=PREFIX expected, got {item!r}")
+        given[f"points_{name}"] = load_points(prefix)
+    variants += list(given)
     if not variants:
-        raise SystemExit("--no-true needs --noise, --shift or --completion")
-    quality: dict[str, list] = {v: [] for v in nets}
+        raise SystemExit("--no-true needs --noise, --shift, --completion or --points")
+    quality: dict[str, list] = {v: [] for v in [*nets, *given]}
     data, progress = Path(args.data), not args.no_progress
     records = {
         split: [[read_records(p) for p in key] for key in runs[:n]]
@@ -224,14 +240,20 @@ def main(argv=None) -> dict:
             for x in shifts:  # the whole hidden side off by x in one random direction
                 u = rng.normal(size=3)
                 cache[i][f"hidden_s{1e3 * x:g}"] = hidden + x * u / np.linalg.norm(u)
+            preds = {}
             for v, (cfg, params, fn) in nets.items():  # as completion.predict_points: seed 0
                 sub = obs[
                     np.random.default_rng(0).choice(
                         len(obs), cfg.n_input, replace=len(obs) < cfg.n_input
                     )
                 ]
-                pred = np.asarray(fn(params, sub[None].astype(np.float32)))[0].astype(float)
-                pred = pred[obs_tree.query(pred, k=1)[0] > args.new]
+                preds[v] = np.asarray(fn(params, sub[None].astype(np.float32)))[0].astype(float)
+            for v, per_pair in given.items():
+                if i not in per_pair:
+                    raise KeyError(f"{v}: no points for pair {i} (extract them for these records)")
+                preds[v] = per_pair[i].astype(float)
+            for v, pred in preds.items():
+                pred = pred[obs_tree.query(pred, k=1)[0] > args.new] if len(pred) else pred
                 cache[i][v] = pred
                 near = (
                     cKDTree(pred).query(hidden, k=1)[0]

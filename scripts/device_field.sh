@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Forty-ninth session, issue 12: train the object's distance field (omnihang_jax.distance_field,
+# experiments.train_distance_field) on ONE GPU (its 16 cores render the views), then, with
+# EXTRACT=1, the field's points for the probe pairs (scripts/field_points.py extract; the inputs
+# out/s49/probe_inputs.npz travel in carry). Resumes on a warm machine (state in /tmp/chain/field/;
+# a fresh machine renders and starts over).
+#
+#   python scripts/field_points.py pack --out out/s49/probe_inputs.npz
+#   bash scripts/device_slim.sh out
+#   run(carry=[".whl_min", ".whl_train", "out/s49/probe_inputs.npz"], timeout_s=600,
+#       command="STEPS=30000 bash scripts/device_field.sh")
+#   bash scripts/device_slim.sh in
+#
+# Output: $OUT/field.tgz (the run folder without its checkpoint, metrics.json), $OUT/field.log,
+# with EXTRACT=1 $OUT/field_points.partNN.npz. STEPS / BATCH / EXTRA / RESERVE pass through.
+set -uo pipefail
+CALL=field
+C=/tmp/chain
+END_S=${END_S:-585}
+LOG=field.log
+. scripts/device_preamble.sh
+mkdir -p "$C/field"
+timeout $(($(left) - ${RESERVE:-20})) $PY -m experiments.train_distance_field --data "$C/ds" \
+    --out "$C/field/run" --steps "${STEPS:-30000}" --batch "${BATCH:-32}" --workers "${WORKERS:-15}" \
+    --no-progress ${EXTRA:-} >>"$OUT/$LOG" 2>&1
+log "train_distance_field exit $?"
+tail -n 3 "$C/field/run/history.jsonl" | tee -a "$OUT/$LOG"
+if [ -n "${EXTRACT:-}" ]; then
+    timeout $(($(left) - 8)) $PY scripts/field_points.py extract --field "$C/field/run" \
+        --inputs out/s49/probe_inputs.npz --out "$OUT/field_points" --no-progress >>"$OUT/$LOG" 2>&1
+    log "field_points exit $?"
+fi
+tar czf "$OUT/field.tgz" --exclude checkpoint.msgpack -C "$C/field" run
+ls -la "$OUT" | tee -a "$OUT/$LOG"
