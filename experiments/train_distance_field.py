@@ -43,6 +43,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--queries", type=int, default=2048, help="queries per cloud and step")
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--k", type=int, default=12, help="FieldConfig.k: neighbours per query")
+    ap.add_argument(
+        "--quantiles",
+        default="0.5",
+        help="FieldConfig.quantiles, comma-separated: the surface's (first) and upper ones",
+    )
     ap.add_argument("--eval-every", type=int, default=1000)
     ap.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2)))
     ap.add_argument("--no-cache", action="store_true", help="render again, write no cache")
@@ -58,7 +63,10 @@ def main(argv=None) -> dict:
     train_names = sorted(library.split["train"]["objects"])
     test_names = sorted(library.split["test"]["objects"])
     if args.objects:
-        train_names, test_names = train_names[: args.objects], test_names[: max(1, args.objects // 4)]
+        train_names, test_names = (
+            train_names[: args.objects],
+            test_names[: max(1, args.objects // 4)],
+        )
     val_set = validation_objects(train_names, VALIDATION_FRACTION) or {train_names[-1]}
     fit_names = [n for n in train_names if n not in val_set]
     val_names = [n for n in train_names if n in val_set]
@@ -80,13 +88,13 @@ def main(argv=None) -> dict:
     idx = {n: i for i, n in enumerate(train_names)}
     fit = all_train.take([idx[n] for n in fit_names])
     val = all_train.take([idx[n] for n in val_names])
-    cfg = distance_field.FieldConfig(k=args.k)
+    quantiles = tuple(float(x) for x in args.quantiles.split(",") if x)
+    cfg = distance_field.FieldConfig(k=args.k, quantiles=quantiles)
     tc = distance_field.FieldTrainConfig(steps=args.steps, batch=args.batch, queries=args.queries,
                                          lr=args.lr, eval_every=min(args.eval_every, args.steps))  # fmt: skip
     summary = distance_field.train_field(cfg, fit, val, out, tc, progress=not args.no_progress)
     cfg, params, meta = distance_field.load_field(out)
-    _, apply = distance_field.make_field(cfg)
-    held = distance_field.evaluate(apply, params, test, cfg)
+    held = distance_field.evaluate(params, test, cfg)
     metrics = dict(
         fit_objects=len(fit_names), validation_objects=len(val_names), test_objects=len(test_names),
         views=args.views, target_points=tp, steps=args.steps, best_step=summary["best_step"],

@@ -59,15 +59,24 @@ class FieldConfig:
     scale: float = 0.1  # m: centred coordinates are divided by this inside the network
     k: int = 12  # observed neighbours of each query (the local branch)
     encoder: tuple[int, ...] = (64, 128)  # first shared MLP (then max pool)
-    encoder2: tuple[int, ...] = (128, 64)  # second shared MLP on [point, pooled]: per-point features
+    encoder2: tuple[int, ...] = (
+        128,
+        64,
+    )  # second shared MLP on [point, pooled]: per-point features
     local: tuple[int, ...] = (64, 128)  # shared MLP over each query's neighbours (then max pool)
     glob: int = 128  # the global feature projected to this width for the head
     head: tuple[int, ...] = (256, 128, 64)
     clip: float = 0.03  # m: distances are learnt up to this (the test needs the surface's band)
+    # quantiles of the distance the network predicts (pinball loss); the first is the surface's
+    # field (0.5: the median, L1), a last one above it an upper bound (``upper_fn``): where the
+    # network is unsure whether surface lies there, it stays far from zero
+    quantiles: tuple[float, ...] = (0.5,)
 
     def __post_init__(self):
         if min(self.n_input, self.k, self.glob) < 1 or self.scale <= 0 or self.clip <= 0:
             raise ValueError(f"bad sizes in {self}")
+        if not self.quantiles or not all(0.0 < q < 1.0 for q in self.quantiles):
+            raise ValueError(f"quantiles must lie in (0, 1), got {self.quantiles}")
         if self.k > self.n_input:
             raise ValueError(f"k = {self.k} > n_input = {self.n_input}")
 
@@ -95,7 +104,7 @@ class _Field(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array, q: jax.Array) -> jax.Array:
-        """x [B, N, 3], q [B, Q, 3] normalised -> [B, Q] distances (normalised units)."""
+        """x [B, N, 3], q [B, Q, 3] normalised -> [B, Q, quantiles] distances (normalised)."""
         cfg = self.config
         f = _mlp(x, cfg.encoder, "enc1", last_relu=False)
         g = jnp.max(f, axis=1, keepdims=True)
@@ -112,12 +121,13 @@ class _Field(nn.Module):
         gp = nn.Dense(cfg.glob, name="glob")(glob)[:, None, :]
         z = jnp.concatenate([h, q, jnp.broadcast_to(gp, (*q.shape[:2], cfg.glob))], axis=-1)
         z = _mlp(z, cfg.head, "head")
-        return nn.softplus(nn.Dense(1, name="out")(z)[..., 0])
+        return nn.softplus(nn.Dense(len(cfg.quantiles), name="out")(z))
 
 
-def make_field(config: FieldConfig) -> tuple[Callable, Callable]:
+def make_field(config: FieldConfig, which: int | None = 0) -> tuple[Callable, Callable]:
     """(init(key) -> params, apply(params, clouds [B, N, 3], queries [B, Q, 3]) -> [B, Q]
-    distances in metres), in the clouds' frame."""
+    distances in metres, of quantile ``which`` (None: all, [B, Q, quantiles])), in the clouds'
+    frame."""
     net = _Field(config)
 
     def init(key):
@@ -130,7 +140,8 @@ def make_field(config: FieldConfig) -> tuple[Callable, Callable]:
         centre = jnp.mean(clouds, axis=1, keepdims=True)
         x = (clouds - centre) / config.scale
         q = (jnp.asarray(queries, jnp.float32) - centre) / config.scale
-        return config.scale * net.apply(params, x, q)
+        out = config.scale * net.apply(params, x, q)
+        return out if which is None else out[..., which]
 
     return init, apply
 
@@ -144,6 +155,22 @@ def field_fn(config: FieldConfig) -> Callable:
     if key not in _JIT:
         _JIT[key] = jax.jit(make_field(config)[1])
     return _JIT[key]
+
+
+def upper_fn(config: FieldConfig) -> Callable:
+    """Jitted ``(params, clouds, queries) -> [B, Q]``: the last quantile's distance (m)."""
+    key = ("upper", config)
+    if key not in _JIT:
+        _JIT[key] = jax.jit(make_field(config, which=-1)[1])
+    return _JIT[key]
+
+
+def pinball(pred: jax.Array, true: jax.Array, quantiles) -> jax.Array:
+    """[..., Q] predictions of ``quantiles``, [...] targets -> [...] summed pinball losses
+    (for 0.5: half the L1)."""
+    q = jnp.asarray(quantiles, pred.dtype)
+    e = true[..., None] - pred
+    return jnp.sum(jnp.maximum(q * e, (q - 1.0) * e), -1)
 
 
 def field_grad_fn(config: FieldConfig) -> Callable:
@@ -185,8 +212,11 @@ def sample_queries(key: jax.Array, surface: jax.Array, n: int, margin: float = 0
 
 
 def field_metrics(pred: jax.Array, true: jax.Array, band: float = 0.002) -> dict:
-    """Per cloud [B]: L1 error (m) over queries within 1 cm of the surface and over all, and the
-    intersection over union of the ``band`` (pred < band vs true < band)."""
+    """Per cloud [B] from ``pred`` [B, Q, quantiles]: L1 error (m) of the first quantile over
+    queries within 1 cm of the surface and over all, the intersection over union of its ``band``
+    (pred < band vs true < band), and the share of near queries whose last quantile lies at or
+    above the true distance (its calibration: about that quantile)."""
+    upper, pred = pred[..., -1], pred[..., 0]
     near = true < 0.01
     err = jnp.abs(pred - true)
     p, t = pred < band, true < band
@@ -194,6 +224,7 @@ def field_metrics(pred: jax.Array, true: jax.Array, band: float = 0.002) -> dict
         l1_near=jnp.sum(err * near, -1) / jnp.maximum(jnp.sum(near, -1), 1),
         l1=jnp.mean(err, -1),
         band_iou=jnp.sum(p & t, -1) / jnp.maximum(jnp.sum(p | t, -1), 1),
+        upper_covers=jnp.sum((upper >= true) * near, -1) / jnp.maximum(jnp.sum(near, -1), 1),
     )
 
 
@@ -210,34 +241,34 @@ class FieldTrainConfig:
     seed: int = 0
 
 
-def evaluate(apply, params, data: CompletionData, config: FieldConfig, views: int = 4,
+def evaluate(params, data: CompletionData, config: FieldConfig, views: int = 4,
              queries: int = 4096, chunk: int = 16, seed: int = 1) -> dict:  # fmt: skip
     """Over ``completion.fixed_views`` and fixed queries: mean L1 near the surface and over all
-    (mm) and the 2 mm band's IoU."""
+    (mm), the 2 mm band's IoU and the upper quantile's calibration (:func:`field_metrics`)."""
     x, t, _ = fixed_views(data, config.n_input, views)
-    fn = _eval_jit(apply, config.clip)
+    fn = _eval_jit(config)
     rows = []
     for i in range(0, len(x), chunk):
         key = jax.random.key(seed + i)
         rows.append(jax.device_get(fn(params, x[i : i + chunk], t[i : i + chunk], key, queries)))
     mean = {k: float(np.mean(np.concatenate([r[k] for r in rows]))) for k in rows[0]}
     return dict(l1_near_mm=1e3 * mean["l1_near"], l1_mm=1e3 * mean["l1"],
-                band_iou_2mm=mean["band_iou"])  # fmt: skip
+                band_iou_2mm=mean["band_iou"], upper_covers=mean["upper_covers"])  # fmt: skip
 
 
 _EVAL_CACHE: dict = {}
 
 
-def _eval_jit(apply, clip):
-    key = (apply, clip)
-    if key not in _EVAL_CACHE:
+def _eval_jit(config: FieldConfig):
+    if config not in _EVAL_CACHE:
+        apply = make_field(config, which=None)[1]
 
         def fn(p, x, t, k, n):
             q = sample_queries(k, t, n)
-            return field_metrics(apply(p, x, q), true_distance(q, t, clip))
+            return field_metrics(apply(p, x, q), true_distance(q, t, config.clip))
 
-        _EVAL_CACHE[key] = jax.jit(fn, static_argnums=4)
-    return _EVAL_CACHE[key]
+        _EVAL_CACHE[config] = jax.jit(fn, static_argnums=4)
+    return _EVAL_CACHE[config]
 
 
 def save_field(folder, config: FieldConfig, params, **extra) -> None:
@@ -289,7 +320,7 @@ def train_field(
     val.check("validation data")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    init, apply = make_field(config)
+    init, apply = make_field(config, which=None)
     sched = optax.warmup_cosine_decay_schedule(0.0, tc.lr, tc.warmup, max(tc.steps, tc.warmup + 1),
                                                tc.lr * 0.02)  # fmt: skip
     opt = optax.chain(
@@ -298,7 +329,9 @@ def train_field(
     params = init(jax.random.key(tc.seed))
     state = dict(params=params, opt=opt.init(params), step=0, best=np.inf, best_step=-1)
     ckpt, history = folder / CHECKPOINT_FILE, folder / "history.jsonl"
-    run = json.loads(json.dumps(dict(config=dataclasses.asdict(config), train=dataclasses.asdict(tc))))
+    run = json.loads(
+        json.dumps(dict(config=dataclasses.asdict(config), train=dataclasses.asdict(tc)))
+    )
     if ckpt.exists() and (folder / "run.json").exists():
         old = json.loads((folder / "run.json").read_text())
         if old["config"] != run["config"] or old["train"]["batch"] != tc.batch:
@@ -319,7 +352,7 @@ def train_field(
         w = 1.0 + (tc.near_weight - 1.0) * (true < 0.005)
 
         def loss_fn(p):
-            return jnp.sum(w * jnp.abs(apply(p, x, q) - true)) / jnp.sum(w)
+            return 2.0 * jnp.sum(w * pinball(apply(p, x, q), true, config.quantiles)) / jnp.sum(w)
 
         loss, grads = jax.value_and_grad(loss_fn)(params)
         updates, opt_state = opt.update(grads, opt_state, params)
@@ -344,7 +377,7 @@ def train_field(
             if not np.isfinite(train_loss):
                 raise FloatingPointError(f"distance field: loss {train_loss} at step {step}")
             losses = []
-            metrics = evaluate(apply, params, val, config)
+            metrics = evaluate(params, val, config)
             row = dict(step=step, train_loss_mm=1e3 * train_loss, lr=float(sched(step)),
                        seconds=round(time.time() - t0, 1),
                        **{f"val_{k}": v for k, v in metrics.items()})  # fmt: skip
@@ -426,18 +459,23 @@ def extract(
     chunk: int = 4096,
     seed: int = 0,
     fns: tuple[Callable, Callable] | None = None,
-) -> np.ndarray:
+    with_upper: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """[M, 3] points on the field's zero set for one observed ``cloud`` [n_input, 3]: a grid of
-    ``step`` over the cloud's box grown by ``margin``, halved ``levels - 1`` times where the
-    field allows a surface inside a cell (distance below 1.5 x its half-diagonal), ``per_cell``
-    random points per final cell moved ``iters`` times along the gradient by the field's value,
-    kept where the field is below ``final``; at most ``max_points`` (a fixed random subset). At most ``max_cells`` cells
-are kept per level (those of lowest distance): a field that is nowhere far from zero (an
-untrained one) costs bounded time. ``fns``: (field, field-and-gradient) functions of
-``(params, clouds, queries)`` in place of the network's (:func:`field_fn`, :func:`field_grad_fn`)."""
+        ``step`` over the cloud's box grown by ``margin``, halved ``levels - 1`` times where the
+        field allows a surface inside a cell (distance below 1.5 x its half-diagonal), ``per_cell``
+        random points per final cell moved ``iters`` times along the gradient by the field's value,
+        kept where the field is below ``final``; at most ``max_points`` (a fixed random subset). At most ``max_cells`` cells
+    are kept per level (those of lowest distance): a field that is nowhere far from zero (an
+    untrained one) costs bounded time. ``fns``: (field, field-and-gradient) functions of
+    ``(params, clouds, queries)`` in place of the network's (:func:`field_fn`, :func:`field_grad_fn`).
+    ``with_upper``: also [M] the last quantile's distance at each point (:func:`upper_fn`), the
+    network's doubt that surface lies there."""
     cloud = np.asarray(cloud, np.float32)
     if cloud.shape != (config.n_input, 3) or not np.all(np.isfinite(cloud)):
-        raise ValueError(f"extract: a finite [{config.n_input}, 3] cloud expected, got {cloud.shape}")
+        raise ValueError(
+            f"extract: a finite [{config.n_input}, 3] cloud expected, got {cloud.shape}"
+        )
     fn, gfn = fns or (field_fn(config), field_grad_fn(config))
     c = cloud[None]
     lo, hi = cloud.min(0) - margin, cloud.max(0) + margin
@@ -454,8 +492,9 @@ untrained one) costs bounded time. ``fns``: (field, field-and-gradient) function
             off = np.stack(np.meshgrid(*[[-0.25, 0.25]] * 3, indexing="ij"), -1).reshape(-1, 3)
             cells = (cells[:, None, :] + h * off[None]).reshape(-1, 3).astype(np.float32)
             h /= 2
+    none = np.zeros((0, 3), np.float32)
     if not len(cells):
-        return np.zeros((0, 3), np.float32)
+        return (none, np.zeros(0, np.float32)) if with_upper else none
     rng = np.random.default_rng(seed)
     p = np.repeat(cells, per_cell, 0) + rng.uniform(-h / 2, h / 2, (len(cells) * per_cell, 3))
     p = p.astype(np.float32)
@@ -467,4 +506,8 @@ untrained one) costs bounded time. ``fns``: (field, field-and-gradient) function
     p = p[d < final]
     if len(p) > max_points:
         p = p[np.sort(rng.choice(len(p), max_points, replace=False))]
-    return p
+    if not with_upper:
+        return p
+    if not len(p):
+        return p, np.zeros(0, np.float32)
+    return p, _chunked(upper_fn(config), params, c, p, chunk)

@@ -13,6 +13,8 @@
 #
 # Output: $OUT/field.tgz (the run folder without its checkpoint, metrics.json), $OUT/field.log,
 # with EXTRACT=1 $OUT/field_points.partNN.npz. STEPS / BATCH / EXTRA / RESERVE pass through.
+# FIELD=weights/field_s49 skips the training and extracts with that field; VARIANTS="NAME:ARGS;..."
+# extracts once per variant (ARGS passed to field_points.py extract), $OUT/NAME.partNN.npz each.
 set -uo pipefail
 CALL=field
 C=/tmp/chain
@@ -20,6 +22,16 @@ END_S=${END_S:-585}
 LOG=field.log
 . scripts/device_preamble.sh
 mkdir -p "$C/field"
+if [ -n "${FIELD:-}" ]; then
+    IFS=';' read -ra VS <<<"${VARIANTS:-field_points:}"
+    for v in "${VS[@]}"; do
+        timeout $(($(left) - 8)) $PY scripts/field_points.py extract --field "$FIELD" \
+            --inputs out/s49/probe_inputs.npz --out "$OUT/${v%%:*}" --no-progress ${v#*:} >>"$OUT/$LOG" 2>&1
+        log "field_points ${v%%:*} exit $?"
+    done
+    ls -la "$OUT" | tee -a "$OUT/$LOG"
+    exit 0
+fi
 timeout $(($(left) - ${RESERVE:-20})) $PY -m experiments.train_distance_field --data "$C/ds" \
     --out "$C/field/run" --steps "${STEPS:-30000}" --batch "${BATCH:-32}" --workers "${WORKERS:-15}" \
     --no-progress ${EXTRA:-} >>"$OUT/$LOG" 2>&1

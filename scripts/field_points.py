@@ -15,7 +15,8 @@ as float16 (13 MB for the 2,139 pairs). ``extract``: the field's points per pair
 ``--new`` of the input points dropped (the probe drops those within ``--new`` of every observed
 point again), at most ``--max-points``, written in parts of at most ``--part-mb`` (the device
 returns files of at most 16 MiB): ``OUT.partNN.npz`` with ``pair`` [P], ``offsets`` [P + 1],
-``points`` [M, 3] float16.
+``points`` [M, 3] float16 (and ``upper`` [M]: each point's upper quantile, for a field of two;
+``--points NAME=PREFIX:MM`` keeps those below MM millimetres).
 """
 
 from __future__ import annotations
@@ -65,8 +66,9 @@ def pack(args) -> None:
     print(f"{args.out}: {len(rows)} pairs", flush=True)
 
 
-def load_points(prefix: str) -> dict[int, np.ndarray]:
-    """pair index -> [M, 3] float32 points of ``PREFIX.partNN.npz`` (as ``extract`` writes)."""
+def load_points(prefix: str, upper_max: float | None = None) -> dict[int, np.ndarray]:
+    """pair index -> [M, 3] float32 points of ``PREFIX.partNN.npz`` (as ``extract`` writes);
+    with ``upper_max`` (m) only those whose upper quantile lies below it (the field is sure)."""
     files = sorted(glob.glob(f"{prefix}.part*.npz"))
     if not files:
         raise FileNotFoundError(f"no {prefix}.partNN.npz: run `field_points.py extract` first")
@@ -74,7 +76,14 @@ def load_points(prefix: str) -> dict[int, np.ndarray]:
     for f in files:
         with np.load(f) as z:
             o, p = z["offsets"], z["points"].astype(np.float32)
-            out.update({int(i): p[o[j] : o[j + 1]] for j, i in enumerate(z["pair"])})
+            if upper_max is None:
+                keep = np.ones(len(p), bool)
+            elif "upper" in z:
+                keep = z["upper"].astype(np.float32) < upper_max
+            else:
+                raise ValueError(f"{f}: no upper quantile stored (a field of one quantile)")
+            out.update({int(i): p[o[j] : o[j + 1]][keep[o[j] : o[j + 1]]]
+                        for j, i in enumerate(z["pair"])})  # fmt: skip
     return out
 
 
@@ -88,10 +97,13 @@ def extract(args) -> None:
     with np.load(args.inputs) as z:
         pairs, clouds = z["pair"], z["clouds"].astype(np.float32)
     if clouds.shape[1] != cfg.n_input:
-        raise ValueError(f"{args.inputs}: {clouds.shape[1]} points per cloud, the field takes {cfg.n_input}")
+        raise ValueError(
+            f"{args.inputs}: {clouds.shape[1]} points per cloud, the field takes {cfg.n_input}"
+        )
     t0, part, buf, size = time.time(), 0, [], 0
+    upper = len(cfg.quantiles) > 1  # store each point's upper quantile too
     kw = dict(step=args.step, levels=args.levels, per_cell=args.per_cell, final=args.final,
-              max_points=1 << 30, chunk=args.chunk)  # fmt: skip
+              max_points=1 << 30, chunk=args.chunk, with_upper=True)  # fmt: skip
 
     def flush():
         nonlocal part, buf, size
@@ -99,22 +111,31 @@ def extract(args) -> None:
             return
         pts = [b[1] for b in buf]
         offsets = np.concatenate([[0], np.cumsum([len(p) for p in pts])])
+        extra = {"upper": np.concatenate([b[2] for b in buf]).astype(np.float16)} if upper else {}
         np.savez(f"{args.out}.part{part:02d}.npz", pair=np.asarray([b[0] for b in buf]),
-                 offsets=offsets, points=np.concatenate(pts).astype(np.float16))  # fmt: skip
+                 offsets=offsets, points=np.concatenate(pts).astype(np.float16), **extra)  # fmt: skip
         part, buf, size = part + 1, [], 0
 
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     kept = []
-    for i, cloud in zip(tqdm(pairs, desc="field points", disable=args.no_progress), clouds, strict=True):
-        p = distance_field.extract(params, cfg, cloud, seed=int(i), **kw)
-        p = p[cKDTree(cloud).query(p, k=1)[0] > args.new] if len(p) else p
+    for i, cloud in zip(
+        tqdm(pairs, desc="field points", disable=args.no_progress), clouds, strict=True
+    ):
+        p, u = distance_field.extract(params, cfg, cloud, seed=int(i), **kw)
+        if len(p):
+            far = cKDTree(cloud).query(p, k=1)[0] > args.new
+            p, u = p[far], u[far]
         if len(p) > args.max_points:
-            p = p[np.sort(np.random.default_rng(int(i)).choice(len(p), args.max_points, replace=False))]
+            pick = np.sort(
+                np.random.default_rng(int(i)).choice(len(p), args.max_points, replace=False)
+            )
+            p, u = p[pick], u[pick]
         kept.append(len(p))
-        if size + p.nbytes // 2 > args.part_mb * 2**20:
+        nbytes = p.nbytes // 2 + (u.nbytes // 2 if upper else 0)
+        if size + nbytes > args.part_mb * 2**20:
             flush()
-        buf.append((int(i), p))
-        size += p.nbytes // 2
+        buf.append((int(i), p, u))
+        size += nbytes
     flush()
     print(f"{len(pairs)} pairs, {part} parts, points per pair: median {np.median(kept):.0f}, "
           f"min {min(kept)}, {time.time() - t0:.0f} s", flush=True)  # fmt: skip

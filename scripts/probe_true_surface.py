@@ -161,8 +161,9 @@ def main(argv=None) -> dict:
     ap.add_argument(
         "--points",
         default="",
-        help="comma-separated NAME=PREFIX: variants points_NAME, per-pair object points a model "
-        "put on the hidden side (scripts/field_points.py extract writes PREFIX.partNN.npz)",
+        help="comma-separated NAME=PREFIX[:UPPER_MM]: variants points_NAME, per-pair object points "
+        "a model put on the hidden side (scripts/field_points.py extract writes PREFIX.partNN.npz; "
+        "UPPER_MM: only those whose upper quantile lies below it)",
     )
     ap.add_argument(
         "--no-true", action="store_true", help="only the noisy / shifted / completed variants"
@@ -199,8 +200,9 @@ def main(argv=None) -> dict:
 
         name, _, prefix = item.partition("=")
         if not prefix:
-            raise SystemExit(f"--points: NAME=PREFIX expected, got {item!r}")
-        given[f"points_{name}"] = load_points(prefix)
+            raise SystemExit(f"--points: NAME=PREFIX[:UPPER_MM] expected, got {item!r}")
+        prefix, _, mm = prefix.partition(":")
+        given[f"points_{name}"] = load_points(prefix, float(mm) / 1e3 if mm else None)
     variants += list(given)
     if not variants:
         raise SystemExit("--no-true needs --noise, --shift, --completion or --points")
@@ -262,9 +264,12 @@ def main(argv=None) -> dict:
                 )
                 cover = {f"covered_{t}mm": float(np.mean(near < t / 1e3)) if len(hidden) else None
                          for t in (2, 3, 5)}  # fmt: skip
+                to_true = true_tree.query(pred, k=1)[0] if len(pred) else None
                 quality[v].append(dict(
-                    to_true_mm=1e3 * float(np.median(true_tree.query(pred, k=1)[0])) if len(pred) else None,
-                    **cover, points=len(pred)))  # fmt: skip
+                    to_true_mm=1e3 * float(np.median(to_true)) if len(pred) else None,
+                    **cover, points=len(pred),
+                    # the share of its points on the true surface (the rest is false surface)
+                    accurate_3mm=float(np.mean(to_true < 0.003)) if len(pred) else None))  # fmt: skip
         sup = np.asarray(clouds["support_points"], float)
         nrm = np.asarray(clouds["support_normals"], float)
         out = {}

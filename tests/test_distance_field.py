@@ -16,7 +16,7 @@ from omnihang_jax.completion import CompletionData
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = df.FieldConfig(n_input=64, k=4, encoder=(16, 32), encoder2=(32, 16), local=(16, 32),
-                      glob=16, head=(32, 16))  # fmt: skip
+                      glob=16, head=(32, 16), quantiles=(0.5, 0.9))  # fmt: skip
 
 
 def _sphere(rng, n, r, centre):
@@ -41,6 +41,16 @@ def _spheres(rng, a, views=3, points=96, targets=512):
                           np.stack(surfaces).astype(np.float32), np.arange(a).astype(str))  # fmt: skip
 
 
+def test_pinball_is_half_the_l1_at_the_median_and_asymmetric_above_it():
+    pred, true = jnp.array([[0.01, 0.01]]), jnp.array([0.004])
+    got = np.asarray(df.pinball(pred, true, (0.5, 0.9)))
+    np.testing.assert_allclose(got, [0.5 * 0.006 + 0.1 * 0.006], rtol=1e-5)  # over: (1 - q) x
+    got = np.asarray(df.pinball(jnp.array([[0.0, 0.0]]), true, (0.5, 0.9)))
+    np.testing.assert_allclose(got, [0.5 * 0.004 + 0.9 * 0.004], rtol=1e-5)  # under: q x
+    with pytest.raises(ValueError, match="quantiles"):
+        df.FieldConfig(quantiles=(0.5, 1.0))
+
+
 def test_true_distance_and_queries_match_a_kd_tree():
     rng = np.random.default_rng(0)
     surf = rng.uniform(-0.05, 0.05, (2, 300, 3)).astype(np.float32)
@@ -56,14 +66,20 @@ def test_true_distance_and_queries_match_a_kd_tree():
 def test_the_field_learns_and_its_trainer_resumes(tmp_path):
     rng = np.random.default_rng(1)
     fit, val = _spheres(rng, 12), _spheres(rng, 4)
-    init, apply = df.make_field(TINY)
-    before = df.evaluate(apply, init(jax.random.key(0)), val, TINY, views=2, queries=256)
+    init, _ = df.make_field(TINY)
+    before = df.evaluate(init(jax.random.key(0)), val, TINY, views=2, queries=256)
     tc = df.FieldTrainConfig(steps=150, batch=8, queries=256, lr=3e-3, warmup=20, eval_every=75)
     df.train_field(TINY, fit, val, tmp_path / "f", tc, progress=False)
     cfg, params, meta = df.load_field(tmp_path / "f")
-    after = df.evaluate(apply, params, val, cfg, views=2, queries=256)
+    after = df.evaluate(params, val, cfg, views=2, queries=256)
     assert cfg == TINY and meta["step"] in (75, 150)
     assert after["l1_mm"] < 0.6 * before["l1_mm"], (before, after)
+    # the upper (0.9) quantile lies above the truth far more often than the median does
+    assert after["upper_covers"] > 0.7, after
+    x = val.inputs[:, 0, : TINY.n_input]
+    q = val.targets[:, :200] + np.random.default_rng(0).normal(0, 0.003, (len(x), 200, 3))
+    med, up = df.field_fn(cfg)(params, x, q), df.upper_fn(cfg)(params, x, q)
+    assert np.mean(np.asarray(up) >= np.asarray(med)) > 0.9
     rows = (tmp_path / "f" / "history.jsonl").read_text().splitlines()
     assert len(rows) == 2 and (tmp_path / "f" / "curves.png").exists()
     longer = df.FieldTrainConfig(**{**tc.__dict__, "steps": 225})  # resumes at 150
@@ -120,6 +136,8 @@ def test_field_points_extract_writes_parts_the_probe_reads(tmp_path):
     for j, i in enumerate([7, 3, 11, 5]):
         p = got[i]
         assert p.dtype == np.float32 and p.shape[1] == 3 and len(p) <= 200
+        sure = field_points.load_points(str(tmp_path / "fp"), upper_max=0.05)[i]
+        assert len(sure) <= len(p)  # the upper quantile is stored per point and filters
         if len(p):  # nothing within --new (3 mm) of its own input
             assert cKDTree(clouds[j]).query(p)[0].min() > 0.003 - 1e-4
     with pytest.raises(FileNotFoundError):
