@@ -96,11 +96,13 @@ def extract(args) -> None:
     cfg, params, _ = distance_field.load_field(args.field)
     with np.load(args.inputs) as z:
         pairs, clouds = z["pair"], z["clouds"].astype(np.float32)
+    stop = len(pairs) if args.stop is None else args.stop
+    pairs, clouds = pairs[args.start : stop], clouds[args.start : stop]
     if clouds.shape[1] != cfg.n_input:
         raise ValueError(
             f"{args.inputs}: {clouds.shape[1]} points per cloud, the field takes {cfg.n_input}"
         )
-    t0, part, buf, size = time.time(), 0, [], 0
+    t0, part, buf, size = time.time(), args.first_part, [], 0
     upper = len(cfg.quantiles) > 1  # store each point's upper quantile too
     kw = dict(step=args.step, levels=args.levels, per_cell=args.per_cell, final=args.final,
               max_points=1 << 30, chunk=args.chunk, with_upper=True)  # fmt: skip
@@ -137,7 +139,7 @@ def extract(args) -> None:
         buf.append((int(i), p, u))
         size += nbytes
     flush()
-    print(f"{len(pairs)} pairs, {part} parts, points per pair: median {np.median(kept):.0f}, "
+    print(f"{len(pairs)} pairs, parts up to {part - 1}, points per pair: median {np.median(kept):.0f}, "
           f"min {min(kept)}, {time.time() - t0:.0f} s", flush=True)  # fmt: skip
 
 
@@ -162,6 +164,9 @@ def main(argv=None) -> None:
     b.add_argument("--final", type=float, default=0.0015, help="m: points kept below this")
     b.add_argument("--chunk", type=int, default=32768, help="queries per network call")
     b.add_argument("--part-mb", type=float, default=14.0)
+    b.add_argument("--start", type=int, default=0, help="the packed pairs from this index ...")
+    b.add_argument("--stop", type=int, default=None, help="... to this one (a killed run's rest)")
+    b.add_argument("--first-part", type=int, default=0, help="the first part's number")
     b.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     pack(args) if args.cmd == "pack" else extract(args)
