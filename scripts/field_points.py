@@ -105,7 +105,7 @@ def extract(args) -> None:
     t0, part, buf, size = time.time(), args.first_part, [], 0
     upper = len(cfg.quantiles) > 1  # store each point's upper quantile too
     kw = dict(step=args.step, levels=args.levels, per_cell=args.per_cell, final=args.final,
-              max_points=1 << 30, chunk=args.chunk, with_upper=True)  # fmt: skip
+              max_points=1 << 30, chunk=args.chunk, with_upper=upper)  # fmt: skip
 
     def flush():
         nonlocal part, buf, size
@@ -123,7 +123,8 @@ def extract(args) -> None:
     for i, cloud in zip(
         tqdm(pairs, desc="field points", disable=args.no_progress), clouds, strict=True
     ):
-        p, u = distance_field.extract(params, cfg, cloud, seed=int(i), **kw)
+        got = distance_field.extract(params, cfg, cloud, seed=int(i), **kw)
+        p, u = got if upper else (got, np.zeros(len(got), np.float32))
         if len(p):
             far = cKDTree(cloud).query(p, k=1)[0] > args.new
             p, u = p[far], u[far]

@@ -136,8 +136,11 @@ def test_field_points_extract_writes_parts_the_probe_reads(tmp_path):
     for j, i in enumerate([7, 3, 11, 5]):
         p = got[i]
         assert p.dtype == np.float32 and p.shape[1] == 3 and len(p) <= 200
-        sure = field_points.load_points(str(tmp_path / "fp"), upper_max=0.05)[i]
-        assert len(sure) <= len(p)  # the upper quantile is stored per point and filters
+        # each point's upper quantile is stored and filters: none is below 0, all below 1 m
+        assert len(field_points.load_points(str(tmp_path / "fp"), upper_max=0.0)[i]) == 0
+        np.testing.assert_array_equal(
+            field_points.load_points(str(tmp_path / "fp"), upper_max=1.0)[i], p
+        )
         if len(p):  # nothing within --new (3 mm) of its own input
             assert cKDTree(clouds[j]).query(p)[0].min() > 0.003 - 1e-4
     with pytest.raises(FileNotFoundError):
