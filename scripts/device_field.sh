@@ -11,10 +11,12 @@
 #       command="STEPS=30000 bash scripts/device_field.sh")
 #   bash scripts/device_slim.sh in
 #
-# Output: $OUT/field.tgz (the run folder without its checkpoint, metrics.json), $OUT/field.log,
+# Output: $OUT/field.tgz (the run folder with its resumable checkpoint, ~3 MB), $OUT/field.log,
 # with EXTRACT=1 $OUT/field_points.partNN.npz. STEPS / BATCH / EXTRA / RESERVE pass through.
 # FIELD=weights/field_s49 skips the training and extracts with that field; VARIANTS="NAME:ARGS;..."
 # extracts once per variant (ARGS passed to field_points.py extract), $OUT/NAME.partNN.npz each.
+# RESUME=dir (a run folder brought back from an earlier call, in the tree or carry) continues that
+# run on a fresh machine: a lost warm machine no longer loses the training (fiftieth session).
 set -uo pipefail
 CALL=field
 C=/tmp/chain
@@ -22,6 +24,9 @@ END_S=${END_S:-585}
 LOG=field.log
 . scripts/device_preamble.sh
 mkdir -p "$C/field"
+if [ -n "${RESUME:-}" ] && [ ! -e "$C/field/run" ]; then
+    cp -r "$RESUME" "$C/field/run" && log "resuming from $RESUME ($(wc -l <"$RESUME/history.jsonl") evaluations)"
+fi
 if [ -n "${FIELD:-}" ]; then
     IFS=';' read -ra VS <<<"${VARIANTS:-field_points:}"
     for v in "${VS[@]}"; do
@@ -42,5 +47,5 @@ if [ -n "${EXTRACT:-}" ]; then
         --inputs out/s49/probe_inputs.npz --out "$OUT/field_points" --no-progress >>"$OUT/$LOG" 2>&1
     log "field_points exit $?"
 fi
-tar czf "$OUT/field.tgz" --exclude checkpoint.msgpack -C "$C/field" run
+tar czf "$OUT/field.tgz" -C "$C/field" run
 ls -la "$OUT" | tee -a "$OUT/$LOG"
