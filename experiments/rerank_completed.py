@@ -84,13 +84,17 @@ def facing_normals(points: np.ndarray, cloud: np.ndarray, eye: np.ndarray) -> np
 
 
 def inside_grid(
-    posed: np.ndarray, surface: np.ndarray, normals: np.ndarray, margin: float | None = None
+    posed: np.ndarray,
+    surface: np.ndarray,
+    normals: np.ndarray,
+    margin: float | None = None,
+    grid=GRID,
 ) -> np.ndarray:
     """posed [P, N, 3] points, a surface [M, 3] with outward normals -> [G, P] counts of
-    :data:`GRID` (the test of ``collision.inside_points``). With ``margin`` (m) only the points
-    within that far of the surface's bounding box are tested: the rest cannot meet it, and the
-    test alone would count a point far behind a partial surface as inside."""
-    out = np.zeros((len(GRID), posed.shape[0]), np.int32)
+    ``grid``'s (depth, radius) settings (the test of ``collision.inside_points``). With ``margin``
+    (m) only the points within that far of the surface's bounding box are tested: the rest cannot
+    meet it, and the test alone would count a point far behind a partial surface as inside."""
+    out = np.zeros((len(grid), posed.shape[0]), np.int32)
     if len(surface) == 0 or posed.shape[1] == 0:
         return out
     if margin is None:
@@ -105,7 +109,7 @@ def inside_grid(
     along = np.einsum("ij,ij->i", flat - surface[k], normals[k])
     lateral2 = dist**2 - along**2
     which = np.nonzero(tested)[0]  # the candidate of each tested point
-    for g, (d, r) in enumerate(GRID):
+    for g, (d, r) in enumerate(grid):
         out[g] = np.bincount(which[(along < -d) & (lateral2 < r**2)], minlength=len(posed))
     return out
 

@@ -59,6 +59,8 @@ from omnihang_jax import collision  # noqa: E402
 
 N_SURFACE = 32768  # surface points rendered per object (~1 mm from the observed ones)
 N_POSED = 4096  # hidden surface points posed per candidate
+SUPPORT_SPACING = 0.001  # m: a support's true surface is sampled about this far apart
+SUPPORT_MAX_POINTS = 200_000
 MARGIN = 0.02  # m: posed points farther than this outside the support cloud's box are not tested
 
 _W: dict = {}
@@ -84,6 +86,18 @@ def surface(name: str) -> np.ndarray:
     return camera.surface_cloud(
         scene, "object", rng, _W["camera"], n_dirs=_W["n_dirs"], n_points=N_SURFACE
     ).astype(np.float32)
+
+
+def support_surface(asset, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The support's whole true surface in its asset frame (the frame of its clouds): points
+    sampled on its union mesh about ``SUPPORT_SPACING`` apart, with the faces' outward normals
+    (``scripts/probe_support_surface.py``, the fiftieth session's bound)."""
+    import trimesh
+
+    mesh = asset.mesh
+    n = int(np.clip(mesh.area / SUPPORT_SPACING**2, 4096, SUPPORT_MAX_POINTS))
+    pts, face = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(pts, float), np.asarray(mesh.face_normals[face], float)
 
 
 def penetration_oracle(runs: list[list[list[dict]]]) -> dict:

@@ -61,3 +61,30 @@ def test_train_completion_network_flags_make_the_config():
     assert cfg.n_output == 4096 and cfg.fold_size == pytest.approx(0.03)
     assert cfg.encoder == tuple(2 * x for x in base.encoder)
     assert cfg.decoder == tuple(2 * x for x in base.decoder)
+
+
+def test_support_surface_is_the_whole_mesh_with_outward_normals_and_fixes_the_partial_test():
+    """The fiftieth session's support bound (scripts/probe_support_surface.py): the support's true
+    surface is its mesh sampled ~1 mm apart with outward normals, and against it a point beyond
+    the far side of the support is outside, where the observed (one-sided) cloud counts it in."""
+    import types
+
+    import trimesh
+
+    from experiments.rerank_completed import inside_grid
+
+    pt = _load("probe_true_surface")
+    box = trimesh.creation.box([0.04, 0.04, 0.01])  # a 1 cm thick plate, the support
+    pts, nrm = pt.support_surface(types.SimpleNamespace(mesh=box))
+    assert len(pts) >= int(box.area / pt.SUPPORT_SPACING**2)
+    assert not box.contains(pts + 0.001 * nrm).any()  # normals point out
+    assert box.contains(pts - 0.001 * nrm).mean() > 0.99  # (the ray test is loose at edges)
+    grid = ((0.0005, 0.005),)
+    seen = pts[pts[:, 2] > 0.0049]  # the camera saw the top face only
+    seen_n = nrm[pts[:, 2] > 0.0049]
+    inside, above, beyond = [0, 0, 0.002], [0, 0, 0.006], [0, 0, -0.008]  # 3 mm under the bottom
+    posed = np.asarray([[inside], [above], [beyond]], float)
+    whole = inside_grid(posed, pts, nrm, margin=pt.MARGIN, grid=grid)[0]
+    partial = inside_grid(posed, seen, seen_n, margin=pt.MARGIN, grid=grid)[0]
+    np.testing.assert_array_equal(whole, [1, 0, 0])
+    np.testing.assert_array_equal(partial, [1, 0, 1])  # the one-sided cloud's false inside
