@@ -88,3 +88,8 @@ def test_support_surface_is_the_whole_mesh_with_outward_normals_and_fixes_the_pa
     partial = inside_grid(posed, seen, seen_n, margin=pt.MARGIN, grid=grid)[0]
     np.testing.assert_array_equal(whole, [1, 0, 0])
     np.testing.assert_array_equal(partial, [1, 0, 1])  # the one-sided cloud's false inside
+    # the bounded search (the probe's MAX_DIST) counts the same; a bound below the inside point's
+    # 3 mm depth calls it outside
+    bounded = inside_grid(posed, pts, nrm, margin=pt.MARGIN, grid=grid, max_dist=0.03)[0]
+    np.testing.assert_array_equal(bounded, whole)
+    assert not inside_grid(posed, pts, nrm, margin=pt.MARGIN, grid=grid, max_dist=0.002).any()
