@@ -40,9 +40,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from omnihang_jax import checkpoints
+
 KINDS = ("object", "support")
 WEIGHTS_FILE = "params.msgpack"
-CHECKPOINT_FILE = "checkpoint.msgpack"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,31 +305,11 @@ def train_completion(
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     init, apply = make_completion(config)
-    sched = optax.warmup_cosine_decay_schedule(0.0, tc.lr, tc.warmup, max(tc.steps, tc.warmup + 1),
-                                               tc.lr * 0.02)  # fmt: skip
-    opt = optax.chain(
-        optax.clip_by_global_norm(1.0), optax.adamw(sched, weight_decay=tc.weight_decay)
-    )
+    opt, sched = checkpoints.optimizer(tc)
     params = init(jax.random.key(tc.seed))
     state = dict(params=params, opt=opt.init(params), step=0, best=np.inf, best_step=-1)
-    ckpt = folder / CHECKPOINT_FILE
     history = folder / "history.jsonl"
-    run = dict(config=dataclasses.asdict(config), train=dataclasses.asdict(tc))
-    run = json.loads(json.dumps(run))
-    if ckpt.exists() and (folder / "run.json").exists():
-        old = json.loads((folder / "run.json").read_text())
-        if old["config"] != run["config"] or old["train"]["batch"] != tc.batch:
-            raise ValueError(f"{folder}: a checkpoint of another network or batch is there "
-                             f"({old}); choose another folder or delete it")  # fmt: skip
-    from sim import atomic
-
-    atomic.write_text(folder / "run.json", json.dumps(run, indent=2))
-    if ckpt.exists():
-        state = flax.serialization.from_bytes(state, ckpt.read_bytes())
-        state["step"] = int(state["step"])
-        print(f"completion[{config.kind}]: resuming at step {state['step']}", flush=True)
-    elif history.exists():
-        history.unlink()
+    state = checkpoints.open_run(folder, config, tc, state, f"completion[{config.kind}]")
 
     @jax.jit
     def step_fn(params, opt_state, x, t):
@@ -375,9 +356,7 @@ def train_completion(
                 best, best_step = metrics["chamfer_mm"], step
                 save_completion(folder, config, params, step=step, val=metrics,
                                 train=dataclasses.asdict(tc))  # fmt: skip
-            state = dict(params=params, opt=opt_state, step=step, best=best, best_step=best_step)
-            blob = flax.serialization.to_bytes(jax.device_get(state))
-            atomic.write_atomic(ckpt, lambda f, b=blob: f.write(b))
+            state = checkpoints.save_checkpoint(folder, params, opt_state, step, best, best_step)
     if bar is not None:
         bar.close()
     plot_history(history, folder / "curves.png", config.kind)
