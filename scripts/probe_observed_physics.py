@@ -4,7 +4,7 @@ The default answer rule (``experiments.rerank_stage3.rule_keys``: the rankers' m
 no observed object point inside the observed support) picks a candidate that falls or
 penetrates in ~17 % of held-out pairs, most of them while another candidate hangs. This probe
 simulates the rule's top ``--top`` candidates of every pair on the observed clouds alone
-(``sim.observed``: the partial clouds as spheres, the evaluation's stability protocol) and
+(``sim.observed``: the partial clouds as spheres, a stability protocol, the dataset's by default) and
 reads rules that skip a candidate the observed physics drops:
 
 - ``first_of_M``: the first of the rule's top M candidates that stays on the observed clouds,
@@ -69,13 +69,21 @@ def union(files: list[str]) -> dict:
                 status=np.concatenate(status, 1), poses=np.concatenate(poses, 1))  # fmt: skip
 
 
-def _init(data: str, config: dict) -> None:
+def _stability(protocol: str):
+    """The stability protocol of the observed check: the evaluation's (1 s, > 3 mm initial
+    penetration fails) or the dataset's (``sim.kernels.StabilityConfig``: 2 s, > 1 mm)."""
+    from omnihang_jax.evaluate import protocol_stability
+
+    return protocol_stability() if protocol == "eval" else kernels.StabilityConfig()
+
+
+def _init(data: str, config: dict, protocol: str = "dataset") -> None:
     from omnihang_jax import dataset_bridge
     from sim.library import build_library
 
     cfg = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(data))
     _W.update(data=Path(data), library=build_library(cfg.library, progress=False),
-              config=observed.ObservedConfig(**config))  # fmt: skip
+              config=observed.ObservedConfig(**config), stability=_stability(protocol))  # fmt: skip
 
 
 def simulate(job: tuple[dict, np.ndarray]) -> tuple[int, np.ndarray, float]:
@@ -86,7 +94,7 @@ def simulate(job: tuple[dict, np.ndarray]) -> tuple[int, np.ndarray, float]:
     clouds = load_clouds(_W["data"], row)
     try:
         status = observed.observed_stability(
-            clouds, poses, support.floor_z, support.wall_y, _W["config"]
+            clouds, poses, support.floor_z, support.wall_y, _W["config"], _W["stability"]
         )
     except ValueError as err:  # a malformed cloud: say so, count the pair as unchecked
         print(f"pair {row['pair_index']}: {err}", file=sys.stderr)
@@ -95,7 +103,7 @@ def simulate(job: tuple[dict, np.ndarray]) -> tuple[int, np.ndarray, float]:
 
 
 def observed_statuses(u: dict, top: int, cache: Path, data: str, config: dict, workers: int,
-                      progress: bool = True) -> np.ndarray:  # fmt: skip
+                      progress: bool = True, protocol: str = "dataset") -> np.ndarray:  # fmt: skip
     """[N, P] observed status of each pooled candidate (-2 where not simulated): the rule's
     top ``top`` of every pair, cached in ``cache`` (resumable)."""
     have: dict[int, np.ndarray] = {}
@@ -124,7 +132,7 @@ def observed_statuses(u: dict, top: int, cache: Path, data: str, config: dict, w
                  else np.zeros((0, p), np.int8))  # fmt: skip
         tmp.replace(cache)
 
-    with ProcessPoolExecutor(workers, initializer=_init, initargs=(data, config)) as pool:
+    with ProcessPoolExecutor(workers, initializer=_init, initargs=(data, config, protocol)) as pool:
         bar = tqdm(total=len(jobs), desc=f"observed physics ({cache.stem})", disable=not progress)
         for done, (pi, status, sec) in enumerate(pool.map(simulate, jobs, chunksize=4), 1):
             i = where[pi]
@@ -185,6 +193,13 @@ def main(argv=None) -> dict:
     p.add_argument("--radius", type=float, default=observed.ObservedConfig.radius)
     p.add_argument("--crop", type=float, default=observed.ObservedConfig.crop)
     p.add_argument("--voxel", type=float, default=observed.ObservedConfig.voxel)
+    p.add_argument(
+        "--protocol",
+        choices=("dataset", "eval"),
+        default="dataset",
+        help="stability protocol of the check: the dataset's (2 s, > 1 mm penetration "
+        "fails) or the evaluation's (1 s, > 3 mm)",
+    )
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--limit", type=int, default=None, help="first N pairs only (a smoke run)")
     p.add_argument("--cache", default=None, help="statuses cache (default out/s51/obs_...npz)")
@@ -199,11 +214,15 @@ def main(argv=None) -> dict:
         u = {k: v[: a.limit] for k, v in u.items()}
     config = dict(radius=a.radius, crop=a.crop, voxel=a.voxel)
     tag = f"{a.split}_k{a.key}_r{a.radius * 1e3:g}_c{a.crop * 1e3:g}_v{a.voxel * 1e3:g}"
+    tag += "_eval" if a.protocol == "eval" else ""
     cache = Path(a.cache or f"out/s51/obs_{tag}.npz")
     t = time.perf_counter()
-    obs = observed_statuses(u, a.top, cache, a.data, config, a.workers, not a.no_progress)
+    obs = observed_statuses(
+        u, a.top, cache, a.data, config, a.workers, not a.no_progress, a.protocol
+    )
     result = dict(
         split=a.split, key=a.key, pairs=len(u["rows"]), top=a.top, records=files,
+        protocol=dataclasses.asdict(_stability(a.protocol)),
         config=dataclasses.asdict(observed.ObservedConfig(**config)) | {"physics": None},
         seconds=round(time.perf_counter() - t, 1), rules=rules(u, obs), confusion=confusion(u, obs),
     )  # fmt: skip

@@ -25,13 +25,24 @@ through it here. That is what the probe measures.
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import mujoco
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from sim.scene import ENV_GROUP, OBJECT_GROUP, SUPPORT_GROUP, PhysicsConfig, Scene, _fmt, wall_geom_xml
+from sim.scene import (
+    ENV_GROUP,
+    OBJECT_GROUP,
+    SUPPORT_GROUP,
+    PhysicsConfig,
+    Scene,
+    _fmt,
+    wall_geom_xml,
+)
+
+_log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,6 +52,7 @@ class ObservedConfig:
     crop: float = 0.03  # m, keep points within this of the other posed cloud
     max_spheres: int = 2000  # per body, after thinning (a uniform subsample beyond it)
     ground_band: float = 0.02  # m, support points this close to the floor count as ground
+    memory_mb: int = 64  # MuJoCo arena: a deep overlap of two sphere clouds makes ~10k contacts
     physics: PhysicsConfig = PhysicsConfig()
 
 
@@ -57,7 +69,9 @@ def voxel_thin(points: np.ndarray, voxel: float) -> np.ndarray:
 def _check_cloud(name: str, points, normals) -> tuple[np.ndarray, np.ndarray]:
     points, normals = np.asarray(points, float), np.asarray(normals, float)
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
-        raise ValueError(f"{name}: points {points.shape} and normals {normals.shape} must be [N, 3]")
+        raise ValueError(
+            f"{name}: points {points.shape} and normals {normals.shape} must be [N, 3]"
+        )
     ok = np.isfinite(points).all(1) & np.isfinite(normals).all(1)
     if not ok.any():
         raise ValueError(f"{name}: no finite point")
@@ -142,11 +156,14 @@ def observed_scene(
         else ""
     )
     # An object with no sphere near the support still needs a body that can fall.
-    o_geoms = spheres(o_centres, OBJECT_GROUP, "object_") if len(o_centres) else (
-        f'<geom name="object_0" {sphere} pos="{_fmt(com)}" group="{OBJECT_GROUP}" mass="0"/>'
+    o_geoms = (
+        spheres(o_centres, OBJECT_GROUP, "object_")
+        if len(o_centres)
+        else (f'<geom name="object_0" {sphere} pos="{_fmt(com)}" group="{OBJECT_GROUP}" mass="0"/>')
     )
     xml = f"""<mujoco model="observed">
   <compiler angle="radian" autolimits="true" inertiafromgeom="false"/>
+  <size memory="{config.memory_mb}M"/>
   <option timestep="{phys.timestep}" integrator="implicitfast" solver="Newton" cone="elliptic"
           iterations="{phys.iterations}" ls_iterations="{phys.ls_iterations}"
           gravity="0 0 {phys.gravity}"/>
@@ -184,7 +201,9 @@ def observed_scene(
         object_geoms=np.flatnonzero(model.geom_bodyid == body),
         support_geoms=support_geoms,
         ground_geoms=np.zeros(0, int),
-        wall_geom=-1 if wall_y is None else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "wall"),
+        wall_geom=-1
+        if wall_y is None
+        else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "wall"),
         object_hull_points=whole,
         support_bounds=np.stack([sp.min(0), sp.max(0)]),
         ground_sensors=np.asarray(model.sensor_adr[:n_ground]),
@@ -208,5 +227,10 @@ def observed_stability(clouds: dict, poses, floor_z: float, wall_y: float | None
             clouds["object_points"], clouds["object_normals"], clouds["support_points"],
             clouds["support_normals"], pose, floor_z, wall_y, config,
         )  # fmt: skip
-        out[i] = kernels.stability(scene, pose[None], stability, nthread=nthread).status[0]
+        try:
+            out[i] = kernels.stability(scene, pose[None], stability, nthread=nthread).status[0]
+        except mujoco.FatalError as err:  # arena overflow: the clouds overlap deeply
+            _log.warning("observed check of pose %d failed in MuJoCo (%s); labelled diverged",
+                         i, str(err).splitlines()[0])  # fmt: skip
+            out[i] = kernels.DIVERGED
     return out
