@@ -234,3 +234,22 @@ def observed_stability(clouds: dict, poses, floor_z: float, wall_y: float | None
                          i, str(err).splitlines()[0])  # fmt: skip
             out[i] = kernels.DIVERGED
     return out
+
+
+def first_staying(clouds: dict, poses, floor_z: float, wall_y: float | None, top: int = 8,
+                  config: ObservedConfig = ObservedConfig(), stability=None,
+                  nthread: int = 1) -> tuple[int, np.ndarray]:  # fmt: skip
+    """The answer check: ``poses`` [C, 7] in ranking order (best first) are dropped on the
+    observed clouds one at a time; -> (index of the first of the best ``top`` that stays, or
+    0 when none does; [C] int8 statuses, -2 where not simulated). The same answer as
+    simulating all ``top`` and taking the first that stays, at the cost of the ones tried."""
+    from sim import kernels
+
+    poses = kernels.check_poses(poses)
+    status = np.full(len(poses), -2, np.int8)
+    for i in range(min(top, len(poses))):
+        status[i] = observed_stability(clouds, poses[i : i + 1], floor_z, wall_y, config,
+                                       stability, nthread)[0]  # fmt: skip
+        if status[i] == kernels.STABLE:
+            return i, status
+    return 0, status
