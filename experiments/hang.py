@@ -106,6 +106,11 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"poses the search simulates (default {d.search_candidates})",
     )  # fmt: skip
     p.add_argument("--no-verify", action="store_true", help="do not simulate the candidates")
+    p.add_argument(
+        "--observed-check", type=int, default=d.observed_check, metavar="N",
+        help="clouds only: answer the first of the best N candidates that stays when dropped "
+        f"on the observed clouds (sim.observed; default {d.observed_check}, 0: the best-ranked)",
+    )  # fmt: skip
     p.add_argument("--no-plan", action="store_true", help="do not run the how-to-hang planner")
     p.add_argument(
         "--plan-time",
@@ -194,6 +199,7 @@ def main(argv=None) -> int:
         seed=args.seed,
         depth_noise=args.noise,
         verify=not args.no_verify,
+        observed_check=args.observed_check,
         search=args.search,
         search_candidates=args.search_candidates,
         plan=not args.no_plan,

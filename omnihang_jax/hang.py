@@ -120,6 +120,10 @@ class HangInputError(ValueError):
 VIEWS = ((0, 1), (1, 2), (3, 4))
 
 
+# The clouds-only answer check's reach (sim.observed.ANSWER_TOP; HangConfig.observed_check).
+OBSERVED_CHECK = 8
+
+
 @dataclasses.dataclass(frozen=True)
 class HangConfig:
     """Settings of :func:`hang`; every field has a CLI flag of the same name."""
@@ -154,6 +158,9 @@ class HangConfig:
     stage2_clearance: float | None = None
     # the subsamples (j, T) of the clouds Stage 3 runs on (VIEWS)
     views: tuple[tuple[int, int], ...] = VIEWS
+    # clouds only: the answer is the first of the best N candidates that stays when dropped on
+    # the observed clouds (sim.observed, the fifty-first session's check); 0: the best-ranked
+    observed_check: int = OBSERVED_CHECK
 
     def scale_of(self, kind: str) -> float | None:
         own = self.object_scale if kind == "object" else self.support_scale
@@ -1401,6 +1408,39 @@ def _say(log, msg: str) -> None:
         log(msg)
 
 
+def observed_check(obj: Body, sup: Body, sup_asset, poses: np.ndarray, top: int, log):
+    """The clouds-only answer check (``sim.observed.first_staying``): the candidates in
+    ranking order dropped on the observed clouds (as spheres, the dataset's stability
+    protocol) until one stays, at most ``top``. The floor and wall are the support mesh's when
+    it is known, else unknown (no wall, the floor 1 m below the support cloud: a fall is the
+    object leaving the support). -> (chosen index, a sentence, a JSON record)."""
+    from sim import kernels, observed
+
+    if sup_asset is not None:
+        floor_z, wall_y, where = float(sup_asset.floor_z), sup_asset.wall_y, "the support mesh's"
+    else:
+        floor_z = float(np.min(sup.points[:, 2])) - 1.0
+        wall_y, where = None, "unknown: no wall, no floor"
+    clouds = dict(object_points=obj.points, object_normals=obj.normals,
+                  support_points=sup.points, support_normals=sup.normals)  # fmt: skip
+    _say(log, f"dropping the best {min(top, len(poses))} candidates on the observed clouds")
+    chosen, status = observed.first_staying(clouds, poses, floor_z, wall_y, top)
+    tried = int((status != -2).sum())
+    stays = status[chosen] == kernels.STABLE
+    text = (
+        f"the observed clouds as spheres (sim.observed): candidate {chosen} is the first of "
+        f"the best {tried} to stay on them" if stays else
+        f"the observed clouds as spheres (sim.observed): none of the best {tried} stays on "
+        "them, the answer is the best-ranked candidate"
+    ) + "; unverified on the true shapes"  # fmt: skip
+    record = dict(
+        top=int(top), chosen=int(chosen), stays=bool(stays), floor_and_wall=where,
+        floor_z=floor_z, wall_y=None if wall_y is None else float(wall_y),
+        status=[kernels.STATUS_NAMES[int(x)] if x >= 0 else "not simulated" for x in status],
+    )  # fmt: skip
+    return int(chosen), text, record
+
+
 def hang(
     object=None,
     support=None,
@@ -1589,13 +1629,21 @@ def hang(
             f"{len(stable)} of {len(cands.poses)} candidates stay hanging"
         )
     elif scene is None:
-        steps["check"] = (
-            "not possible: only clouds were given for "
-            + " and ".join(
-                k for k, a in (("the object", obj_asset), ("the support", sup_asset)) if a is None
-            )
-            + "; the answer is the best-ranked candidate, unverified"
+        only = " and ".join(
+            k for k, a in (("the object", obj_asset), ("the support", sup_asset)) if a is None
         )
+        if config.verify and config.observed_check > 0 and len(cands.poses):
+            chosen, text, steps["observed_check"] = observed_check(
+                obj, sup, sup_asset, cands.poses, config.observed_check, log
+            )
+            steps["check"] = (
+                f"not possible in MuJoCo on meshes: only clouds were given for {only}; {text}"
+            )
+        else:
+            steps["check"] = (
+                f"not possible: only clouds were given for {only}; the answer is the "
+                "best-ranked candidate, unverified"
+            )
     else:
         steps["check"] = "skipped (verify=False)"
     timings["check"] = time.perf_counter() - t

@@ -77,13 +77,14 @@ def _stability(protocol: str):
     return protocol_stability() if protocol == "eval" else kernels.StabilityConfig()
 
 
-def _init(data: str, config: dict, protocol: str = "dataset") -> None:
+def _init(data: str, config: dict, protocol: str = "dataset", scene: str = "known") -> None:
     from omnihang_jax import dataset_bridge
     from sim.library import build_library
 
     cfg = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(data))
     _W.update(data=Path(data), library=build_library(cfg.library, progress=False),
-              config=observed.ObservedConfig(**config), stability=_stability(protocol))  # fmt: skip
+              config=observed.ObservedConfig(**config), stability=_stability(protocol),
+              scene=scene)  # fmt: skip
 
 
 def simulate(job: tuple[dict, np.ndarray]) -> tuple[int, np.ndarray, float]:
@@ -92,9 +93,12 @@ def simulate(job: tuple[dict, np.ndarray]) -> tuple[int, np.ndarray, float]:
     t = time.perf_counter()
     support = _W["library"].supports[row["support"]]
     clouds = load_clouds(_W["data"], row)
+    floor_z, wall_y = support.floor_z, support.wall_y
+    if _W["scene"] == "clouds":  # what a clouds-only input knows: no wall, no floor
+        floor_z, wall_y = float(np.min(clouds["support_points"][:, 2])) - 1.0, None
     try:
         status = observed.observed_stability(
-            clouds, poses, support.floor_z, support.wall_y, _W["config"], _W["stability"]
+            clouds, poses, floor_z, wall_y, _W["config"], _W["stability"]
         )
     except ValueError as err:  # a malformed cloud: say so, count the pair as unchecked
         print(f"pair {row['pair_index']}: {err}", file=sys.stderr)
@@ -103,7 +107,8 @@ def simulate(job: tuple[dict, np.ndarray]) -> tuple[int, np.ndarray, float]:
 
 
 def observed_statuses(u: dict, top: int, cache: Path, data: str, config: dict, workers: int,
-                      progress: bool = True, protocol: str = "dataset") -> np.ndarray:  # fmt: skip
+                      progress: bool = True, protocol: str = "dataset",
+                      scene: str = "known") -> np.ndarray:  # fmt: skip
     """[N, P] observed status of each pooled candidate (-2 where not simulated): the rule's
     top ``top`` of every pair, cached in ``cache`` (resumable)."""
     have: dict[int, np.ndarray] = {}
@@ -132,7 +137,9 @@ def observed_statuses(u: dict, top: int, cache: Path, data: str, config: dict, w
                  else np.zeros((0, p), np.int8))  # fmt: skip
         tmp.replace(cache)
 
-    with ProcessPoolExecutor(workers, initializer=_init, initargs=(data, config, protocol)) as pool:
+    with ProcessPoolExecutor(
+        workers, initializer=_init, initargs=(data, config, protocol, scene)
+    ) as pool:
         bar = tqdm(total=len(jobs), desc=f"observed physics ({cache.stem})", disable=not progress)
         for done, (pi, status, sec) in enumerate(pool.map(simulate, jobs, chunksize=4), 1):
             i = where[pi]
@@ -200,6 +207,13 @@ def main(argv=None) -> dict:
         help="stability protocol of the check: the dataset's (2 s, > 1 mm penetration "
         "fails) or the evaluation's (1 s, > 3 mm)",
     )
+    p.add_argument(
+        "--scene",
+        choices=("known", "clouds"),
+        default="known",
+        help="known: the support's floor and wall (an observer sees both); clouds: "
+        "neither (a clouds-only input: the floor 1 m below the support, no wall)",
+    )
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--limit", type=int, default=None, help="first N pairs only (a smoke run)")
     p.add_argument("--cache", default=None, help="statuses cache (default out/s51/obs_...npz)")
@@ -214,15 +228,15 @@ def main(argv=None) -> dict:
         u = {k: v[: a.limit] for k, v in u.items()}
     config = dict(radius=a.radius, crop=a.crop, voxel=a.voxel)
     tag = f"{a.split}_k{a.key}_r{a.radius * 1e3:g}_c{a.crop * 1e3:g}_v{a.voxel * 1e3:g}"
-    tag += "_eval" if a.protocol == "eval" else ""
+    tag += ("_eval" if a.protocol == "eval" else "") + ("_clouds" if a.scene == "clouds" else "")
     cache = Path(a.cache or f"out/s51/obs_{tag}.npz")
     t = time.perf_counter()
     obs = observed_statuses(
-        u, a.top, cache, a.data, config, a.workers, not a.no_progress, a.protocol
+        u, a.top, cache, a.data, config, a.workers, not a.no_progress, a.protocol, a.scene
     )
     result = dict(
         split=a.split, key=a.key, pairs=len(u["rows"]), top=a.top, records=files,
-        protocol=dataclasses.asdict(_stability(a.protocol)),
+        protocol=dataclasses.asdict(_stability(a.protocol)), scene=a.scene,
         config=dataclasses.asdict(observed.ObservedConfig(**config)) | {"physics": None},
         seconds=round(time.perf_counter() - t, 1), rules=rules(u, obs), confusion=confusion(u, obs),
     )  # fmt: skip

@@ -134,8 +134,26 @@ def test_clouds_only_are_unverified_and_say_so(tmp_path):
     record = json.loads((out / "result.json").read_text())
     assert "scene.xml" not in record["files"] and not (out / "scene.xml").exists()
     assert "only clouds" in record["steps"]["check"]
+    # the answer check on the observed clouds ran: the first staying candidate, or the best
+    check = record["steps"]["observed_check"]
+    assert "observed clouds" in record["steps"]["check"] and check["top"] == H.OBSERVED_CHECK
+    assert check["floor_and_wall"].startswith("unknown") and check["wall_y"] is None
+    tried = [s for s in check["status"] if s != "not simulated"]
+    assert tried and result.chosen == check["chosen"]
+    assert check["stays"] == (tried[-1] == "stable")
+    np.testing.assert_allclose(result.pose, result.candidates.poses[result.chosen])
     assert record["object"]["report"]["normals"] == "file"
     assert record["support"]["report"]["normals"].startswith("estimated")
+
+
+def test_clouds_only_check_can_be_switched_off(tmp_path):
+    sup = np.load(PAIR / "mug_cloud.npy")[:, :3] * np.float32([0.3, 1.2, 0.2])
+    config = H.HangConfig(plan=False, observed_check=0)
+    result = H.hang(
+        PAIR / "mug_cloud.npy", sup, tmp_path / "c", config, where=cloud_where, log=None
+    )
+    assert result.chosen == 0 and "observed_check" not in result.steps
+    assert "best-ranked candidate, unverified" in result.steps["check"]
 
 
 @pytest.mark.parametrize("name", ["mug_cloud.npy", "mug_cloud.ply"])

@@ -1,0 +1,97 @@
+"""Benchmark of the observed-physics answer check (``sim.observed.first_staying``) on the CPU.
+
+Per pair of the validation records (three views, CEM key 0), side by side in one run: the lazy
+check (the rule's candidates dropped one at a time until one stays, at most ``--top``) and
+the eager one (all ``--top`` simulated), each on one core; both give the same answer. Prints
+and writes per-pair wall times (mean, median, p90), the candidates simulated, their ratio,
+the machine and the versions.
+
+    python scripts/bench_observed_check.py --pairs 100 --out results/bench_observed_check_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "scripts")]
+from probe_observed_physics import union  # noqa: E402
+from probe_symmetry import VALIDATION  # noqa: E402
+
+from experiments.rerank_completed import load_clouds  # noqa: E402
+from sim import kernels, observed  # noqa: E402
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def stats(x) -> dict:
+    x = np.asarray(x, float) * 1e3
+    return dict(mean_ms=round(float(x.mean()), 1), median_ms=round(float(np.median(x)), 1),
+                p90_ms=round(float(np.percentile(x, 90)), 1))  # fmt: skip
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--pairs", type=int, default=100)
+    p.add_argument("--top", type=int, default=8)
+    p.add_argument("--radius", type=float, default=observed.ObservedConfig.radius)
+    p.add_argument("--data", default="datasets/paper")
+    p.add_argument("--out", default=None)
+    a = p.parse_args(argv)
+    import mujoco
+
+    from omnihang_jax import dataset_bridge
+    from sim.library import build_library
+
+    cfg = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(a.data))
+    library = build_library(cfg.library, progress=False)
+    u = union(VALIDATION[0])
+    config = observed.ObservedConfig(radius=a.radius)
+    lazy_t, eager_t, lazy_n, same = [], [], [], 0
+    rows = u["rows"][: a.pairs]
+    for i, r in enumerate(rows):
+        sup = library.supports[r["support"]]
+        clouds = load_clouds(Path(a.data), r)
+        poses = u["poses"][i, np.argsort(-u["keys"][i], kind="stable")]
+        t = time.perf_counter()
+        idx, status = observed.first_staying(clouds, poses, sup.floor_z, sup.wall_y, a.top, config)
+        lazy_t.append(time.perf_counter() - t)
+        lazy_n.append(int((status != -2).sum()))
+        t = time.perf_counter()
+        every = observed.observed_stability(clouds, poses[: a.top], sup.floor_z, sup.wall_y, config)
+        eager_t.append(time.perf_counter() - t)
+        stays = np.flatnonzero(every == kernels.STABLE)
+        same += int((stays[0] if len(stays) else 0) == idx)
+    result = dict(
+        pairs=len(rows), top=a.top, radius_m=a.radius, records=VALIDATION[0],
+        lazy=stats(lazy_t) | {"candidates_simulated_mean": round(float(np.mean(lazy_n)), 2)},
+        eager=stats(eager_t) | {"candidates_simulated_mean": float(a.top)},
+        eager_over_lazy=round(float(np.mean(eager_t) / np.mean(lazy_t)), 2),
+        same_answer=same,
+        machine=dict(cpu=cpu_name(), cores_used=1, platform=platform.platform()),
+        versions=dict(mujoco=mujoco.__version__, numpy=np.__version__,
+                      python=platform.python_version()),  # fmt: skip
+    )  # fmt: skip
+    print(json.dumps(result, indent=1))
+    if a.out:
+        Path(a.out).write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+if __name__ == "__main__":
+    main()
