@@ -27,6 +27,27 @@ from experiments import _cli
 from experiments.rerank_stage3 import category_means, proposals_of, read_records, rule_keys
 from omnihang_jax import refine
 
+# The default pipeline's records (three views 0, 1/2, 3/4; K = 10; one CEM key per row): the
+# validation objects' 345 pairs and the held-out 1,794, each evaluated under CEM keys 0-2.
+V = "results/validation_where_s27"
+H = "results/hanging_success_stage3"
+VALIDATION_RECORDS = [
+    [f"{V}/val_k10_v0.pairs.jsonl.gz", f"{V}/val_k10_v1of2.pairs.jsonl.gz",
+     f"{V}/val_k10_v3of4.pairs.jsonl.gz"],
+    [f"{V}/val_k10_v0_seed1.pairs.jsonl.gz", f"{V}/val_k10_v1of2_seed1.pairs.jsonl.gz",
+     f"{V}/val_k10_v3of4_seed1.pairs.jsonl.gz"],
+    [f"{V}/val_k10_v0_seed2.pairs.jsonl.gz", f"{V}/val_k10_v1of2_seed2.pairs.jsonl.gz",
+     f"{V}/val_k10_v3of4_seed2.pairs.jsonl.gz"],
+]  # fmt: skip
+HELDOUT_RECORDS = [
+    [f"{H}_s27_k10_view0.pairs.jsonl.gz", f"{H}_s27_k10_view1of2.pairs.jsonl.gz",
+     f"{H}_s31_k10_view3of4.pairs.jsonl.gz"],
+    [f"{H}_s30_k10_view0_seed1.pairs.jsonl.gz", f"{H}_s30_k10_view1of2_seed1.pairs.jsonl.gz",
+     f"{H}_s32_k10_view3of4_seed1.pairs.jsonl.gz"],
+    [f"{H}_s30_k10_view0_seed2.pairs.jsonl.gz", f"{H}_s30_k10_view1of2_seed2.pairs.jsonl.gz",
+     f"{H}_s32_k10_view3of4_seed2.pairs.jsonl.gz"],
+]  # fmt: skip
+
 
 def union(runs: list[list[dict]]) -> dict:
     order = [int(r["pair_index"]) for r in runs[0]]

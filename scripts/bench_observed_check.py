@@ -21,11 +21,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "scripts")]
-from probe_observed_physics import union  # noqa: E402
-from probe_symmetry import VALIDATION  # noqa: E402
-
+sys.path[:0] = [str(ROOT)]
+from experiments.observed_check import union  # noqa: E402
 from experiments.rerank_completed import load_clouds  # noqa: E402
+from experiments.union_views import VALIDATION_RECORDS as VALIDATION  # noqa: E402
 from sim import kernels, observed  # noqa: E402
 
 

@@ -45,26 +45,10 @@ from experiments.rerank_stage3 import (
     read_records,
     rule_keys,
 )
+from experiments.union_views import HELDOUT_RECORDS as HELDOUT  # noqa: E402
+from experiments.union_views import VALIDATION_RECORDS as VALIDATION  # noqa: E402
 from omnihang_jax import collision
 
-V = "results/validation_where_s27"
-H = "results/hanging_success_stage3"
-VALIDATION = [
-    [f"{V}/val_k10_v0.pairs.jsonl.gz", f"{V}/val_k10_v1of2.pairs.jsonl.gz",
-     f"{V}/val_k10_v3of4.pairs.jsonl.gz"],
-    [f"{V}/val_k10_v0_seed1.pairs.jsonl.gz", f"{V}/val_k10_v1of2_seed1.pairs.jsonl.gz",
-     f"{V}/val_k10_v3of4_seed1.pairs.jsonl.gz"],
-    [f"{V}/val_k10_v0_seed2.pairs.jsonl.gz", f"{V}/val_k10_v1of2_seed2.pairs.jsonl.gz",
-     f"{V}/val_k10_v3of4_seed2.pairs.jsonl.gz"],
-]  # fmt: skip
-HELDOUT = [
-    [f"{H}_s27_k10_view0.pairs.jsonl.gz", f"{H}_s27_k10_view1of2.pairs.jsonl.gz",
-     f"{H}_s31_k10_view3of4.pairs.jsonl.gz"],
-    [f"{H}_s30_k10_view0_seed1.pairs.jsonl.gz", f"{H}_s30_k10_view1of2_seed1.pairs.jsonl.gz",
-     f"{H}_s32_k10_view3of4_seed1.pairs.jsonl.gz"],
-    [f"{H}_s30_k10_view0_seed2.pairs.jsonl.gz", f"{H}_s30_k10_view1of2_seed2.pairs.jsonl.gz",
-     f"{H}_s32_k10_view3of4_seed2.pairs.jsonl.gz"],
-]  # fmt: skip
 PLANES = {"x": np.array([-1.0, 1, 1]), "y": np.array([1.0, -1, 1])}
 PLANES["xy"] = PLANES["x"] * PLANES["y"]
 VARIANTS = ("x", "y", "xy", "x+y", "all")
