@@ -12,6 +12,7 @@ the same command again.
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 import os
 
@@ -63,7 +64,8 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     pair_indices = None
     if args.pairs_from:
-        with open(args.pairs_from) as f:
+        opener = gzip.open if args.pairs_from.endswith(".gz") else open
+        with opener(args.pairs_from, "rt") as f:  # an evaluation's records, gzipped or not
             pair_indices = {int(json.loads(line)["pair_index"]) for line in f if line.strip()}
     splits = ("train", "test") if args.split == "all" else (args.split,)
     summary = dataset_bridge.derive_dataset(

@@ -69,21 +69,26 @@ def union(files: list[str]) -> dict:
                 status=np.concatenate(status, 1), poses=np.concatenate(poses, 1))  # fmt: skip
 
 
-def _stability(protocol: str):
+def _stability(protocol: str, max_penetration: float | None = None):
     """The stability protocol of the observed check: the evaluation's (1 s, > 3 mm initial
-    penetration fails) or the dataset's (``sim.kernels.StabilityConfig``: 2 s, > 1 mm)."""
+    penetration fails) or the dataset's (``sim.kernels.StabilityConfig``: 2 s, > 1 mm), with
+    another initial-penetration limit when ``max_penetration`` is given."""
     from omnihang_jax.evaluate import protocol_stability
 
-    return protocol_stability() if protocol == "eval" else kernels.StabilityConfig()
+    config = protocol_stability() if protocol == "eval" else kernels.StabilityConfig()
+    if max_penetration is not None:
+        config = dataclasses.replace(config, max_penetration=float(max_penetration))
+    return config
 
 
-def _init(data: str, config: dict, protocol: str = "dataset", scene: str = "known") -> None:
+def _init(data: str, config: dict, protocol: str = "dataset", scene: str = "known",
+          max_penetration: float | None = None) -> None:  # fmt: skip
     from omnihang_jax import dataset_bridge
     from sim.library import build_library
 
     cfg = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(data))
     _W.update(data=Path(data), library=build_library(cfg.library, progress=False),
-              config=observed.ObservedConfig(**config), stability=_stability(protocol),
+              config=observed.ObservedConfig(**config), stability=_stability(protocol, max_penetration),
               scene=scene)  # fmt: skip
 
 
@@ -107,8 +112,8 @@ def simulate(job: tuple[dict, np.ndarray]) -> tuple[int, np.ndarray, float]:
 
 
 def observed_statuses(u: dict, top: int, cache: Path, data: str, config: dict, workers: int,
-                      progress: bool = True, protocol: str = "dataset",
-                      scene: str = "known") -> np.ndarray:  # fmt: skip
+                      progress: bool = True, protocol: str = "dataset", scene: str = "known",
+                      max_penetration: float | None = None) -> np.ndarray:  # fmt: skip
     """[N, P] observed status of each pooled candidate (-2 where not simulated): the rule's
     top ``top`` of every pair, cached in ``cache`` (resumable)."""
     have: dict[int, np.ndarray] = {}
@@ -138,7 +143,7 @@ def observed_statuses(u: dict, top: int, cache: Path, data: str, config: dict, w
         tmp.replace(cache)
 
     with ProcessPoolExecutor(
-        workers, initializer=_init, initargs=(data, config, protocol, scene)
+        workers, initializer=_init, initargs=(data, config, protocol, scene, max_penetration)
     ) as pool:
         bar = tqdm(total=len(jobs), desc=f"observed physics ({cache.stem})", disable=not progress)
         for done, (pi, status, sec) in enumerate(pool.map(simulate, jobs, chunksize=4), 1):
@@ -226,6 +231,14 @@ def main(argv=None) -> dict:
         help="known: the support's floor and wall (an observer sees both); clouds: "
         "neither (a clouds-only input: the floor 1 m below the support, no wall)",
     )
+    p.add_argument(
+        "--max-penetration",
+        type=float,
+        default=None,
+        metavar="M",
+        help="initial penetration (m) past which a candidate fails on the observed "
+        "clouds (default: the protocol's, 1 mm / 3 mm)",
+    )
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--limit", type=int, default=None, help="first N pairs only (a smoke run)")
     p.add_argument(
@@ -246,14 +259,16 @@ def main(argv=None) -> dict:
     name = f"{a.split}_k{a.key}" if not a.runs else Path(a.runs[0]).name.split(".")[0]
     tag = f"{name}_r{a.radius * 1e3:g}_c{a.crop * 1e3:g}_v{a.voxel * 1e3:g}"
     tag += ("_eval" if a.protocol == "eval" else "") + ("_clouds" if a.scene == "clouds" else "")
+    tag += f"_p{a.max_penetration * 1e3:g}" if a.max_penetration is not None else ""
     cache = Path(a.cache or f"out/observed_check/{tag}.npz")
     t = time.perf_counter()
     obs = observed_statuses(
-        u, a.top, cache, a.data, config, a.workers, not a.no_progress, a.protocol, a.scene
-    )
+        u, a.top, cache, a.data, config, a.workers, not a.no_progress, a.protocol, a.scene,
+        a.max_penetration,
+    )  # fmt: skip
     result = dict(
         split=a.split, key=a.key, pairs=len(u["rows"]), top=a.top, records=files,
-        protocol=dataclasses.asdict(_stability(a.protocol)), scene=a.scene,
+        protocol=dataclasses.asdict(_stability(a.protocol, a.max_penetration)), scene=a.scene,
         config=dataclasses.asdict(observed.ObservedConfig(**config)) | {"physics": None},
         seconds=round(time.perf_counter() - t, 1), rules=rules(u, obs), confusion=confusion(u, obs),
     )  # fmt: skip
