@@ -101,3 +101,19 @@ def test_the_records_rule_takes_the_first_staying_of_the_top_m():
     assert out["default"]["mean"] == 50.0
     assert out["first_of_2"]["mean"] == 100.0 and out["first_of_2"]["changed"] == 1
     assert out["some_candidate"]["mean"] == 100.0
+
+
+def test_the_pose_rotation_is_the_object_frame_s():
+    """The same hang with the object's own frame turned: the clouds given in a frame rotated by
+    R^T and the pose rotated by R put the same points in the same place, and the ring stays."""
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_euler("xyz", [0.7, -0.4, 1.9])
+    c = clouds()
+    c["object_points"] = rot.inv().apply(c["object_points"])
+    c["object_normals"] = rot.inv().apply(c["object_normals"])
+    pose = HANGING.copy()
+    pose[3:] = np.roll(rot.as_quat(), 1)  # wxyz
+    assert observed.observed_stability(c, pose[None], -0.5, None)[0] == kernels.STABLE
+    beside = pose + np.array([0.2, 0, 0, 0, 0, 0, 0])
+    assert observed.observed_stability(c, beside[None], -0.5, None)[0] == kernels.FALLEN
