@@ -47,6 +47,7 @@ from experiments.union_views import HELDOUT_RECORDS, VALIDATION_RECORDS
 from sim import kernels, observed
 
 FIRST_OF = (2, 3, 4, 5, 8, 10)
+FIRST_OF_EXTENDED = (15, 20, 30, 40, 60)  # with --extend: where none of the top 10 stays
 _W: dict = {}
 
 
@@ -113,25 +114,19 @@ def simulate(job: tuple[dict, np.ndarray]) -> tuple[int, np.ndarray, float]:
 
 def observed_statuses(u: dict, top: int, cache: Path, data: str, config: dict, workers: int,
                       progress: bool = True, protocol: str = "dataset", scene: str = "known",
-                      max_penetration: float | None = None) -> np.ndarray:  # fmt: skip
+                      max_penetration: float | None = None,
+                      extend: int | None = None) -> np.ndarray:  # fmt: skip
     """[N, P] observed status of each pooled candidate (-2 where not simulated): the rule's
-    top ``top`` of every pair, cached in ``cache`` (resumable)."""
+    top ``top`` of every pair, then, where none of them stays, the rest of the top ``extend``
+    (so ``first_of_M`` is exact for every M up to ``extend``); cached in ``cache``
+    (resumable)."""
     have: dict[int, np.ndarray] = {}
     if cache.exists():
         with np.load(cache) as z:
             have = {int(i): s for i, s in zip(z["pair"], z["status"], strict=True)}
     n, p = u["keys"].shape
-    order = np.argsort(-u["keys"], axis=1, kind="stable")[:, :top]
-    out = np.full((n, p), -2, np.int8)
-    jobs, where = [], {}
-    for i, r in enumerate(u["rows"]):
-        pi = int(r["pair_index"])
-        where[pi] = i
-        done = have.get(pi)
-        if done is not None and (done[order[i]] != -2).all():
-            out[i] = done
-            continue
-        jobs.append((r, u["poses"][i, order[i]]))
+    order = np.argsort(-u["keys"], axis=1, kind="stable")
+    where = {int(r["pair_index"]): i for i, r in enumerate(u["rows"])}
     seconds = []
 
     def save():
@@ -142,33 +137,56 @@ def observed_statuses(u: dict, top: int, cache: Path, data: str, config: dict, w
                  else np.zeros((0, p), np.int8))  # fmt: skip
         tmp.replace(cache)
 
-    with ProcessPoolExecutor(
-        workers, initializer=_init, initargs=(data, config, protocol, scene, max_penetration)
-    ) as pool:
-        bar = tqdm(total=len(jobs), desc=f"observed physics ({cache.stem})", disable=not progress)
-        for done, (pi, status, sec) in enumerate(pool.map(simulate, jobs, chunksize=4), 1):
-            i = where[pi]
-            row = have.get(pi, np.full(p, -2, np.int8)).copy()
-            row[order[i]] = status
-            have[pi] = out[i] = row
-            seconds.append(sec)
-            bar.update()
-            if done % 50 == 0:
-                save()
-        bar.close()
-    save()
-    if seconds:
-        print(f"simulated {len(seconds)} pairs x {top}: {np.mean(seconds):.2f} s a pair (one core)")
+    def run(cols: dict[int, np.ndarray], label: str) -> None:
+        """Simulate, per row index i, the candidates ``cols[i]`` not simulated yet."""
+        jobs = []
+        for i, c in cols.items():
+            pi = int(u["rows"][i]["pair_index"])
+            done = have.get(pi)
+            if done is None or (done[c] == -2).any():
+                jobs.append((u["rows"][i], u["poses"][i, c]))
+        if not jobs:
+            return
+        with ProcessPoolExecutor(
+            workers, initializer=_init, initargs=(data, config, protocol, scene, max_penetration)
+        ) as pool:
+            bar = tqdm(total=len(jobs), desc=f"observed physics, {label} ({cache.stem})",
+                       disable=not progress)  # fmt: skip
+            for k, (pi, status, sec) in enumerate(pool.map(simulate, jobs, chunksize=4), 1):
+                i = where[pi]
+                row = have.get(pi, np.full(p, -2, np.int8)).copy()
+                row[cols[i]] = status
+                have[pi] = row
+                seconds.append(sec)
+                bar.update()
+                if k % 50 == 0:
+                    save()
+            bar.close()
+        save()
+        print(f"{label}: simulated {len(jobs)} pairs, {np.mean(seconds):.2f} s a pair (one core)")
+
+    run({i: order[i, :top] for i in range(n)}, f"top {top}")
+    if extend and extend > top:
+        none = [i for i in range(n)
+                if not (have[int(u["rows"][i]["pair_index"])][order[i, :top]] == kernels.STABLE).any()]  # fmt: skip
+        run(
+            {i: order[i, top:extend] for i in none},
+            f"{len(none)} pairs, candidates {top + 1}-{extend}",
+        )
+    out = np.full((n, p), -2, np.int8)
+    for i, r in enumerate(u["rows"]):
+        out[i] = have[int(r["pair_index"])]
     return out
 
 
-def rules(u: dict, obs: np.ndarray) -> dict:
-    """Rule name -> the category means of its answers."""
+def rules(u: dict, obs: np.ndarray, extend: int | None = None) -> dict:
+    """Rule name -> the category means of its answers (``first_of_M`` beyond ``--top`` only
+    up to ``extend``, where the statuses reach)."""
     keys, stable = u["keys"], u["stable"]
     order = np.argsort(-keys, axis=1, kind="stable")
     n = len(keys)
     out = {"default": category_means(u["rows"], stable[np.arange(n), order[:, 0]])}
-    for m in FIRST_OF:
+    for m in [*FIRST_OF, *(m for m in FIRST_OF_EXTENDED if extend and m <= extend)]:
         picks = []
         for i in range(n):
             stays = [j for j in order[i, :m] if obs[i, j] == kernels.STABLE]
@@ -213,6 +231,14 @@ def main(argv=None) -> dict:
         "pooled as one pipeline's views; overrides --split / --key",
     )
     p.add_argument("--top", type=int, default=10, help="candidates simulated per pair")
+    p.add_argument(
+        "--extend",
+        type=int,
+        default=None,
+        metavar="N",
+        help="where none of the top stays, simulate on down to the N-th candidate "
+        "(first_of_N exact; default: none)",
+    )
     p.add_argument("--data", default="datasets/paper")
     p.add_argument("--radius", type=float, default=observed.ObservedConfig.radius)
     p.add_argument("--crop", type=float, default=observed.ObservedConfig.crop)
@@ -264,13 +290,13 @@ def main(argv=None) -> dict:
     t = time.perf_counter()
     obs = observed_statuses(
         u, a.top, cache, a.data, config, a.workers, not a.no_progress, a.protocol, a.scene,
-        a.max_penetration,
+        a.max_penetration, a.extend,
     )  # fmt: skip
     result = dict(
-        split=a.split, key=a.key, pairs=len(u["rows"]), top=a.top, records=files,
+        split=a.split, key=a.key, pairs=len(u["rows"]), top=a.top, extend=a.extend, records=files,
         protocol=dataclasses.asdict(_stability(a.protocol, a.max_penetration)), scene=a.scene,
         config=dataclasses.asdict(observed.ObservedConfig(**config)) | {"physics": None},
-        seconds=round(time.perf_counter() - t, 1), rules=rules(u, obs), confusion=confusion(u, obs),
+        seconds=round(time.perf_counter() - t, 1), rules=rules(u, obs, a.extend), confusion=confusion(u, obs),
     )  # fmt: skip
     for name, r in result["rules"].items():
         print(f"{name:>16}: {r['mean']:.2f} % ({r['pair_mean']:.2f} over pairs)"

@@ -121,7 +121,7 @@ VIEWS = ((0, 1), (1, 2), (3, 4))
 
 
 # The clouds-only answer check's reach (sim.observed.ANSWER_TOP; HangConfig.observed_check).
-OBSERVED_CHECK = 8
+OBSERVED_CHECK = 60
 
 
 @dataclasses.dataclass(frozen=True)
