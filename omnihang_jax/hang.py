@@ -33,8 +33,10 @@ Steps (each pluggable: ``where`` and ``how`` arguments):
    does not sink into the observed support cloud).
 2. *check* (meshes only): every candidate is simulated with the evaluation protocol
    (``omnihang_jax.evaluate.protocol_stability``: 1 s from rest, > 3 mm initial penetration
-   fails); the answer is the best-ranked candidate that stays hanging. From clouds alone there
-   is nothing to simulate: the answer is the best-ranked candidate, marked "unverified".
+   fails); the answer is the best-ranked candidate that stays hanging. From clouds alone the
+   true shapes cannot be simulated: the candidates are dropped on the observed clouds instead
+   (:func:`observed_check`, ``sim.observed``) and the answer is the first that stays there,
+   marked "unverified".
 3. *how to hang* (a collision-free path from a start pose above and in front of the support
    to the answer): the OMPL planner of ``omnihang_jax.planner`` when it is there.
 4. *search* (``HangConfig.search``, meshes only): the data engine's sampler finds
@@ -219,7 +221,8 @@ class PathPlan(NamedTuple):
 class HangResult(NamedTuple):
     """What :func:`hang` found. ``pose``: [7] the answer (object frame in support frame);
     ``matrix``: [4, 4] the same; ``verdict``: "stable", a failure status of
-    ``sim.kernels.STATUS_NAMES`` (no candidate hung), or "unverified" (clouds only);
+    ``sim.kernels.STATUS_NAMES`` (no candidate hung), or "unverified" (clouds only; checked on
+    the observed clouds, ``steps["observed_check"]``);
     ``settled_pose``: [7] where the object rests after the simulated second (None unverified);
     ``chosen``: index into ``candidates``; ``status``: [C] simulated status per candidate
     (None unverified); ``path``: PathPlan or None; ``search``: dict or None; ``steps``: which
