@@ -101,7 +101,7 @@ def simulate(job: tuple[dict, np.ndarray]) -> tuple[int, np.ndarray, float]:
     clouds = load_clouds(_W["data"], row)
     floor_z, wall_y = support.floor_z, support.wall_y
     if _W["scene"] == "clouds":  # what a clouds-only input knows: no wall, no floor
-        floor_z, wall_y = float(np.min(clouds["support_points"][:, 2])) - 1.0, None
+        floor_z, wall_y = observed.unknown_environment(clouds["support_points"])
     try:
         status = observed.observed_stability(
             clouds, poses, floor_z, wall_y, _W["config"], _W["stability"]

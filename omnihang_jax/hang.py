@@ -1422,8 +1422,10 @@ def observed_check(obj: Body, sup: Body, sup_asset, poses: np.ndarray, top: int,
     if sup_asset is not None:
         floor_z, wall_y, where = float(sup_asset.floor_z), sup_asset.wall_y, "the support mesh's"
     else:
-        floor_z = float(np.min(sup.points[:, 2])) - 1.0
-        wall_y, where = None, "unknown: no wall, no floor"
+        (floor_z, wall_y), where = (
+            observed.unknown_environment(sup.points),
+            "unknown: no wall, no floor",
+        )
     clouds = dict(object_points=obj.points, object_normals=obj.normals,
                   support_points=sup.points, support_normals=sup.normals)  # fmt: skip
     _say(log, f"dropping the best {min(top, len(poses))} candidates on the observed clouds")

@@ -2,7 +2,8 @@
 
 The evaluation simulates the true meshes; the pipeline sees only two partial clouds. This
 module builds a MuJoCo scene from those clouds alone, so a candidate pose can be dropped in
-physics before it is answered (``experiments.rerank_physics``):
+physics before it is answered (``first_staying``; ``experiments.observed_check`` reads it on an
+evaluation's records, ``omnihang_jax.hang`` runs it on clouds-only inputs):
 
 - every observed surface point ``p`` with outward normal ``n`` becomes a sphere of radius
   ``r`` centred at ``p - r n`` (the sphere's outer side touches the observed surface);
@@ -17,15 +18,17 @@ physics before it is answered (``experiments.rerank_physics``):
   contact counts as ground, like a stand's base in :mod:`sim.scene`.
 
 The result is a :class:`sim.scene.Scene`, so :func:`sim.kernels.stability` runs it with the
-evaluation's own protocol (penetration > 1 mm at the start, 2 s, the same settle checks).
-A point the view hid is not there: an object resting on the hidden side of a hook falls
-through it here. That is what the probe measures.
+dataset's protocol by default (``StabilityConfig``: penetration > 1 mm at the start fails, 2 s,
+the same settle checks). A point the view hid is not there: an object resting on the hidden side
+of a hook falls through it here. What depends only on the clouds (their checks, the support's
+search tree, the object's mass) is prepared once per pair (:func:`prepare`), the crop per pose.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
@@ -62,6 +65,12 @@ class ObservedConfig:
     ground_band: float = 0.02  # m, support points this close to the floor count as ground
     memory_mb: int = 64  # MuJoCo arena: a deep overlap of two sphere clouds makes ~10k contacts
     physics: PhysicsConfig = PhysicsConfig()
+
+
+def unknown_environment(support_points) -> tuple[float, None]:
+    """(floor_z, wall_y) for a clouds-only input, where neither is known: no wall, and the floor
+    1 m below the support cloud's lowest point, so a fall is the object leaving the support."""
+    return float(np.nanmin(np.asarray(support_points, float)[:, 2])) - 1.0, None
 
 
 def voxel_thin(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -106,6 +115,30 @@ def _inertia(points: np.ndarray, mass: float) -> tuple[np.ndarray, np.ndarray]:
                           inertia[0, 2], inertia[1, 2]])  # fmt: skip
 
 
+class Prepared(NamedTuple):
+    """What :func:`observed_scene` needs of a pair's clouds, whatever the pose."""
+
+    op: np.ndarray  # [N, 3] finite object points (object frame) and unit normals
+    on: np.ndarray
+    sp: np.ndarray  # [M, 3] finite support points (support frame) and unit normals
+    sn: np.ndarray
+    support_tree: cKDTree
+    whole: np.ndarray  # the object points thinned to one per voxel: mass and bounding hull
+    com: np.ndarray
+    inertia: np.ndarray
+
+
+def prepare(clouds: dict, config: ObservedConfig = ObservedConfig()) -> Prepared:
+    """Check a pair's clouds (``object_points``/``object_normals`` in the object frame,
+    ``support_*`` in the support frame) and compute what does not depend on the pose. Raises
+    ``ValueError`` on malformed clouds."""
+    op, on = _check_cloud("object cloud", clouds["object_points"], clouds["object_normals"])
+    sp, sn = _check_cloud("support cloud", clouds["support_points"], clouds["support_normals"])
+    whole = op[voxel_thin(op, config.voxel)]
+    com, inertia = _inertia(whole, config.physics.object_mass)
+    return Prepared(op, on, sp, sn, cKDTree(sp), whole, com, inertia)
+
+
 def observed_scene(
     object_points,
     object_normals,
@@ -118,8 +151,15 @@ def observed_scene(
 ) -> Scene:
     """A scene of the observed clouds (object frame / support frame), cropped around ``pose``
     [7] (object frame -> support frame, wxyz). Raises ``ValueError`` on malformed clouds."""
-    op, on = _check_cloud("object cloud", object_points, object_normals)
-    sp, sn = _check_cloud("support cloud", support_points, support_normals)
+    clouds = dict(object_points=object_points, object_normals=object_normals,
+                  support_points=support_points, support_normals=support_normals)  # fmt: skip
+    return _scene(prepare(clouds, config), pose, floor_z, wall_y, config)
+
+
+def _scene(
+    prep: Prepared, pose, floor_z: float, wall_y: float | None, config: ObservedConfig
+) -> Scene:
+    op, on, sp, sn = prep.op, prep.on, prep.sp, prep.sn
     pose = np.asarray(pose, float)
     if pose.shape != (7,) or not np.isfinite(pose).all():
         raise ValueError(f"pose must be 7 finite numbers, got {pose}")
@@ -127,13 +167,12 @@ def observed_scene(
     rot = Rotation.from_quat(np.roll(pose[3:] / np.linalg.norm(pose[3:]), -1)).as_matrix()
     posed = op @ rot.T + pose[:3]
     near_s = cKDTree(posed).query(sp, k=1, distance_upper_bound=config.crop)[0] < np.inf
-    near_o = cKDTree(sp).query(posed, k=1, distance_upper_bound=config.crop)[0] < np.inf
+    near_o = prep.support_tree.query(posed, k=1, distance_upper_bound=config.crop)[0] < np.inf
     s_idx = np.flatnonzero(near_s)
     s_idx = _cap(s_idx[voxel_thin(sp[s_idx], config.voxel)], config.max_spheres)
     o_idx = np.flatnonzero(near_o)
     o_idx = _cap(o_idx[voxel_thin(op[o_idx], config.voxel)], config.max_spheres)
-    whole = op[voxel_thin(op, config.voxel)]
-    com, inertia = _inertia(whole, phys.object_mass)
+    whole, com, inertia = prep.whole, prep.com, prep.inertia
     s_centres, o_centres = sp[s_idx] - r * sn[s_idx], op[o_idx] - r * on[o_idx]
     ground = s_centres[:, 2] < floor_z + config.ground_band
     sphere = f'type="sphere" size="{r:.7g}"'
@@ -219,29 +258,40 @@ def observed_scene(
     )
 
 
+def _status(
+    prep: Prepared,
+    pose: np.ndarray,
+    floor_z: float,
+    wall_y: float | None,
+    config: ObservedConfig,
+    stability,
+    nthread: int,
+) -> int:
+    """The status of one checked pose [7] on prepared clouds; an arena overflow is DIVERGED."""
+    from sim import kernels
+
+    scene = _scene(prep, pose, floor_z, wall_y, config)
+    try:
+        return int(kernels.stability(scene, pose[None], stability, nthread=nthread).status[0])
+    except mujoco.FatalError as err:  # arena overflow: the clouds overlap deeply
+        _log.warning("observed check of a pose failed in MuJoCo (%s); labelled diverged",
+                     str(err).splitlines()[0])  # fmt: skip
+        return kernels.DIVERGED
+
+
 def observed_stability(clouds: dict, poses, floor_z: float, wall_y: float | None,
                        config: ObservedConfig = ObservedConfig(), stability=None,
                        nthread: int = 1):  # fmt: skip
     """[P] status (``sim.kernels`` codes) of each pose [P, 7] on the observed clouds
     (``object_points``/``object_normals`` in the object frame, ``support_*`` in the support
-    frame): one cropped scene per pose, the evaluation's stability protocol on each."""
+    frame): one cropped scene per pose, ``stability`` (default: the dataset's protocol) on each."""
     from sim import kernels
 
     stability = stability or kernels.StabilityConfig()
     poses = kernels.check_poses(poses)
-    out = np.empty(len(poses), np.int8)
-    for i, pose in enumerate(poses):
-        scene = observed_scene(
-            clouds["object_points"], clouds["object_normals"], clouds["support_points"],
-            clouds["support_normals"], pose, floor_z, wall_y, config,
-        )  # fmt: skip
-        try:
-            out[i] = kernels.stability(scene, pose[None], stability, nthread=nthread).status[0]
-        except mujoco.FatalError as err:  # arena overflow: the clouds overlap deeply
-            _log.warning("observed check of pose %d failed in MuJoCo (%s); labelled diverged",
-                         i, str(err).splitlines()[0])  # fmt: skip
-            out[i] = kernels.DIVERGED
-    return out
+    prep = prepare(clouds, config)
+    return np.array([_status(prep, q, floor_z, wall_y, config, stability, nthread)
+                     for q in poses], np.int8)  # fmt: skip
 
 
 def first_staying(clouds: dict, poses, floor_z: float, wall_y: float | None, top: int = ANSWER_TOP,
@@ -253,11 +303,12 @@ def first_staying(clouds: dict, poses, floor_z: float, wall_y: float | None, top
     simulating all ``top`` and taking the first that stays, at the cost of the ones tried."""
     from sim import kernels
 
+    stability = stability or kernels.StabilityConfig()
     poses = kernels.check_poses(poses)
+    prep = prepare(clouds, config)
     status = np.full(len(poses), -2, np.int8)
     for i in range(min(top, len(poses))):
-        status[i] = observed_stability(clouds, poses[i : i + 1], floor_z, wall_y, config,
-                                       stability, nthread)[0]  # fmt: skip
+        status[i] = _status(prep, poses[i], floor_z, wall_y, config, stability, nthread)
         if status[i] == kernels.STABLE:
             return i, status
     return 0, status
