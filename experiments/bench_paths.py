@@ -1,28 +1,16 @@
 """Benchmark of the path-planning side: collision queries per second of the batched estimators
-(NCE, HCE) on this machine's JAX device, the mesh checker's on its CPU, and planning time per
-pair from an ``eval_paths`` run.
+(NCE, HCE) on this machine's JAX device, the mesh checker's on its CPU, and planning per pair
+with the named planner configs (``omnihang_jax.paths``).
 
-    python -m experiments.bench_paths --weights weights/collision_fast --out results/bench_paths.json
-    python -m experiments.bench_paths --weights ... --paths results/paths.json --out ...
-    python -m experiments.bench_paths --weights A --compare B --out ...   # B's NCE beside A's
-    # the planner's checker before / after the nineteenth session, plan by plan, same pairs
-    python -m experiments.bench_paths --weights weights/collision_s18_contact --batches "" \
-        --planner 4 --planner-seconds 10 --geometric results/paths_hybrid_s18_joint95_selection.json \
-        --data datasets/paper --key cpu_s19_planner_checkers --out results/bench_paths.json
+    python -m experiments.bench_paths --weights weights/nce --out results/bench_paths.json
+    python -m experiments.bench_paths --weights weights/nce --data datasets/paper --batches "" \
+        --planner 4 --configs default,paper_nce --key cpu_planner --out results/bench_paths.json
 
-Queries: one jitted ``collides`` per estimator, clouds of a real held-out pair (or random
-clouds with ``--synthetic``), batches of 1 to 4,096 poses, best of ``--repeats`` timed calls
-after a warm-up (compilation excluded). Writes JSON with device and versions; merges into an
-existing file, keyed by device, so CPU and GPU runs sit side by side.
-
-``--planner N``: states a plan checks per second of planning, for the NCE alone and the hybrid
-(NCE OR the observed-cloud test), with the checkers of the eighteenth session (every batch
-padded to a power of two >= 8, an edge in one call, the hybrid as one jitted function) and of
-the nineteenth (batches of 1 for single states, multiples of 8 for edges, an edge's 8 evenly
-spaced states first, the hybrid as ``planner.CascadeChecker``: the test first). Both answer
-every question the same; each plan of N held-out pairs runs under both, in alternating order,
-``--planner-seconds`` each (OMPL's RRT-Connect, seeded once per process, so the two trees
-differ: states per second is the figure, not the plans' outcomes).
+Queries: one jitted ``collides`` per estimator, clouds of the configured sizes, batches of 1
+to 4,096 poses, best of ``--repeats`` timed calls after a warm-up (compilation excluded).
+``--compare B``: B's NCE timed beside the first. ``--paths``: planning times of an
+evaluation summary. Writes JSON with device and versions; merges into an existing file, keyed
+by device, so CPU and GPU runs sit side by side.
 """
 
 from __future__ import annotations
@@ -78,7 +66,11 @@ def estimator_throughput(
     nce = jax.jit(collision.nce_collides(nce_cfg))
     hce = jax.jit(collision.hce_collides(normal_cfg))
     normals = collision.make_normal_net(normal_cfg).apply(normal_params, sc_h[None])[0]
-    heuristic = jax.jit(collision.hce_true_normals_collides(normal_cfg.threshold))
+    heuristic = jax.jit(
+        lambda normals, oc, sc, poses: (
+            collision.heuristic_score(oc, sc, normals, poses) > normal_cfg.threshold
+        )
+    )
     out = {"nce_config": nce_cfg.__dict__, "normal_config": normal_cfg.__dict__, "rows": []}
     if compare:
         cmp_cfg, cmp_params, _ = collision.load_estimator(Path(compare, "nce"))
@@ -116,11 +108,10 @@ def estimator_throughput(
 
 def mesh_throughput(data: str, n_poses: int = 2000) -> dict:
     """States per second of the planner's mesh checker (MuJoCo C, this CPU) on one pair."""
-    from experiments.eval_paths import load_pairs
-    from omnihang_jax import planner
+    from omnihang_jax import paths_eval, planner
 
-    pairs = load_pairs(data, 1)
-    scene = pairs[0].scene
+    spec = paths_eval.held_out_pairs(data, 1)[0]
+    scene = paths_eval.pair_scene(data, spec)[0]
     rng = np.random.default_rng(0)
     lo, hi = planner.default_bounds(scene)
     poses = np.concatenate(
@@ -132,79 +123,38 @@ def mesh_throughput(data: str, n_poses: int = 2000) -> dict:
     t0 = time.perf_counter()
     checker(poses)
     s = time.perf_counter() - t0
-    return {"pair": pairs[0].name, "states": n_poses, "states_per_s": round(n_poses / s, 1)}
+    return {"pair": spec.name, "states": n_poses, "states_per_s": round(n_poses / s, 1)}
 
 
-def planner_states(
-    weights: str, data: str, n_pairs: int, seconds: float, geometric_json: str | None
-) -> dict:
-    """States checked per second of planning, old against new checkers (module docstring)."""
-    from experiments import eval_paths
-    from omnihang_jax import planner
+def planner_states(data: str, n_pairs: int, names=("default", "paper_nce")) -> dict:
+    """Per named planner config (``omnihang_jax.paths.CONFIGS``, built by ``make_planner``):
+    states checked per second of planning and planning seconds on ``n_pairs`` held-out pairs
+    (OMPL seeded once per process: the plans' outcomes are not the figure)."""
+    from omnihang_jax import paths, paths_eval
 
-    geo = collision.GeometricConfig()
-    if geometric_json:
-        chosen = json.loads(Path(geometric_json).read_text())["chosen"]
-        geo = dataclasses.replace(geo, **{k: chosen[k] for k in ("depth", "radius", "min_points")})
-        threshold = chosen.get("nce_threshold")
-    else:
-        threshold = None
-    est = eval_paths.load_estimators(weights, nce_threshold=threshold, geometric=geo)
-    cases = eval_paths.load_pairs(data, n_pairs)
-    config = planner.PlannerConfig(time_limit=seconds)
-    rows = []
-    for i, case in enumerate(cases):
-        new = eval_paths.checkers_for(
-            case, est, config.penetration_tolerance, ("nce", "nce_geometric")
+    specs = paths_eval.held_out_pairs(data, n_pairs)
+    summary, rows = {}, []
+    for name in names:
+        plan = paths.make_planner(dataclasses.replace(paths.CONFIGS[name], mesh_fallback=False))
+        mine = []
+        for spec in specs:
+            scene, obj, sup = paths_eval.pair_scene(data, spec)
+            info = plan(scene, obj, sup, np.asarray(spec.goal)).info
+            row = dict(config=name, pair=spec.name, status=info["status"],
+                       planning_s=round(info["planning_s"], 3), states=info["states_checked"],
+                       states_per_s=round(info["states_checked"] / max(info["planning_s"], 1e-9), 1))  # fmt: skip
+            print(json.dumps(row), flush=True)
+            mine.append(row)
+        rows += mine
+        summary[name] = dict(
+            median_states_per_s=float(np.median([r["states_per_s"] for r in mine])),
+            median_planning_s=float(np.median([r["planning_s"] for r in mine])),
         )
-        old_kw = dict(min_batch=8, pow2=True, coarse=0)
-        nce = new["nce"]
-        grid = new["geometric"].params
-        params = collision.NCEGeometricParams(
-            est.nce_params, new["geometric"].object_cloud, grid, None
-        )
-        old = {
-            "nce": planner.EstimatorChecker(
-                est.nce, nce.params, nce.object_cloud, nce.support_cloud, **old_kw
-            ),
-            "nce_geometric": planner.EstimatorChecker(
-                est.nce_geometric, params, nce.object_cloud, nce.support_cloud, **old_kw
-            ),
-        }
-        for c in old.values():
-            c.warm_up()
-        weight = planner.object_radius(case.scene)
-        bounds = planner.default_bounds(case.scene)
-        start = planner.start_pose(case.scene, case.goal)
-        for method in ("nce", "nce_geometric"):
-            order = (("s18", old), ("s19", new)) if i % 2 == 0 else (("s19", new), ("s18", old))
-            for label, checkers in order:
-                res = planner.plan(checkers[method], start, case.goal, bounds, weight, config)
-                rows.append(
-                    dict(pair=case.name, method=method, checker=label, status=res.status,
-                         planning_s=round(res.planning_s, 3), states=res.states_checked,
-                         calls=res.checker_calls,
-                         states_per_s=round(res.states_checked / max(res.planning_s, 1e-9), 1))
-                )  # fmt: skip
-                print(json.dumps(rows[-1]), flush=True)
-    summary = {}
-    for method in ("nce", "nce_geometric"):
-        rates: dict = {}  # pair -> checker -> states per second
-        for r in rows:
-            if r["method"] == method:
-                rates.setdefault(r["pair"], {})[r["checker"]] = r["states_per_s"]
-        both = [v for v in rates.values() if len(v) == 2 and v["s18"] > 0]
-        summary[method] = dict(
-            median_states_per_s={k: float(np.median([v[k] for v in both])) for k in ("s18", "s19")},
-            median_ratio_s19_over_s18=round(
-                float(np.median([v["s19"] / v["s18"] for v in both])), 2
-            ),
-        )
-    return dict(pairs=len(cases), seconds_per_plan=seconds, summary=summary, rows=rows)
+    return dict(pairs=len(specs), summary=summary, rows=rows)
 
 
 def planning_times(paths_json: str) -> dict:
-    """Median / p90 planning time per pair and method from an eval_paths run."""
+    """Median / p90 planning time per pair and method from an evaluation summary (per config or method)."""
     res = json.loads(Path(paths_json).read_text())
     out = {}
     for name, entry in res["methods"].items() if "methods" in res else res.items():
@@ -244,7 +194,7 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--weights", default=None, help="train_collision output (default: fresh)")
     parser.add_argument("--preset", default="fast", help="preset when no --weights")
-    parser.add_argument("--paths", default=None, help="an eval_paths JSON: planning times")
+    parser.add_argument("--paths", default=None, help="an evaluation summary JSON: planning times")
     parser.add_argument("--data", default=None, help="dataset: also time the mesh checker")
     parser.add_argument("--batches", default="1,16,64,256,1024,4096")
     parser.add_argument("--repeats", type=int, default=3)
@@ -256,16 +206,16 @@ def main(argv=None) -> dict:
     )
     parser.add_argument(
         "--planner", type=int, default=0, metavar="N",
-        help="states per second of planning on N held-out pairs (--data), old vs new checkers",
+        help="states per second of planning on N held-out pairs (--data), per --configs",
     )  # fmt: skip
-    parser.add_argument("--planner-seconds", type=float, default=10.0)
     parser.add_argument(
-        "--geometric", default=None, help="--planner: the hybrid's selection JSON (eval_paths)"
-    )
+        "--configs", default="default,paper_nce",
+        help="--planner: named planner configs (omnihang_jax.paths.CONFIGS), comma-separated",
+    )  # fmt: skip
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
-    if args.planner and not (args.data and args.weights):
-        parser.error("--planner needs --data and --weights")
+    if args.planner and not args.data:
+        parser.error("--planner needs --data")
     device = jax.devices()[0]
     name = f"{device.platform}:{getattr(device, 'device_kind', device.platform)}"
     key = args.key or name
@@ -288,9 +238,8 @@ def main(argv=None) -> dict:
     if args.paths:
         entry["planning"] = planning_times(args.paths)
     if args.planner:
-        entry["planner_states"] = planner_states(
-            args.weights, args.data, args.planner, args.planner_seconds, args.geometric
-        )
+        names = tuple(n for n in args.configs.split(",") if n)
+        entry["planner_states"] = planner_states(args.data, args.planner, names)
         save()
     elif args.data:
         entry["mesh_checker_cpu"] = mesh_throughput(args.data)

@@ -18,7 +18,7 @@ For every PyBullet set-up the results compare it with MuJoCo's scene ("mujoco:sc
 every MuJoCo variant with PyBullet's matched set-up: agreement overall, per category and
 per family, in both directions (sim.judges.agreement). --export writes up to
 --export-per-category disagreeing cases per category of the first-vs-last PyBullet set-up
-comparison as OBJ + pose (sim.dataset.export_sample); --figure pictures the agreement and
+comparison as OBJ + pose (sim.dataset_io.export_sample); --figure pictures the agreement and
 a few of those cases. --items keeps one JSON line per judged pose (verdict and status
 under every set-up).
 """
@@ -39,7 +39,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from omnihang_jax import dataset_bridge
-from sim import dataset, judges, kernels
+from sim import dataset, dataset_io, judges, kernels
 
 _STATE: dict = {}
 
@@ -203,7 +203,7 @@ def export_disagreements(items, verdicts, a, b, out_dir, per_category: int) -> l
         count[key] = count.get(key, 0) + 1
         name = f"{i:05d}_{it.kind}_{recipe['pairs'][it.pair_index][0]}__{recipe['pairs'][it.pair_index][1]}"
         record = {"pair_index": it.pair_index, "stable_poses": np.asarray([it.pose])}
-        dataset.export_sample(library, record, recipe["pairs"], out_dir / name, 0)
+        dataset_io.export_sample(library, record, recipe["pairs"], out_dir / name, 0)
         rows.append(
             {
                 "item": i,

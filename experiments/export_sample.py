@@ -7,7 +7,7 @@ and tools can check it.
 Writes ``OUT/object.obj`` (object frame), ``OUT/support.obj`` (support frame = world) and
 ``OUT/pose.json``: the 4x4 matrix, position and quaternion in both orders, with the
 convention ``p_support = T @ p_object`` (metres), the wall plane and the floor height
-(``sim.dataset.export_sample``). The library is rebuilt from the dataset's recipe.
+(``sim.dataset_io.export_sample``). The library is rebuilt from the dataset's recipe.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import json
 
 from experiments import _cli
 from omnihang_jax import dataset_bridge
-from sim import dataset
+from sim import dataset, dataset_io
 
 
 def main(argv=None) -> dict:
@@ -58,7 +58,7 @@ def main(argv=None) -> dict:
 
     config = dataset_bridge.dataset_config_from_recipe(recipe)
     library = build_library(config.library, progress=False)
-    out = dataset.export_sample(library, record, recipe["pairs"], args.out, args.pose)
+    out = dataset_io.export_sample(library, record, recipe["pairs"], args.out, args.pose)
     meta = json.loads((out / "pose.json").read_text())
     print(f"wrote {out}/object.obj, support.obj, pose.json ({meta['object']} on {meta['support']})")
     return meta

@@ -42,7 +42,7 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from omnihang_jax.hang import DEFAULT_MODEL, HangConfig
+    from omnihang_jax.hang import HangConfig
 
     d = HangConfig()
     p = argparse.ArgumentParser(
@@ -70,28 +70,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="move each cloud's bounding-box centre to the origin",
     )
     p.add_argument(
-        "--model", default=DEFAULT_MODEL, help=f"trained networks (default {DEFAULT_MODEL})"
-    )
+        "--where", choices=["default", "paper"], default=d.where,
+        help="the where-to-hang answer (omnihang_jax.where): default (Stages 1-3, three views, "
+        "the rankers, the observed-cloud check) or paper (the paper's pipeline)",
+    )  # fmt: skip
+    p.add_argument("--model", default=None, help="Stage 1 + 2 networks instead of the answer's")
     p.add_argument(
-        "--value", default=None,
-        help="Stage-3 value weights (default: found in weights/value_*, e.g. weights/"
-        "value_s16_hardneg); 'off': rank by observed-cloud clearance, no CEM",
+        "--value", choices=["on", "off"], default=None,
+        help="off: Stages 1-2 only, ranked by observed-cloud clearance (no CEM)",
     )  # fmt: skip
     p.add_argument(
-        "--num-proposals", type=int, default=d.num_proposals,
-        help=f"Stage-1 proposals; each is also refined by Stage 2 (default {d.num_proposals})",
-    )  # fmt: skip
-    p.add_argument(
-        "--stage2-clearance", type=float, default=None, metavar="M",
-        help="Stage 2 moves each pose M metres along the observed support normal at its chosen "
-        "contacts (e.g. 0.008; default: the model's own, Stage2Config.clearance)",
-    )  # fmt: skip
-    p.add_argument(
-        "--views", default=",".join(f"{j}/{t}" for j, t in d.views), metavar="J/T,...",
-        help="the subsamples of the clouds Stage 3 refines and ranks on, subset J of T each "
-        f"(default {','.join(f'{j}/{t}' for j, t in d.views)}, the answer pipeline's: held-out "
-        "82.9 %% against 81.9 for 0/1,1/2 over three CEM keys, at ~1.3x the CEM work; "
-        "0/1,1/2 is faster)",
+        "--num-proposals", type=int, default=None,
+        help="Stage-1 proposals instead of the answer's (default: 10; the paper's: 5)",
     )  # fmt: skip
     p.add_argument("--noise", type=float, default=0.0, help="depth noise std of rendered views, m")
     p.add_argument(
@@ -107,9 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument("--no-verify", action="store_true", help="do not simulate the candidates")
     p.add_argument(
-        "--observed-check", type=int, default=d.observed_check, metavar="N",
+        "--observed-check", type=int, default=None, metavar="N",
         help="clouds only: answer the first of the best N candidates that stays when dropped "
-        f"on the observed clouds (sim.observed; default {d.observed_check}, 0: the best-ranked)",
+        "on the observed clouds (sim.observed; default: the answer's, 60; 0: the best-ranked)",
     )  # fmt: skip
     p.add_argument("--no-plan", action="store_true", help="do not run the how-to-hang planner")
     p.add_argument(
@@ -120,15 +110,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--replan-time", type=float, default=None, metavar="S",
-        help="after the hybrid checker's plan times out, plan once more for S s with a fresh "
-        "search (default: as long as --plan-time when HYBRID['replan'] is on, else never; 0: "
-        "never)",
+        help="after the planner's plan times out, plan once more for S s with a fresh search "
+        "(default: as long as --plan-time where the planner replans; 0: never)",
     )  # fmt: skip
     p.add_argument(
-        "--checker", choices=["auto", "nce", "mesh"], default=d.checker,
-        help="the planner's collision checker: auto (the observed-cloud test OR the contact "
-        "NCE, lenient near the answer; the full meshes when it finds no path), nce (the "
-        "estimator alone) or mesh (the full meshes in MuJoCo)",
+        "--checker", choices=["auto", "nce", "hce", "mesh"], default=d.checker,
+        help="the planner (omnihang_jax.paths): auto (the default planner; the full meshes when "
+        "it finds no path), nce / hce (the paper's estimators alone) or mesh (the full meshes)",
     )  # fmt: skip
     p.add_argument(
         "--coacd", choices=["default", "fast"], default="default",
@@ -156,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def heldout_main(args, config, log) -> int:
-    from omnihang_jax.hang import HELDOUT_RESULTS, run_heldout
+    from omnihang_jax.hang_heldout import HELDOUT_RESULTS, run_heldout
 
     if args.heldout < 1:
         raise ValueError(f"--heldout must be >= 1, got {args.heldout}")
@@ -167,14 +155,15 @@ def heldout_main(args, config, log) -> int:
     )
     s, e = record["summary"], record["expected"]
     print(
-        f"held-out pairs hung: {s['hung']} of {s['pairs']} ({100 * s['hung_rate']:.0f} %; "
-        f"top-ranked candidate alone, clouds only: {s['top_ranked_stable']} of {s['pairs']})"
+        f"held-out pairs: the answer from the clouds hangs on {s['answer_hangs']} of "
+        f"{s['pairs']} ({100 * s['answer_rate']:.0f} %); some candidate hangs on "
+        f"{s['some_candidate_hangs']} of {s['pairs']}"
     )
     if e:
         print(
-            f"expected: {100 * e['hung_rate']:.0f} % hung, {100 * e['top_ranked_rate']:.0f} % "
-            f"top-ranked (measured on {e['pairs']} held-out pairs, {HELDOUT_RESULTS}); a few "
-            f"pairs vary a lot around these rates"
+            f"expected: {e['all_stages']:.1f} % (all stages, mean over categories, "
+            f"{e['pairs']} held-out pairs x seeds {e['seeds']}, {HELDOUT_RESULTS}: "
+            f"{e['command']}); a handful of pairs varies a lot around it"
         )
     print(
         f"wrote {args.out}/heldout.json"
@@ -185,15 +174,11 @@ def heldout_main(args, config, log) -> int:
 
 def main(argv=None) -> int:
     from omnihang_jax.hang import HangConfig, hang
-    from omnihang_jax.stage3 import parse_view_set
 
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        views = parse_view_set(args.views)
-    except ValueError as e:
-        parser.error(f"--views: {e}")
     config = HangConfig(
+        where=args.where,
         model=args.model,
         num_proposals=args.num_proposals,
         seed=args.seed,
@@ -215,8 +200,6 @@ def main(argv=None) -> int:
         coacd=args.coacd,
         cache_dir=args.cache,
         value=args.value,
-        stage2_clearance=args.stage2_clearance,
-        views=views,
     )
     if args.noise < 0:
         raise ValueError(f"--noise must be >= 0, got {args.noise}")

@@ -25,7 +25,7 @@ def main(argv=None) -> dict:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--data", default="datasets/paper")
-    parser.add_argument("--weights", default="weights/where_small_paper")
+    parser.add_argument("--weights", default="weights/stage12")
     parser.add_argument("--out", required=True, help="JSON (the PNG goes beside it)")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="paper")
     parser.add_argument("--pairs", type=int, default=100)

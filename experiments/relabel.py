@@ -2,7 +2,7 @@
 
 Labels version 3 (``sim.dataset.LABELS_VERSION``) made the scene's wall a solid 0.5 m block
 (``sim.scene.PhysicsConfig.wall_thickness``) instead of a 2 cm slab that a strap could pass
-through (issue 16, docs/judges.md). Only labels that involve something behind the wall
+through (docs/judges.md). Only labels that involve something behind the wall
 plane can change, and which those are is decided from the stored labels by geometry alone
 (:func:`wall_changes`). Pairs with a changed stable pose are regenerated whole with
 ``sim.dataset.generate_pair`` under the new scene; pairs whose stable poses stay get their
@@ -179,7 +179,7 @@ def _regenerate(job: tuple[int, str, str, str]) -> tuple[int, dict]:
     """``kind`` "full": ``generate_pair`` under the current scene; "labels": the stored
     record with its near misses and collision labels recomputed under the current scene
     (what ``generate_pair`` computes from the same stable poses). Writes a one-pair shard."""
-    from sim import atomic, dataset
+    from sim import atomic, dataset, dataset_io
     from sim.scene import build_scene
 
     index, work, kind, data, redo_negatives = job
@@ -192,7 +192,7 @@ def _regenerate(job: tuple[int, str, str, str]) -> tuple[int, dict]:
     ids = (w["recipe"]["objects"].index(obj_name), w["recipe"]["supports"].index(sup_name), seed)
     if kind == "full":
         rec = dataset.generate_pair(obj, sup, seed, config, "cpu")
-        one = dataset._pack([rec], [index], [ids])
+        one = dataset_io.pack_shard([rec], [index], [ids])
     else:
         path = Path(data) / "shards" / f"shard_{index // config.shard_size:05d}.npz"
         with np.load(path) as z:
@@ -201,7 +201,7 @@ def _regenerate(job: tuple[int, str, str, str]) -> tuple[int, dict]:
         part = _slices(shard, int(i))
         if int(part["pair_seed"][0]) != seed:
             raise AssertionError(f"pair {index}: stored seed differs from the recipe's")
-        stable = dataset.unpack(shard)[int(i)]["stable_poses"].astype(float)
+        stable = dataset_io.unpack(shard)[int(i)]["stable_poses"].astype(float)
         scene = build_scene(obj, sup)
         if redo_negatives:  # a kept near miss starts in the wall: the cap may admit others
             with dataset._timed("negatives"):
@@ -217,7 +217,7 @@ def _regenerate(job: tuple[int, str, str, str]) -> tuple[int, dict]:
 
 def run(data: str, work: str, workers: int = 2, progress: bool = True) -> dict:
     """Regenerate every pair of WORK/pairs.json not yet in WORK/records (resumable)."""
-    from sim import dataset
+    from sim import dataset_io
     from sim import workers as workers_mod
 
     found = json.loads((Path(work) / "pairs.json").read_text())
@@ -256,7 +256,7 @@ def run(data: str, work: str, workers: int = 2, progress: bool = True) -> dict:
                 "pairs": done,
                 "seconds": round(time.time() - t0, 2),
                 "workers": workers,
-                "device": dataset._device(),
+                "device": dataset_io.device_name(),
                 "stage_seconds": {k: round(v, 2) for k, v in sorted(stages.items())},
                 "interrupted": interrupted,
             }
@@ -292,7 +292,7 @@ def _slices(shard: dict, i: int) -> dict:
 
 def splice(shard: dict, replacements: dict[int, dict]) -> dict:
     """A shard's arrays with the pairs of ``replacements`` (pair_index -> a one-pair shard,
-    as ``sim.dataset._pack`` writes it) swapped in; every other pair's stored values, in
+    as ``sim.dataset_io.pack_shard`` writes it) swapped in; every other pair's stored values, in
     the same order and dtypes, untouched (poses are not requantised)."""
     parts = []
     for i in range(len(shard["pair_index"])):
@@ -410,7 +410,7 @@ def _compare(a: dict, b: dict) -> list[str]:
 
 def _verify_one(job: tuple[int, float]) -> tuple[int, float, dict]:
     """Regenerate pair ``index`` whole with the wall ``thickness`` (m); the unpacked record."""
-    from sim import dataset
+    from sim import dataset, dataset_io
     from sim.scene import PhysicsConfig, build_scene
 
     index, thickness = job
@@ -427,7 +427,7 @@ def _verify_one(job: tuple[int, float]) -> tuple[int, float, dict]:
     finally:
         dataset.build_scene = saved
     ids = (w["recipe"]["objects"].index(obj_name), w["recipe"]["supports"].index(sup_name), seed)
-    return index, thickness, dataset.unpack(dataset._pack([rec], [index], [ids]))[0]
+    return index, thickness, dataset_io.unpack(dataset_io.pack_shard([rec], [index], [ids]))[0]
 
 
 def verify(data: str, work: str, n: int = 24, seed: int = 0, workers: int = 2,

@@ -1,7 +1,7 @@
-"""Train the approach network (issue 13, thirty-fifth session): which straight approach into a
+"""Train the approach network: which straight approach into a
 hang is free, from the partial clouds (``omnihang_jax.approach``).
 
-1. Derives training pairs (``train_collision.derive_collision_pairs``: the collision
+1. Derives training pairs (``collision_data.derive_collision_pairs``: the collision
    estimator's pair files, the NCE's validation pairs excluded, resumable).
 2. Labels every stable pose of each with the full meshes: for each of the planner's 26 retreat
    directions, is the straight ``--length`` approach free (``approach.approach_labels``; cached
@@ -9,12 +9,13 @@ hang is free, from the partial clouds (``omnihang_jax.approach``).
 3. Splits by whole objects (``--val-mod``: an object is validation when crc32(name) % mod == 0),
    trains with warm-up + cosine decay, validates every ``--val-every`` steps, and writes the
    weights, ``curves.png`` and a JSON of the curves and the final figures.
-4. Scores the held-out pairs (``--test-pairs``, the pairs of ``--pairs-from``, the path
-   benchmark's goals): how often the best-scored direction is truly free, against the prior
+4. Scores held-out pairs (``--test-pairs``, the path evaluation's order): how often the best-scored direction is truly free, against the prior
    (the direction most often free in training).
 
-    python -m experiments.train_approach --pairs 1600 --steps 3000 --out weights/approach_s35 \\
-        --results results/approach_s35.json
+    python -m experiments.train_approach --pairs 8000 --steps 10000 --threshold 0.8 \\
+        --out weights/approach --results out/approach.json
+    python -m experiments.train_approach --pairs 8000 --steps 3000 --first-lengths 0.015 0.03 \\
+        --init weights/approach --out weights/approach_routes --results out/approach_routes.json
 """
 
 from __future__ import annotations
@@ -33,11 +34,11 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from experiments import eval_paths, train_collision
-from omnihang_jax import approach, collision, dataset_bridge
+from experiments import train_collision
+from omnihang_jax import approach, collision, collision_data, dataset_bridge
 
 LABEL_VERSION = 1
-ROUTE_LABEL_VERSION = 1  # fortieth session: route networks' labels (approach.route_labels)
+ROUTE_LABEL_VERSION = 1  # route networks' labels (approach.route_labels)
 
 
 def _label_one(job: tuple) -> str:
@@ -47,7 +48,7 @@ def _label_one(job: tuple) -> str:
     from sim.scene import build_scene
 
     pair_file, out_file, config, goals = job
-    lib = train_collision._WORKER["library"]  # train_collision._worker_init's
+    lib = collision_data._WORKER["library"]  # collision_data._worker_init's
     with np.load(pair_file) as f:
         obj, sup = lib.objects[f["object_name"].item()], lib.supports[f["support_name"].item()]
         stable = f["stable_poses"].astype(float)
@@ -81,7 +82,7 @@ def label_dir(data: str, config) -> Path:
     if config.first_lengths:
         mm = "-".join(f"{1000 * x:g}" for x in config.first_lengths)
         name = f"approach_routes_{mm}_{1000 * config.clear:g}"
-    return Path(data) / train_collision.DERIVED.replace("collision", name)
+    return Path(data) / collision_data.DERIVED.replace("collision", name)
 
 
 def label_pairs(data: str, files: list[Path], config, workers: int, progress: bool = True,
@@ -100,14 +101,14 @@ def label_pairs(data: str, files: list[Path], config, workers: int, progress: bo
     recipe = dataset_bridge.read_recipe(data)
     bar = tqdm(total=len(todo), desc="label approaches", unit="pair", disable=not progress)
     if todo and workers <= 1:
-        train_collision._worker_init(recipe, data)
+        collision_data._worker_init(recipe, data)
         for job in todo:
             _label_one(job)
             bar.update(1)
     elif todo:
         from sim.workers import spawn_pool
 
-        with spawn_pool(workers, train_collision._worker_init, (recipe, data)) as pool:
+        with spawn_pool(workers, collision_data._worker_init, (recipe, data)) as pool:
             for _ in pool.imap_unordered(_label_one, todo, chunksize=4):
                 bar.update(1)
     bar.close()
@@ -222,8 +223,8 @@ def ranking_figures(
 def warm_start(params, init_folder: str, config, prior: np.ndarray):
     """``params`` with every layer but the last taken from a trained approach network (the
     same architecture); the last layer's columns of the one-move routes from its straight
-    approaches' columns, the others' biases at the training prior's logit (fortieth session:
-    a route network started from ``approach_s37_8k``); from a route network of the same
+    approaches' columns, the others' biases at the training prior's logit (a route network
+    started from ``weights/approach``); from a route network of the same
     routes, its last layer too."""
     old_config, old, _ = approach.load(init_folder)
     for field in ("pointnet", "local_pointnet", "object_points", "support_points",
@@ -325,7 +326,7 @@ def threshold_sweep(prob: np.ndarray, labels: np.ndarray, thresholds=None) -> li
 
 def rule_threshold(sweep: list[dict], target: float = 0.9) -> float | None:
     """The lowest threshold of ``sweep`` whose used outputs are >= ``target`` positive (rows
-    with ``threshold`` and ``used_free``; also ``scripts/probe_route_rule.py``'s rule)."""
+    with ``threshold`` and ``used_free``)."""
     ok = [r["threshold"] for r in sweep if r["used_free"] is not None and r["used_free"] >= target]
     return min(ok) if ok else None
 
@@ -365,7 +366,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--length", type=float, default=0.045, help="approach length, m")
     ap.add_argument(
         "--first-lengths", type=float, nargs="*", default=[], metavar="M",
-        help="a route network (fortieth session): one output per route of one or two straight "
+        help="a route network: one output per route of one or two straight "
         "moves (first moves of these lengths, m), labelled free and ending --clear off",
     )  # fmt: skip
     ap.add_argument("--clear", type=float, default=0.01, help="route networks: m off at the end")
@@ -382,9 +383,6 @@ def main(argv=None) -> dict:
     ap.add_argument("--val-rows", type=int, default=1024)
     ap.add_argument("--threshold", type=float, default=0.5)
     ap.add_argument("--test-pairs", type=int, default=80, help="held-out pairs scored (0: none)")
-    ap.add_argument(
-        "--pairs-from", default="results/hanging_success_stage3_s14_cemv.pairs.jsonl.gz"
-    )
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", required=True, help="weights folder")
     ap.add_argument("--results", help="JSON of the curves and figures")
@@ -397,9 +395,9 @@ def main(argv=None) -> dict:
                                         "first_lengths": tuple(args.first_lengths),
                                         "clear": args.clear})  # fmt: skip
     t0 = time.time()
-    files = train_collision.derive_collision_pairs(
+    files = collision_data.derive_collision_pairs(
         args.data, {"train": args.pairs}, args.workers, progress, shuffle_seed=0,
-        only=lambda i: i % eval_paths.VAL_EVERY != 0,
+        only=lambda i: i % collision_data.VAL_EVERY != 0,
     )["train"]  # fmt: skip
     labels = label_pairs(args.data, files, config, args.workers, progress, args.goals_per_pair)
     data = ApproachData.from_files(files, labels)
@@ -429,10 +427,8 @@ def main(argv=None) -> dict:
         summary["validation_first_goal"] = dict(goals=len(first), sweep=sweep,
                                                 rule_threshold=rule_threshold(sweep))  # fmt: skip
     if args.test_pairs:
-        records = eval_paths.read_answers(args.pairs_from)
-        test_files = train_collision.derive_collision_pairs(
+        test_files = collision_data.derive_collision_pairs(
             args.data, {"test": args.test_pairs}, args.workers, progress, shuffle_seed=0,
-            only=records.__contains__,
         )["test"]  # fmt: skip
         test = ApproachData.from_files(test_files, label_pairs(
             args.data, test_files, config, args.workers, progress, args.goals_per_pair))  # fmt: skip

@@ -42,7 +42,7 @@ PRESETS = {
     ),
     # the GPU job: every derived training pair, the small PointNet++ preset
     "paper": RLConfig(workers=15, time_budget=0.0),
-    # issue 12, the device chain (scripts/chain/stage3.sh): every training pair, derived
+    # the device job (scripts/chain/stage3.sh): every training pair, derived
     # while the job runs (ingested every 3 rounds), a lighter seed (8 + 8 perturbations per
     # pair), then hard-negative rounds: CEM's answers + the 8 best-scored members of every
     # final population labelled by the physics, a quarter of each batch from those hard cases
@@ -101,8 +101,8 @@ def main(argv=None) -> dict:
     )
     parser.add_argument(
         "--weights",
-        default="weights/where_small_paper",
-        help="Stage 1/2 weights (default weights/where_small_paper)",
+        default="weights/stage12",
+        help="Stage 1/2 weights (default weights/stage12)",
     )
     parser.add_argument("--max-pairs", type=int, default=None, help="training pairs (0 = all)")
     parser.add_argument("--pretrain-steps", type=int, default=None)

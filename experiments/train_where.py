@@ -146,7 +146,7 @@ def main(argv=None) -> dict:
         default=None,
         metavar="WEIGHTS",
         help="start stages without a checkpoint from these weights (e.g. "
-        "weights/where_small_paper; same preset): fine-tuning with a fresh schedule",
+        "weights/stage12; same preset): fine-tuning with a fresh schedule",
     )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)

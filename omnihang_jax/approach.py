@@ -1,20 +1,19 @@
-"""The approach of a hang, learned from partial clouds (thirty-fifth session, issue 13).
+"""The approach of a hang, learned from partial clouds.
 
 A hang is an insertion: the last centimetres into the goal are the reverse of taking the object
-off. The thirty-fourth session measured (``scripts/probe_oracle_approach.py``) that half of the
-best planner's colliding paths collide only within the goal's last 4.5 cm, and that planning to
+off. Measured: half of the best planner's colliding paths collide only within the goal's last 4.5 cm, and that planning to
 a pre-goal 4.5 cm back along a straight approach the *full meshes* call free lifts F1 by ~10.
 The full meshes are not observed; this module learns the approach from what is.
 
 The **approach network** sees the partial object cloud posed at the goal and the partial
 support cloud, both centred on the goal's position (support frame, z up), and scores each of
-the planner's 26 straight retreat directions (``planner.RETREAT_DIRECTIONS``): the logit that
+the planner's 26 straight retreat directions (``retreats.RETREAT_DIRECTIONS``): the logit that
 the orientation-keeping segment of ``length`` from the goal along it is free of the support and
 the wall on the full meshes. Its two branches are the contact NCE's
 (:mod:`omnihang_jax.collision`): a global PointNet++ on evenly strided subsets of both clouds
 and a local one on the contact patch (millimetre offsets to the other cloud as features).
 
-Labels are geometry, not physics: :func:`approach_labels` runs ``planner.free_retreats`` with a
+Labels are geometry, not physics: :func:`approach_labels` runs ``retreats.free_retreats`` with a
 ``collision.MeshChecker`` on every stable pose of a training pair (~10 ms a pose).
 """
 
@@ -31,11 +30,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from omnihang_jax import collision, planner
+from omnihang_jax import collision, planner, retreats
 from omnihang_jax.pointnet2 import PointNet2Encoder
 from omnihang_jax.stage2 import combine_clouds
 
-DIRECTIONS = planner.RETREAT_DIRECTIONS  # [26, 3] unit, support frame, upward first
+DIRECTIONS = retreats.RETREAT_DIRECTIONS  # [26, 3] unit, support frame, upward first
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,8 +49,8 @@ class ApproachConfig:
     length / resolution: the approach the labels judge (m; states every ``resolution``).
     threshold: a planner uses the best direction only when its probability reaches this
       (below it, the plain plan to the goal).
-    first_lengths: empty, the 26 straight approaches above; else (fortieth session) a **route
-      network**: one output per route of ``planner.move_routes(first_lengths)`` (one or two
+    first_lengths: empty, the 26 straight approaches above; else a **route
+      network**: one output per route of ``retreats.move_routes(first_lengths)`` (one or two
       straight moves, the last ``length`` long), labelled free *and* ending at least ``clear``
       (m) off the support and the wall on the full meshes (:func:`route_labels`).
     """
@@ -71,7 +70,7 @@ class ApproachConfig:
 
     @property
     def routes(self) -> np.ndarray:
-        """[R, 3] the outputs' routes (``planner.move_routes``; the 26 straight moves when
+        """[R, 3] the outputs' routes (``retreats.move_routes``; the 26 straight moves when
         ``first_lengths`` is empty), computed once per tuple of lengths (read-only)."""
         return _routes(tuple(self.first_lengths))
 
@@ -82,7 +81,7 @@ class ApproachConfig:
 
 @functools.lru_cache(maxsize=16)
 def _routes(first_lengths: tuple[float, ...]) -> np.ndarray:
-    routes = planner.move_routes(first_lengths)
+    routes = retreats.move_routes(first_lengths)
     routes.setflags(write=False)
     return routes
 
@@ -118,6 +117,16 @@ class _ApproachNet(nn.Module):
         return nn.Dense(c.outputs)(x)
 
 
+@functools.cache
+def _init(config: ApproachConfig) -> Callable:
+    """The jitted initialiser, one per config (one compilation however many networks)."""
+    net = _ApproachNet(config)
+    obj = jnp.zeros((1, config.object_points, 3))
+    sup = jnp.zeros((1, config.support_points, 3))
+    patch = (jnp.zeros((1, 2 * config.local_points, 3)), jnp.zeros((1, 2 * config.local_points, 5)))  # fmt: skip
+    return jax.jit(lambda k: net.init(k, obj, sup, patch)["params"])
+
+
 def make_approach_net(config: ApproachConfig) -> collision.EstimatorNets:
     """init(key) -> params; apply(params, object_points [B, N, 3] object frame, support_points
     [B, M, 3] support frame, goals [B, 7]) -> logits [B, 26] (positive: the approach along
@@ -125,10 +134,7 @@ def make_approach_net(config: ApproachConfig) -> collision.EstimatorNets:
     net = _ApproachNet(config)
 
     def init(key):
-        obj = jnp.zeros((1, config.object_points, 3))
-        sup = jnp.zeros((1, config.support_points, 3))
-        patch = (jnp.zeros((1, 2 * config.local_points, 3)), jnp.zeros((1, 2 * config.local_points, 5)))  # fmt: skip
-        return jax.jit(lambda k: net.init(k, obj, sup, patch)["params"])(key)
+        return _init(config)(key)
 
     def apply(params, object_points, support_points, goals):
         centre = goals[:, None, :3]
@@ -168,7 +174,7 @@ class ApproachPredictor:
     as observed (any size: the fixed ``local_from`` subset is taken here). NaN clouds or goal:
     a clear ``ValueError``.
 
-    Thirty-eighth session: ``params`` may be a list of networks' parameters (``configs`` their
+    ``params`` may be a list of networks' parameters (``configs`` their
     configs, the first's threshold counts) and ``views`` > 1 averages the probabilities over
     that many cloud subsets (seeds 0..views-1; seed 0 alone is the planner's default)."""
 
@@ -218,8 +224,8 @@ class ApproachPredictor:
 def usable(directions: np.ndarray, probs: np.ndarray, threshold: float, wall_mounted: bool,
            open_side: bool) -> np.ndarray:  # fmt: skip
     """[K] bool: the ranked directions a planner may use: probability >= ``threshold`` and,
-    with ``open_side`` on a wall-mounted support, none towards the wall (-y; thirty-fifth
-    session: a pre-goal between the object and the wall is a narrow place to plan to)."""
+    with ``open_side`` on a wall-mounted support, none towards the wall (-y: a pre-goal
+    between the object and the wall is a narrow place to plan to)."""
     keep = np.asarray(probs) >= threshold
     if open_side and wall_mounted:
         keep &= np.asarray(directions)[:, 1] >= -1e-9
@@ -239,16 +245,15 @@ class RouteChoice(NamedTuple):
 def checked_route(predictor: ApproachPredictor, object_cloud, support_cloud, goal,
                   check: Callable | None = None, end_gap: float = 0.0, tries: int = 10,
                   resolution: float = 0.005) -> RouteChoice:  # fmt: skip
-    """A route network's route for ``goal`` (forty-first session, issue 13). Without ``check``:
-    its best route when that reaches the network's threshold (the fortieth session's rule, the
-    route taken as free). With ``check`` (a planner's own collision checker on the observed
+    """A route network's route for ``goal``. Without ``check``: its best route when that
+    reaches the network's threshold (the route taken as free). With ``check`` (a planner's own collision checker on the observed
     clouds, poses [B, 7] -> [B] bool): the first route, best first and at most ``tries`` of
-    them, at or above the threshold whose states (``planner.route_states`` at ``resolution``)
+    them, at or above the threshold whose states (``retreats.route_states`` at ``resolution``)
     ``check`` calls free and whose end is at least ``end_gap`` (m) clear between the observed
     clouds (``collision.cloud_gap``; observed points lie on the true surfaces, so a route whose
     observed end gap is smaller cannot truly end that far off). On the validation objects'
     goals this makes 87 % of the routes truly good (free and >= 1 cm off) at threshold 0.3
-    against 71 % unchecked (docs/paths.md "The route asked of the planner's checker")."""
+    against 71 % unchecked."""
     routes, probs = predictor.best_routes(object_cloud, support_cloud, goal)
     config = predictor.config
     if probs[0] < config.threshold:
@@ -261,7 +266,7 @@ def checked_route(predictor: ApproachPredictor, object_cloud, support_cloud, goa
         if probs[k] < config.threshold:
             break
         tried += 1
-        states = planner.route_states(goal, routes[k], config.length, resolution)
+        states = retreats.route_states(goal, routes[k], config.length, resolution)
         if planner.any_colliding(check, states):
             continue
         if end_gap > 0:
@@ -293,7 +298,7 @@ def load(folder: str | os.PathLike) -> tuple[ApproachConfig, object, dict]:
 
 
 def load_predictor(folders, threshold: float | None = None, views: int = 1) -> ApproachPredictor:
-    """The predictor of one folder (a str) or several (their mean; thirty-eighth session), at
+    """The predictor of one folder (a str) or several (their mean), at
     ``threshold`` (default: the first network's), averaged over ``views`` cloud subsets."""
     folders = [folders] if isinstance(folders, (str, os.PathLike)) else list(folders)
     if not folders:
@@ -316,7 +321,7 @@ def approach_labels(scene, goals: np.ndarray, length: float = 0.045,
     mesh = collision.MeshChecker(scene, tolerance)
     bounds = planner.default_bounds(scene)
     goals = np.asarray(goals, float).reshape(-1, 7)
-    return np.stack([planner.free_retreats(mesh, g, length, resolution, bounds) for g in goals])
+    return np.stack([retreats.free_retreats(mesh, g, length, resolution, bounds) for g in goals])
 
 
 def route_labels(scene, goals: np.ndarray, config: ApproachConfig,
@@ -324,13 +329,13 @@ def route_labels(scene, goals: np.ndarray, config: ApproachConfig,
     """[G, 7] goals -> [G, R] bool: is each route of ``config.routes`` free on the full meshes
     (penetration > ``tolerance`` collides, inside ``planner.default_bounds``) and does it end at
     least ``config.clear`` off the support and the wall (``MeshChecker.clearance``)?
-    ``planner.route_table``; ~30 ms a goal for the 1,038 routes of two first lengths (VM)."""
+    ``retreats.route_table``; ~30 ms a goal for the 1,038 routes of two first lengths (VM)."""
     mesh = collision.MeshChecker(scene, tolerance)
     bounds = planner.default_bounds(scene)
     routes = config.routes
     off = lambda pose: float(mesh.clearance(pose)[0]) >= config.clear  # noqa: E731
     goals = np.asarray(goals, float).reshape(-1, 7)
     return np.stack([
-        planner.route_table(mesh, g, routes, config.length, config.resolution, bounds, off)
+        retreats.route_table(mesh, g, routes, config.length, config.resolution, bounds, off)
         for g in goals
     ]).reshape(len(goals), len(routes))  # fmt: skip

@@ -1,7 +1,7 @@
-"""The resumable training loop's bookkeeping, shared by the point-set trainers that save a
-best-on-validation network and continue a killed run (``completion.train_completion``,
-``distance_field.train_field``): the optimiser and its schedule, the run folder's ``run.json``
-check, and the checkpoint written at every evaluation.
+"""The resumable training loop's bookkeeping of a point-set trainer that saves a
+best-on-validation network and continues a killed run (``completion.train_completion``): the
+optimiser and its schedule, the run folder's ``run.json`` check, and the checkpoint written at
+every evaluation.
 
 A run folder holds ``run.json`` (the network and training configs), ``history.jsonl`` (one row
 per evaluation) and ``checkpoint.msgpack`` (params, optimiser state, step, best validation figure

@@ -20,28 +20,23 @@ are pure and un-jitted; the caller wraps them in ``jax.jit`` once and then check
   that support point's normal (points inside the support lie behind the normal: cosine < 0).
   Colliding when the score is above a threshold chosen on training pairs. ``params`` = the
   normal net's parameters.
-- **HCE with true normals**: the same score with the support cloud's ray-cast normals, a
-  reference for how much the normal net loses. ``params`` = those normals ``[M, 3]``.
-
-- **NCE + observed-cloud check** (``nce_geometric``, not in the paper): the NCE OR a
-  penetration test on the observed clouds (:class:`GeometricConfig`): the pose collides when
-  an object point lies more than ``depth`` behind its nearest observed support point's
-  surface (along that point's ray-cast outward normal) and within ``radius`` of it sideways.
-  The NCE calls most poses a few mm inside a rod free; this catches them. ``params`` =
-  :class:`NCEGeometricParams` (the NCE's, a denser object cloud, a per-pair nearest-support
-  lookup table :func:`support_grid`). With ``GeometricConfig.symmetric`` the test also counts
-  observed SUPPORT points behind the observed OBJECT surface (a lookup table over the object
-  cloud in the object frame; the support points moved there by the inverse pose).
+- **Observed-cloud penetration test** (:class:`GeometricConfig`, not in the paper): the pose
+  collides when an object point lies more than ``depth`` behind its nearest observed support
+  point's surface (along that point's ray-cast outward normal) and within ``radius`` of it
+  sideways. The default planner ORs it with the NCE (``planner.hybrid_checker``): the NCE
+  calls most poses a few mm inside a rod free; this catches them. ``params`` = a per-pair
+  nearest-support lookup table (:func:`support_grid`).
 
 Factories (:func:`make_nce`, :func:`make_normal_net`) hide the Flax modules and return plain
-init / apply functions; :func:`nce_collides`, :func:`hce_collides`,
-:func:`hce_true_normals_collides`, :func:`geometric_collides`,
-:func:`nce_geometric_collides` return the ``collides`` functions.
+init / apply functions; :func:`nce_collides`, :func:`hce_collides`, :func:`geometric_collides`
+and :func:`goal_ball_collides` return the ``collides`` functions. The full-mesh ground truth
+and the planner's scene geometry live in :mod:`omnihang_jax.meshes` (re-exported here).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 from collections.abc import Callable
@@ -53,6 +48,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from omnihang_jax.meshes import (  # noqa: F401  (re-exported)
+    MeshChecker,
+    cloud_gap,
+    default_bounds,
+    object_radius,
+    posed_points,
+    start_pose,
+)
 from omnihang_jax.pointnet2 import (
     PRESETS,
     PointNet2Config,
@@ -80,19 +83,14 @@ __all__ = [
     "nce_collides",
     "nce_probability",
     "hce_collides",
-    "hce_true_normals_collides",
     "nearest_support_offsets",
     "GeometricConfig",
     "SupportGrid",
     "support_grid",
-    "GeometricGrids",
     "grid_offsets",
     "inside_points",
     "penetration_count",
-    "support_penetration_count",
     "geometric_collides",
-    "NCEGeometricParams",
-    "nce_geometric_collides",
     "subsample_cloud",
     "save_estimator",
     "load_estimator",
@@ -120,17 +118,13 @@ class NCEConfig:
       support_points: it is given N support points and keeps the ``support_points`` of them
       nearest to the posed object (:func:`crop_support`): ~N / support_points times denser
       where contact happens, for the millimetre gaps of a hanging pose.
-    local_points: 0 (one global branch), or L > 0: the **contact NCE** (eighteenth session).
+    local_points: 0 (one global branch), or L > 0: the **contact NCE**.
       The estimator is given ``local_from`` points of each cloud. The global branch sees an
       evenly strided ``object_points`` / ``support_points`` of them (or the support crop, when
       ``support_crop_from`` is set); a second, local branch (``local_pointnet``, millimetre-scale
       balls) sees the L support points nearest the posed object and the L object points nearest
       those (:func:`contact_patch`), centred on the patch, each point with its offset to the
       nearest point of the other cloud as a feature. Both codes go to the head.
-    input_clouds: "observed" (the partial clouds as the cameras saw them) or "completed"
-      (twenty-eighth session: each cloud half observed, half the shape-completion networks'
-      carved prediction of its hidden side, ``completion.completed_cloud``; trained with
-      ``train_collision --completion``). It tells a planner which clouds to give the network.
     """
 
     pointnet: str = "small"
@@ -142,13 +136,6 @@ class NCEConfig:
     local_points: int = 0
     local_from: int = 2048
     local_pointnet: str = "local"
-    input_clouds: str = "observed"
-
-    def __post_init__(self):
-        if self.input_clouds not in ("observed", "completed"):
-            raise ValueError(
-                f"input_clouds must be observed or completed, got {self.input_clouds!r}"
-            )
 
     @property
     def support_input(self) -> int:
@@ -216,7 +203,7 @@ NCE_PRESETS = {
         local_from=128,
         local_pointnet="tiny",
     ),
-    # fast's global branch on strided subsets + the local contact branch (eighteenth session)
+    # fast's global branch on strided subsets + the local contact branch
     "contact": NCEConfig(
         pointnet="fast",
         object_points=256,
@@ -313,16 +300,8 @@ def make_nce(config: NCEConfig) -> EstimatorNets:
     """
     net = _NCENet(config)
 
-    def init(key):  # jitted: op-by-op PointNet++ initialisation takes ~10x longer
-        obj = jnp.zeros((1, config.object_points, 3))
-        sup = jnp.zeros((1, config.support_points, 3))
-        patch = None
-        if config.local_points:
-            patch = (
-                jnp.zeros((1, 2 * config.local_points, 3)),
-                jnp.zeros((1, 2 * config.local_points, 5)),
-            )
-        return jax.jit(lambda k: net.init(k, obj, sup, patch)["params"])(key)
+    def init(key):
+        return _nce_init(config)(key)
 
     def apply(params, object_points, support_points, poses):
         posed = transform_points(poses, object_points)
@@ -368,7 +347,7 @@ def contact_patch(object_posed: jax.Array, support_points: jax.Array, k: int, pr
     # squared distances [B, k_obj, k_sup] as |a|^2 + |b|^2 - 2 a.b at full f32 precision (no
     # TF32: millimetres on centred coordinates of a few cm), then gathers from the [B, k, 3]
     # clouds. (The first version gathered from a broadcast [B, k, k, 3] difference: XLA's GPU
-    # compiler spent minutes on that fusion; the eighteenth session's first device call.)
+    # compiler spent minutes on that fusion.)
     cross = jnp.einsum("bic,bjc->bij", obj, sup, precision=jax.lax.Precision.HIGHEST)
     d2 = jnp.sum(obj**2, -1)[:, :, None] + jnp.sum(sup**2, -1)[:, None, :] - 2.0 * cross
     to_sup = jnp.take_along_axis(sup, jnp.argmin(d2, axis=2)[..., None], axis=1) - obj
@@ -434,12 +413,34 @@ class _NormalNet(nn.Module):
         return normals / (jnp.linalg.norm(normals, axis=-1, keepdims=True) + 1e-9)
 
 
+@functools.cache
+def _nce_init(config: NCEConfig) -> Callable:
+    """The NCE's jitted initialiser, one per config (op-by-op PointNet++ initialisation takes
+    ~10x longer; one compilation however many networks are made)."""
+    net = _NCENet(config)
+    obj = jnp.zeros((1, config.object_points, 3))
+    sup = jnp.zeros((1, config.support_points, 3))
+    patch = None
+    if config.local_points:
+        patch = (
+            jnp.zeros((1, 2 * config.local_points, 3)),
+            jnp.zeros((1, 2 * config.local_points, 5)),
+        )
+    return jax.jit(lambda k: net.init(k, obj, sup, patch)["params"])
+
+
+@functools.cache
+def _normal_init(config: NormalNetConfig) -> Callable:
+    net = _NormalNet(config)
+    return jax.jit(lambda k: net.init(k, jnp.zeros((1, config.points, 3)))["params"])
+
+
 def make_normal_net(config: NormalNetConfig) -> EstimatorNets:
     """init(key) -> params; apply(params, points [B, N, 3]) -> unit normals [B, N, 3]."""
     net = _NormalNet(config)
 
     def init(key):
-        return jax.jit(lambda k: net.init(k, jnp.zeros((1, config.points, 3)))["params"])(key)
+        return _normal_init(config)(key)
 
     def apply(params, points):
         return net.apply({"params": params}, points)
@@ -504,18 +505,8 @@ def hce_collides(config: NormalNetConfig) -> Callable:
     return collides
 
 
-def hce_true_normals_collides(threshold: float) -> Callable:
-    """``collides(support_normals [M, 3], object_cloud, support_cloud, poses) -> [B] bool``:
-    the heuristic with the support cloud's true normals in place of parameters."""
-
-    def collides(params, object_cloud, support_cloud, poses):
-        return heuristic_score(object_cloud, support_cloud, params, poses) > threshold
-
-    return collides
-
-
 # ----------------------------------------------------------------------------------------------
-# Observed-cloud penetration test, alone and OR-ed with the NCE (``nce_geometric``)
+# Observed-cloud penetration test (the hybrid checker's first test, planner.hybrid_checker)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -527,24 +518,11 @@ class GeometricConfig:
     observed point is on the rod's silhouette, does not count. The pose collides when more
     than ``min_points`` object points are inside.
 
-    symmetric: also the other way round (off by default): a SUPPORT point is inside the
-    object when it lies more than ``sym_depth`` behind the nearest observed OBJECT point's
-    surface (along that point's outward normal, ``object_normals`` of the derived clouds)
-    and within ``sym_radius`` of it sideways; the pose also collides when more than
-    ``sym_min_points`` support points are inside. The object moves and the support does not,
-    so the lookup table is built once per pair over the object cloud in the OBJECT frame
-    (:func:`support_grid` on the object cloud and its normals) and every pose moves the
-    observed support points (all of them: the support table's ``points``) into the object
-    frame (:func:`inverse_transform_points`). It sees a thin support part (a rod, a hook's
-    tip) passing through the object between observed object points, where no object point
-    lies behind the observed support surface.
-
     object_points: size of the planner's fixed subset of the 4,096-point object cloud (seed
     0). The support side is the whole observed support cloud through a nearest-point lookup
     table (:func:`support_grid`: ``voxel`` m cells, at most ``max_voxels``, the cloud's box
-    grown by ``margin``). Defaults: the setting chosen on 60 training-split validation pairs
-    (``experiments.eval_paths --select-geometric``; docs/paths.md, "Hybrid NCE +
-    observed-cloud check").
+    grown by ``margin``). ``omnihang_jax.paths.PlannerConfig`` sets depth, radius and min points
+    (docs/how.md, "The default planner").
     """
 
     depth: float = 0.001
@@ -554,23 +532,6 @@ class GeometricConfig:
     voxel: float = 0.001
     max_voxels: int = 2_000_000
     margin: float = 0.01
-    # the symmetric side: off by default, and its settings are placeholders (the one-sided
-    # ones): on the 60 validation pairs no setting keeps >= 90 % of the stable poses free
-    # (docs/paths.md, "The symmetric observed-cloud test")
-    symmetric: bool = False
-    sym_depth: float = 0.001
-    sym_radius: float = 0.003
-    sym_min_points: int = 0
-    # the symmetric side only behind SOLID-BACKED object points (off by default): a support
-    # point counts only when its nearest observed object point has its back face observed too
-    # (:func:`solid_backed`: another object point at most ``sym_solid_thickness`` behind it
-    # along its inward normal, within ``sym_solid_radius`` sideways, its normal facing the
-    # other way, cosine < ``sym_solid_cos``); elsewhere the object table answers -1 (never
-    # inside): behind a thin part seen from one side the test cannot tell solid from empty
-    sym_solid_only: bool = False
-    sym_solid_thickness: float = 0.03
-    sym_solid_radius: float = 0.004
-    sym_solid_cos: float = -0.5
 
 
 class SupportGrid(NamedTuple):
@@ -631,60 +592,6 @@ def support_grid(
     )
 
 
-def solid_backed(
-    points: np.ndarray,
-    normals: np.ndarray,
-    thickness: float = 0.03,
-    radius: float = 0.004,
-    cos: float = -0.5,
-) -> np.ndarray:
-    """Host: [N] bool, object point i's back face is observed too: some other point j lies
-    behind it along its inward normal (0 < (p_i - p_j) . n_i <= ``thickness``), within
-    ``radius`` of that line sideways, with its normal facing the other way (n_i . n_j <
-    ``cos``). A thin part seen from one side only is not solid-backed."""
-    from scipy.spatial import cKDTree
-
-    points = np.asarray(points, np.float64)
-    normals = np.asarray(normals, np.float64)
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    tree = cKDTree(points)
-    out = np.zeros(len(points), bool)
-    reach = float(np.hypot(thickness, radius))
-    for a in range(0, len(points), 512):
-        b = min(a + 512, len(points))
-        lists = tree.query_ball_point(points[a:b], reach)
-        sizes = np.fromiter((len(x) for x in lists), int, b - a)
-        i = np.repeat(np.arange(a, b), sizes)
-        j = np.fromiter((k for x in lists for k in x), int, int(sizes.sum()))
-        d = points[i] - points[j]
-        depth = np.sum(d * normals[i], 1)
-        lateral2 = np.sum(d * d, 1) - depth**2
-        ok = (depth > 0) & (depth <= thickness) & (lateral2 < radius**2)
-        ok &= np.sum(normals[i] * normals[j], 1) < cos
-        out[np.unique(i[ok])] = True
-    return out
-
-
-def object_grid(
-    object_cloud: np.ndarray, object_normals: np.ndarray, config: GeometricConfig
-) -> SupportGrid:
-    """Host: the symmetric side's lookup table over the object cloud (object frame); with
-    ``config.sym_solid_only`` the cells whose nearest object point is not
-    :func:`solid_backed` answer -1."""
-    keep = None
-    if config.sym_solid_only:
-        keep = solid_backed(
-            object_cloud,
-            object_normals,
-            config.sym_solid_thickness,
-            config.sym_solid_radius,
-            config.sym_solid_cos,
-        )
-    return support_grid(
-        object_cloud, object_normals, config.voxel, config.max_voxels, config.margin, keep=keep
-    )
-
-
 def grid_offsets(grid: SupportGrid, posed: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """:func:`nearest_support_offsets` through the lookup table: posed [B, N, 3] -> (along
     the normal [B, N], offset length [B, N], in the grid and within its reach [B, N] bool)."""
@@ -715,78 +622,18 @@ def penetration_count(
     along, length, in_grid = grid_offsets(grid, posed)
     return inside_points(jnp.where(in_grid, along, 0.0), length, depth, radius)
 
-
-class GeometricGrids(NamedTuple):
-    """The symmetric test's two lookup tables (host-built once per pair)."""
-
-    support: SupportGrid  # over the support cloud, support frame: object points inside it
-    object: SupportGrid  # over the object cloud with its normals, OBJECT frame: the support
     # table's points inside the object
-
-
-def support_penetration_count(
-    grid: SupportGrid, support_points: jax.Array, poses: jax.Array, depth: float, radius: float
-) -> jax.Array:
-    """The symmetric side: observed support points inside the observed object per pose.
-    grid: :func:`support_grid` over the object cloud and its outward normals (object
-    frame); support_points [M, 3] (support frame); poses [B, 7] -> [B] int32."""
-    local = inverse_transform_points(jnp.asarray(poses), jnp.asarray(support_points))
-    along, length, in_grid = grid_offsets(grid, local)
-    return inside_points(jnp.where(in_grid, along, 0.0), length, depth, radius)
 
 
 def geometric_collides(config: GeometricConfig) -> Callable:
     """``collides(params, object_cloud, support_cloud, poses) -> [B] bool``: the
-    observed-cloud penetration test alone. ``params``: the :class:`SupportGrid` of the
-    support cloud, or (required with ``config.symmetric``) :class:`GeometricGrids`; the
-    support cloud is the support table's, the argument is there for the common signature
+    observed-cloud penetration test. ``params``: the :class:`SupportGrid` of the support
+    cloud; the support cloud is the table's, the argument is there for the common signature
     and not read."""
 
     def collides(params, object_cloud, support_cloud, poses):
-        grid = params.support if isinstance(params, GeometricGrids) else params
-        count = penetration_count(object_cloud, grid, poses, config.depth, config.radius)
-        hit = count > config.min_points
-        if config.symmetric:
-            if not isinstance(params, GeometricGrids):
-                raise TypeError("a symmetric GeometricConfig needs GeometricGrids params")
-            sym = support_penetration_count(
-                params.object, grid.points, poses, config.sym_depth, config.sym_radius
-            )
-            hit = hit | (sym > config.sym_min_points)
-        return hit
-
-    return collides
-
-
-class NCEGeometricParams(NamedTuple):
-    """``nce_geometric``'s parameters: the NCE's, and the penetration test's own object cloud
-    (denser than the NCE's 256 points) and support lookup table; with a symmetric test the
-    object cloud's lookup table too."""
-
-    nce: dict
-    object_points: jax.Array  # [N', 3] object frame
-    grid: SupportGrid
-    object_grid: SupportGrid | None = None  # GeometricConfig.symmetric only
-
-
-def nce_geometric_collides(config: NCEConfig, geometric: GeometricConfig) -> Callable:
-    """``collides(NCEGeometricParams, object_cloud, support_cloud, poses) -> [B] bool``: the
-    NCE on its clouds (``object_cloud``, ``support_cloud``: the NCE's subsets) OR the
-    observed-cloud penetration test. The test only adds "colliding" calls: a pose near
-    contact that the NCE lets through is caught when enough object points lie behind the
-    observed support surface (and, with ``geometric.symmetric``, enough support points
-    behind the observed object surface)."""
-    nce = nce_collides(config)
-    test = geometric_collides(geometric)
-
-    def collides(params, object_cloud, support_cloud, poses):
-        by_nce = nce(params.nce, object_cloud, support_cloud, poses)
-        grids = params.grid
-        if geometric.symmetric:
-            if params.object_grid is None:
-                raise ValueError("a symmetric GeometricConfig needs NCEGeometricParams.object_grid")
-            grids = GeometricGrids(params.grid, params.object_grid)
-        return by_nce | test(grids, params.object_points, None, poses)
+        count = penetration_count(object_cloud, params, poses, config.depth, config.radius)
+        return count > config.min_points
 
     return collides
 
@@ -900,126 +747,3 @@ def balanced_threshold(scores: np.ndarray, label: np.ndarray) -> float:
     tpr = (scores[None, label] > cands[:, None]).mean(1)
     tnr = (scores[None, ~label] <= cands[:, None]).mean(1)
     return float(cands[np.argmax(tpr + tnr)])
-
-
-# ----------------------------------------------------------------------------------------------
-# Ground truth on the full meshes (MuJoCo, host) and the planner's start pose: here rather than
-# in ``planner`` (which needs OMPL) so that training can label poses the way the planner judges
-# them on a machine without OMPL. ``planner`` re-exports them.
-
-
-class MeshChecker:
-    """Full-mesh collision through MuJoCo: colliding when any object geom penetrates a
-    support (or wall) geom deeper than ``tolerance``. Host CPU, one state at a time."""
-
-    def __init__(self, scene, tolerance: float = 1e-3):
-        self.scene = scene
-        self.model = scene.model
-        import mujoco
-
-        self._mujoco = mujoco
-        self.data = mujoco.MjData(self.model)
-        self.tolerance = tolerance
-        self.object_geoms = set(int(g) for g in scene.object_geoms)
-        others = list(scene.support_geoms) + ([scene.wall_geom] if scene.wall_geom >= 0 else [])
-        self.other_geoms = set(int(g) for g in others)
-
-    def deepest_contacts(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """[B, 7] -> (depth [B] of the deepest object-support penetration in metres, 0 if none;
-        its contact point [B, 3] in the support frame, NaN where there is none)."""
-        poses = np.asarray(poses, float).reshape(-1, 7)
-        depth = np.zeros(len(poses))
-        point = np.full((len(poses), 3), np.nan)
-        m, d = self.model, self.data
-        for i, pose in enumerate(poses):
-            d.qpos[:7] = pose
-            self._mujoco.mj_kinematics(m, d)
-            self._mujoco.mj_collision(m, d)
-            for j in range(d.ncon):
-                con = d.contact[j]
-                g1, g2 = int(con.geom1), int(con.geom2)
-                if (g1 in self.object_geoms and g2 in self.other_geoms) or (
-                    g2 in self.object_geoms and g1 in self.other_geoms
-                ):
-                    if -float(con.dist) > depth[i]:
-                        depth[i], point[i] = -float(con.dist), con.pos
-        return depth, point
-
-    def clearance(self, poses: np.ndarray, cap: float = 0.05) -> np.ndarray:
-        """[B, 7] -> [B] the smallest signed distance (m, at most ``cap``; negative when they
-        overlap) between any object part and any support (or wall) part, by
-        ``mujoco.mj_geomDistance``: how far off the support a pose is."""
-        poses = np.asarray(poses, float).reshape(-1, 7)
-        out = np.full(len(poses), cap)
-        m, d = self.model, self.data
-        for i, pose in enumerate(poses):
-            d.qpos[:7] = pose
-            self._mujoco.mj_kinematics(m, d)
-            for a in self.object_geoms:
-                for b in self.other_geoms:
-                    out[i] = min(out[i], float(self._mujoco.mj_geomDistance(m, d, a, b, cap, None)))
-        return out
-
-    def penetration(self, poses: np.ndarray) -> np.ndarray:
-        """[B, 7] -> [B] deepest object-support penetration in metres (0 if none)."""
-        return self.deepest_contacts(poses)[0]
-
-    def __call__(self, poses: np.ndarray) -> np.ndarray:
-        return self.penetration(poses) > self.tolerance
-
-
-def posed_points(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """NumPy twin of ``collision.transform_points`` for host-side checkers: poses [B, 7]
-    (xyz + wxyz), points [N, 3] (object frame) -> [B, N, 3] (support frame). The planner calls
-    its checkers ~1,000 times a plan with varying batch sizes: eager JAX ops or a jit per size
-    would cost more than the arithmetic."""
-    poses = np.asarray(poses, float).reshape(-1, 7)
-    q = poses[:, 3:] / np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
-    w, x, y, z = q.T
-    rot = np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=1)  # fmt: skip
-    return np.einsum("bij,nj->bni", rot, np.asarray(points, float)) + poses[:, None, :3]
-
-
-def cloud_gap(object_points, support, poses: np.ndarray, upper: float = np.inf) -> np.ndarray:
-    """[K] the smallest distance (m) between the object cloud [N, 3] (object frame) moved by
-    each pose [K, 7] and the support cloud (support frame): ``support`` is its points [M, 3]
-    or a ``scipy.spatial.cKDTree`` of them (build it once for many calls). Distances of
-    ``upper`` or more come back as inf (a much faster search). Host NumPy: the quantity
-    ``planner.ClearanceFarFromGoal`` thresholds and the transit poses of
-    ``experiments.train_collision`` are kept by."""
-    from scipy.spatial import cKDTree
-
-    poses = np.asarray(poses, float).reshape(-1, 7)
-    if len(poses) == 0:
-        return np.zeros(0)
-    tree = support if isinstance(support, cKDTree) else cKDTree(np.asarray(support, float))
-    moved = posed_points(poses, object_points)  # [K, N, 3]
-    d, _ = tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=upper)
-    return d.reshape(len(poses), -1).min(axis=1)
-
-
-def object_radius(scene) -> float:
-    """Half the object's largest extent (m): the rotation weight of the planner's metric."""
-    return 0.5 * float(np.max(scene.obj.extents))
-
-
-def default_bounds(scene) -> tuple[np.ndarray, np.ndarray]:
-    """The support's box grown by the object's largest extent on every side, and on +y up
-    to half an extent beyond :func:`start_pose`."""
-    grow = float(np.max(scene.obj.extents))
-    lo, hi = np.asarray(scene.support_bounds, float)
-    lo, hi = lo - grow, hi + grow
-    hi[1] += 1.0 * grow
-    return lo, hi
-
-
-def start_pose(scene, goal: np.ndarray) -> np.ndarray:
-    """In front of the support (+y), clear of its box by the object's largest extent (the
-    centre 1.5 extents beyond it), at the goal's x and height, in the goal's orientation."""
-    size = float(np.max(scene.obj.extents))
-    hi = np.asarray(scene.support_bounds, float)[1]
-    return np.array([goal[0], hi[1] + 1.5 * size, goal[2], *goal[3:]], float)

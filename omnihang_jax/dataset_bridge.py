@@ -76,11 +76,11 @@ def dataset_config_from_recipe(recipe: dict):
     was renamed or added since the dataset was made), so derived arrays never silently come
     from different camera or library settings.
     """
-    from sim import dataset
+    from sim import dataset, dataset_io
 
-    saved = dataset.upgrade_config_json(recipe["config"])  # fields added since: defaults
+    saved = dataset_io.upgrade_config_json(recipe["config"])  # fields added since: defaults
     config = config_from_dict(dataset.DatasetConfig, saved)
-    diff = dataset.config_differences(dataset.config_json(config), saved)
+    diff = dataset_io.config_differences(dataset_io.config_json(config), saved)
     if diff:
         raise ValueError(f"recipe config does not round-trip through DatasetConfig: fields {diff}")
     return config

@@ -9,7 +9,7 @@ to one ``checker(poses [B, 7]) -> colliding [B] bool``:
   batch to a power of two so that only a handful of shapes is ever compiled;
 - :class:`CascadeChecker` ORs a cheap checker and a costly one, asking the costly one only
   where the cheap one says free, and not at all for an edge the cheap one already blocks
-  (the hybrid of ``experiments.eval_paths``: the observed-cloud test, then the NCE);
+  (the hybrid of ``omnihang_jax.paths``: the observed-cloud test, then the NCE);
 - :class:`MeshChecker` asks MuJoCo (C) for contacts between the full object and support
   meshes (``mj_kinematics`` + ``mj_collision``, as ``sim.kernels.contact_query`` does): the
   paper's "ground truth" planner and the dense check of every returned path.
@@ -17,7 +17,7 @@ to one ``checker(poses [B, 7]) -> colliding [B] bool``:
 State validity is the checker on one state; motion validation (:class:`BatchedMotionValidator`)
 interpolates the edge at the planner's resolution and checks all its states in batched calls
 (an :class:`EstimatorChecker`: 8 evenly spaced states first, the others only if those are
-free; same answer, docs/paths.md "The planner's checker"). Settings (:class:`PlannerConfig`, the original code was never released, facts file):
+free; same answer). Settings (:class:`PlannerConfig`, the original code was never released, facts file):
 
 - start: the goal's orientation, in front of the support (+y, away from the wall) at the
   goal's x and height, clear of the support's box by the object's largest extent (its
@@ -31,8 +31,8 @@ free; same answer, docs/paths.md "The planner's checker"). Settings (:class:`Pla
 - goal: only the goal state itself is exempt from the checker (``goal_radius`` 1 um: it is
   given, and a hanging pose rests ON the support, which the dataset's labels call
   colliding); every other state, the last millimetres of the approach included, must be
-  called free. ``goal_radius`` > 0 exempts a ball around it (``eval_paths --goal-radius``,
-  measured in docs/paths.md: it lets estimator paths dive into the support). The dense check of
+  called free. ``goal_radius`` > 0 exempts a ball around it (it lets estimator paths dive into the
+  support). The dense check of
   a returned path checks every state at 2 mm with a penetration tolerance of 1 mm (the
   dataset's own ``max_penetration`` for a candidate pose).
 """
@@ -51,7 +51,7 @@ from ompl import base as ob
 from ompl import geometric as og
 from ompl import util as ou
 
-from omnihang_jax.collision import (  # re-exported: the planner's ground truth and geometry
+from omnihang_jax.meshes import (  # re-exported: the planner's ground truth and geometry
     MeshChecker,
     cloud_gap,
     default_bounds,
@@ -67,12 +67,8 @@ __all__ = [
     "MeshChecker",
     "EstimatorChecker",
     "CascadeChecker",
-    "RecordingChecker",
-    "WallChecker",
     "HybridSettings",
     "hybrid_checker",
-    "ExemptNearGoal",
-    "ClearanceFarFromGoal",
     "posed_points",
     "AnalyticChecker",
     "BatchedMotionValidator",
@@ -84,7 +80,6 @@ __all__ = [
     "ClearanceConfig",
     "ClearedPath",
     "clear_path",
-    "path_scene_xml",
 ]
 
 
@@ -97,13 +92,9 @@ class PlannerConfig:
     dense_resolution: float = 0.002  # m: the ground-truth check of a returned path
     penetration_tolerance: float = 1e-3  # m: deeper is colliding (dataset max_penetration)
     seed: int = 1  # OMPL's random seed (0 is not allowed; set once per process)
-    # ours (twentieth session): lengths (m) of a straight retreat from the goal tried before
-    # planning (plan_with_retreat); () = off, the plain plan
+    # lengths (m) of a straight retreat from the goal tried before planning
+    # (retreats.plan_with_retreat); () = off, the plain plan
     retreat_lengths: tuple[float, ...] = ()
-    # ours (twenty-first session): > 0 makes the retreat a fallback: the plain plan runs for
-    # this many seconds first, and only when it finds no path is the retreat searched and
-    # planned to with what is left of time_limit (0: the retreat first, as above)
-    retreat_after: float = 0.0
 
 
 _SEEDED: list[int] = []  # the seed OMPL was given in this process (at most one)
@@ -139,9 +130,8 @@ class EstimatorChecker:
         pow2: bool = False,
         coarse: int = 8,
     ):
-        """``pow2``, ``min_batch=8``, ``coarse=0``: the checker before the nineteenth session
-        (every batch padded to a power of two >= 8, an edge in one call), kept for
-        ``experiments.bench_paths --planner``."""
+        """``pow2``: every batch padded to a power of two (fewer sizes to compile: one plan's
+        checker, ``omnihang_jax.paths``)."""
         if min_batch < 1 or min_batch > 8 or min_batch & (min_batch - 1):
             raise ValueError(f"min_batch must be a power of two in 1 .. 8, got {min_batch}")
         self.collides = collides_jit
@@ -226,83 +216,6 @@ class CascadeChecker:
         return any_colliding(self.second, poses)
 
 
-class RecordingChecker:
-    """``checker``, recording what it was asked and what it answered (twenty-ninth session,
-    ``eval_paths --mine``): the states a planner's own checker judges are where its errors
-    matter. Per call the poses [B, 7] and verdicts [B] (True = called colliding); an edge
-    asked through :meth:`any_colliding` is recorded only when it comes back free (then every
-    state was called free; a blocked edge's verdicts per state are unknown). At most
-    ``cap`` states are kept, a uniform reservoir over everything asked (seeded: the same
-    plan records the same states)."""
-
-    def __init__(self, checker: Callable, cap: int = 200_000, seed: int = 0):
-        if cap < 1:
-            raise ValueError(f"cap must be >= 1, got {cap}")
-        self.checker, self.cap = checker, cap
-        self.rng = np.random.default_rng(seed)
-        self._poses = np.zeros((cap, 7), np.float32)  # filled in place: no copy per call
-        self._called = np.zeros(cap, bool)
-        self.seen = 0
-
-    @property
-    def poses(self) -> np.ndarray:
-        """[K, 7] the states kept (K = min(seen, cap))."""
-        return self._poses[: min(self.seen, self.cap)]
-
-    @property
-    def called(self) -> np.ndarray:
-        """[K] their verdicts (True = called colliding)."""
-        return self._called[: min(self.seen, self.cap)]
-
-    def warm_up(self, largest: int = 144) -> None:
-        if hasattr(self.checker, "warm_up"):
-            self.checker.warm_up(largest)
-
-    def _keep(self, poses: np.ndarray, called: np.ndarray) -> None:
-        poses = np.asarray(poses, np.float32).reshape(-1, 7)
-        n, filled = len(poses), min(self.seen, self.cap)
-        take = min(self.cap - filled, n)
-        self._poses[filled : filled + take] = poses[:take]
-        self._called[filled : filled + take] = called[:take]
-        for i in range(take, n):  # reservoir sampling (Algorithm R) for the rest
-            j = int(self.rng.integers(0, self.seen + i + 1))
-            if j < self.cap:
-                self._poses[j], self._called[j] = poses[i], called[i]
-        self.seen += n
-
-    def __call__(self, poses: np.ndarray) -> np.ndarray:
-        out = np.asarray(self.checker(poses), bool)
-        self._keep(poses, out)
-        return out
-
-    def any_colliding(self, poses: np.ndarray) -> bool:
-        hit = any_colliding(self.checker, poses)
-        if not hit:
-            self._keep(poses, np.zeros(len(np.asarray(poses).reshape(-1, 7)), bool))
-        return hit
-
-
-class WallChecker:
-    """Colliding where some observed object point, posed, lies behind the wall plane ``y =
-    wall_y`` (support frame; the side the support is mounted on) or closer to it than
-    ``margin`` (twenty-ninth session). The wall is a known plane that no estimator is told
-    about: 6 of 179 returned held-out paths (twenty-fourth session's runs) collide with it, and
-    the observed points alone, at margin 0, catch 2 of them and block no free path
-    (``scripts/probe_wall.py``). Host NumPy, ~10 us a state for 512 points."""
-
-    def __init__(self, object_points, wall_y: float, margin: float = 0.0):
-        if not np.isfinite(wall_y) or margin < 0:
-            raise ValueError(f"wall_y must be finite and margin >= 0, got {wall_y}, {margin}")
-        self.object_points = np.asarray(object_points, float).reshape(-1, 3)
-        self.limit = float(wall_y) + float(margin)
-
-    def __call__(self, poses: np.ndarray) -> np.ndarray:
-        poses = np.asarray(poses, float).reshape(-1, 7)
-        if not len(poses):
-            return np.zeros(0, bool)
-        return posed_points(poses, self.object_points)[..., 1].min(axis=1) < self.limit
-
-
 class AnalyticChecker:
     """Exact checker for tests: a sphere of ``radius`` at the pose's position against
     axis-aligned boxes ``[(low [3], high [3]), ...]`` (rotation does not matter)."""
@@ -320,66 +233,8 @@ class AnalyticChecker:
         return hit
 
 
-class ExemptNearGoal:
-    """``checker``, but every state within ``radius`` (the planner's metric: translation +
-    ``weight`` x angle) of ``goal`` is free. As the first checker of a
-    :class:`CascadeChecker` it switches that checker off near the goal, so the second decides
-    there alone (``eval_paths --test-goal-ball``)."""
-
-    def __init__(self, checker: Callable, goal: np.ndarray, radius: float, weight: float):
-        self.checker, self.goal = checker, np.asarray(goal, float)
-        self.radius, self.weight = radius, weight
-
-    def warm_up(self, largest: int = 144) -> None:
-        if hasattr(self.checker, "warm_up"):
-            self.checker.warm_up(largest)
-
-    def __call__(self, poses: np.ndarray) -> np.ndarray:
-        poses = np.asarray(poses).reshape(-1, 7)
-        far = goal_distances(poses, self.goal, self.weight) > self.radius
-        hit = np.zeros(len(poses), bool)
-        if far.any():
-            hit[far] = np.asarray(self.checker(poses[far]), bool)
-        return hit
-
-    def any_colliding(self, poses: np.ndarray) -> bool:
-        poses = np.asarray(poses).reshape(-1, 7)
-        far = poses[goal_distances(poses, self.goal, self.weight) > self.radius]
-        return bool(len(far)) and any_colliding(self.checker, far)
-
-
-class ClearanceFarFromGoal:
-    """Colliding where a state farther than ``radius`` from ``goal`` (the planner's metric)
-    brings the observed object cloud within ``margin`` of the observed support cloud.
-
-    Why (twenty-second session, ``scripts/probe_path_collisions.py``): the hybrid's colliding
-    paths penetrate the meshes where the observed clouds are still 1-25 mm apart (the object
-    meets the support's unobserved side), and 10 of 15 do so more than 4.5 cm from the goal,
-    where a hang needs no contact at all. Near the goal (within ``radius``) it says free, and
-    the checkers after it in a :class:`CascadeChecker` decide alone. A k-d tree of the support
-    cloud on the host (scipy), queried with ``margin`` as the upper bound."""
-
-    def __init__(self, object_points, support_points, goal, radius: float, margin: float,
-                 weight: float):  # fmt: skip
-        from scipy.spatial import cKDTree
-
-        self.object_points = np.asarray(object_points, float)
-        self.tree = cKDTree(np.asarray(support_points, float))
-        self.goal, self.radius = np.asarray(goal, float), radius
-        self.margin, self.weight = margin, weight
-
-    def __call__(self, poses: np.ndarray) -> np.ndarray:
-        poses = np.asarray(poses, float).reshape(-1, 7)
-        hit = np.zeros(len(poses), bool)
-        far = np.flatnonzero(goal_distances(poses, self.goal, self.weight) > self.radius)
-        if len(far):
-            gap = cloud_gap(self.object_points, self.tree, poses[far], self.margin)
-            hit[far] = np.isfinite(gap)
-        return hit
-
-
 class HybridSettings(NamedTuple):
-    """The best planner's checker (docs/paths.md, twenty-second session): the observed-cloud
+    """The default planner's checker (docs/how.md): the observed-cloud
     penetration test (``geometric``) first, the NCE only where it says free; the NCE's
     threshold is ``near_threshold`` within ``goal_ball`` (planner metric, m) of the goal and
     ``far_threshold`` beyond it (``goal_ball`` 0: ``far_threshold`` everywhere)."""
@@ -388,25 +243,6 @@ class HybridSettings(NamedTuple):
     far_threshold: float
     near_threshold: float
     goal_ball: float
-
-    @classmethod
-    def from_selection(cls, path, near_threshold: float, goal_ball: float):
-        """From an ``eval_paths --select-geometric`` file (its ``chosen`` row: the test's depth /
-        radius / min points and, for a joint selection, the NCE threshold)."""
-        import json
-
-        from omnihang_jax import collision
-
-        chosen = json.loads(open(path).read())["chosen"]
-        if chosen is None:
-            raise ValueError(f"{path}: no setting was chosen (none kept the goal pass)")
-        geo = dataclasses.replace(
-            collision.GeometricConfig(),
-            **{k: chosen[k] for k in ("depth", "radius", "min_points")},
-        )
-        if "nce_threshold" not in chosen:
-            raise ValueError(f"{path}: not a joint selection (no nce_threshold)")
-        return cls(geo, float(chosen["nce_threshold"]), float(near_threshold), float(goal_ball))
 
 
 @functools.lru_cache(maxsize=8)
@@ -431,15 +267,11 @@ def hybrid_checker(
     rotation_weight: float,
     pow2: bool = False,
 ) -> CascadeChecker:
-    """:class:`HybridSettings`' checker for one pair: ``CascadeChecker(test, nce)``, as
-    ``experiments.eval_paths`` builds its ``nce_geometric`` method (same cloud subsets, seeds 0
-    / 1; the support's lookup table built here, once). Clouds: the observed ones, object frame
+    """:class:`HybridSettings`' checker for one pair: ``CascadeChecker(test, nce)`` (the NCE's
+    fixed cloud subsets, seeds 0 / 1; the support's lookup table built here, once). Clouds: the observed ones, object frame
     / support frame, with the support's outward normals."""
     from omnihang_jax import collision
 
-    if nce_config.input_clouds != "observed":
-        raise ValueError(f"hybrid_checker gives the NCE observed clouds; this one was trained on "
-                         f"{nce_config.input_clouds} clouds")  # fmt: skip
     sub = collision.subsample_cloud
     geo = settings.geometric
     grid = collision.support_grid(support_points, support_normals, geo.voxel, geo.max_voxels,
@@ -648,368 +480,13 @@ def plan(
     return PlanResult(path, status.asString(), seconds, counter.states, counter.calls)
 
 
-# A hang is an insertion; its approach is the reverse of taking the object off. The retreat
-# directions (support frame, z up): the 26 of {-1, 0, 1}^3 minus zero, normalised, upward ones
-# first (a hung object usually comes off by lifting), then in a fixed order: deterministic.
-RETREAT_DIRECTIONS = (
-    np.array(
-        sorted(
-            (d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)),
-            key=lambda d: (-(d[2] - 1), sum(abs(x - 1) for x in d), d),
-        ),
-        float,
-    )
-    - 1.0
-)
-RETREAT_DIRECTIONS /= np.linalg.norm(RETREAT_DIRECTIONS, axis=1, keepdims=True)
-
-
-class Retreat(NamedTuple):
-    pregoal: np.ndarray  # [7] the goal moved back along ``direction`` by ``length``
-    direction: np.ndarray  # [3] unit, support frame
-    length: float  # m
-    states_checked: int
-    seconds: float
-    # thirty-ninth session: waypoints between the pre-goal and the goal, in approach order
-    # (:func:`find_two_move_retreat`: the corner of a two-move retreat); empty: straight in
-    via: np.ndarray = np.zeros((0, 7))
-
-
-def find_retreat(
-    checker: Callable[[np.ndarray], np.ndarray],
-    goal: np.ndarray,
-    lengths,
-    resolution: float,
-    bounds: tuple[np.ndarray, np.ndarray] | None = None,
-    directions: np.ndarray = RETREAT_DIRECTIONS,
-) -> Retreat | None:
-    """The first straight, orientation-keeping retreat from ``goal`` that ``checker`` calls
-    free on every state at ``resolution`` (the goal itself excluded, as in :func:`plan`):
-    lengths in the given order (shortest first is sensible), for each the directions in
-    order; within ``bounds`` when given. None when every one is blocked."""
-    t0 = time.perf_counter()
-    goal = np.asarray(goal, float)
-    checked = 0
-    for length in lengths:
-        for d in directions:
-            end, states = _retreat_states(goal, d, float(length), resolution, bounds)
-            if states is None:
-                continue
-            checked += len(states)
-            if not any_colliding(checker, states):
-                return Retreat(end, np.asarray(d, float), float(length), checked,
-                               time.perf_counter() - t0)  # fmt: skip
-    return None
-
-
-def find_two_move_retreat(
-    checker: Callable[[np.ndarray], np.ndarray],
-    goal: np.ndarray,
-    firsts,
-    length: float,
-    resolution: float,
-    bounds: tuple[np.ndarray, np.ndarray] | None,
-    off: Callable[[np.ndarray], bool],
-    directions: np.ndarray = RETREAT_DIRECTIONS,
-) -> Retreat | None:
-    """The first retreat of at most two straight, orientation-keeping moves from ``goal`` that
-    ``checker`` calls free and whose end ``off(pose [7])`` accepts (e.g. clear of the support):
-    the one-move retreats of ``length`` first, then for each first length in ``firsts`` and each
-    first direction, a second move of ``length`` in each direction not going back (the
-    directions in order). The returned ``Retreat``'s ``direction`` / ``length`` are the second
-    move's, ``via`` the corner. None when none exists. Thirty-ninth session
-    (``scripts/probe_dogleg.py``): 27 of the 80 benchmark goals are off the support after one
-    4.5-cm move, 44 after two."""
-    t0 = time.perf_counter()
-    goal = np.asarray(goal, float)
-    checked = [0]
-
-    def free_end(a, d, L):
-        end, states = _retreat_states(a, d, float(L), resolution, bounds)
-        if states is None:
-            return None
-        checked[0] += len(states)
-        return None if any_colliding(checker, states) else end
-
-    ends = {}
-    for i, d in enumerate(directions):
-        end = free_end(goal, d, length)
-        if end is None:
-            continue
-        ends[i] = end
-        if off(end):
-            return Retreat(end, np.asarray(d, float), float(length), checked[0],
-                           time.perf_counter() - t0)  # fmt: skip
-    for first in firsts:
-        for i, d1 in enumerate(directions):
-            same = abs(float(first) - length) < 1e-9
-            mid = ends.get(i) if same else free_end(goal, d1, first)
-            if mid is None:
-                continue
-            for d2 in directions:
-                if np.dot(d1, d2) < -0.5:  # back the way it came
-                    continue
-                end = free_end(mid, d2, length)
-                if end is not None and off(end):
-                    return Retreat(end, np.asarray(d2, float), float(length), checked[0],
-                                   time.perf_counter() - t0, via=mid[None])  # fmt: skip
-    return None
-
-
-def move_routes(firsts, directions: np.ndarray = RETREAT_DIRECTIONS) -> np.ndarray:
-    """[R, 3] the routes of at most two straight moves a route network scores (fortieth
-    session), rows (first direction index or -1, first length m or 0, last direction index):
-    the one-move routes first (one per direction), then for each first length in ``firsts``
-    every pair of directions that does not go back the way it came (cosine >= -0.5, as
-    :func:`find_two_move_retreat` searches them): 26 + 506 routes for one first length."""
-    rows = [(-1, 0.0, j) for j in range(len(directions))]
-    for first in firsts:
-        for i, d1 in enumerate(directions):
-            for j, d2 in enumerate(directions):
-                if np.dot(d1, d2) >= -0.5:
-                    rows.append((i, float(first), j))
-    return np.array(rows, float).reshape(-1, 3)
-
-
-def route_table(
-    checker: Callable[[np.ndarray], np.ndarray],
-    goal: np.ndarray,
-    routes: np.ndarray,
-    length: float,
-    resolution: float,
-    bounds: tuple[np.ndarray, np.ndarray] | None,
-    off: Callable[[np.ndarray], bool],
-    directions: np.ndarray = RETREAT_DIRECTIONS,
-) -> np.ndarray:
-    """[R] bool: is each route of :func:`move_routes` free on ``checker`` (every state of both
-    moves at ``resolution``, inside ``bounds``) and does ``off`` accept its end? The last move
-    is ``length`` long. Each straight segment is checked once (a shared first move, an end's
-    ``off``). A route network's labels (``approach.route_labels``)."""
-    goal = np.asarray(goal, float)
-    segments: dict = {}
-
-    def free_end(start_key, a, j, L):
-        key = (start_key, j, round(float(L), 6))
-        if key not in segments:
-            end, states = _retreat_states(a, directions[j], float(L), resolution, bounds)
-            segments[key] = None if states is None or any_colliding(checker, states) else end
-        return segments[key]
-
-    ends_off: dict = {}
-    out = np.zeros(len(routes), bool)
-    for r, (i, first, j) in enumerate(np.asarray(routes, float)):
-        i, j = int(i), int(j)
-        start_key, start = "goal", goal
-        if i >= 0:
-            start = free_end("goal", goal, i, first)
-            if start is None:
-                continue
-            start_key = (i, round(float(first), 6))
-        end = free_end(start_key, start, j, length)
-        if end is None:
-            continue
-        key = (start_key, j)
-        if key not in ends_off:
-            ends_off[key] = bool(off(end))
-        out[r] = ends_off[key]
-    return out
-
-
-def route_retreat(goal: np.ndarray, route, length: float,
-                  directions: np.ndarray = RETREAT_DIRECTIONS) -> Retreat:  # fmt: skip
-    """The :class:`Retreat` of one route of :func:`move_routes` (its corner in ``via``), for
-    ``plan_with_retreat(retreat=...)``; no check is made (a route network's choice)."""
-    goal = np.asarray(goal, float)
-    i, first, j = (int(route[0]), float(route[1]), int(route[2]))
-    mid = goal.copy()
-    via = np.zeros((0, 7))
-    if i >= 0:
-        mid[:3] += first * directions[i]
-        via = mid[None].copy()
-    end = mid.copy()
-    end[:3] += length * directions[j]
-    return Retreat(end, np.asarray(directions[j], float), float(length), 0, 0.0, via=via)
-
-
-def route_states(goal: np.ndarray, route, length: float, resolution: float,
-                 directions: np.ndarray = RETREAT_DIRECTIONS) -> np.ndarray:  # fmt: skip
-    """[n, 7] the states of one route of :func:`move_routes` from ``goal`` at ``resolution``
-    (the first move, if any, then the last; orientation kept; the goal itself excluded, the
-    route's end last): what a planner's own checker is asked before it takes a route network's choice
-    (forty-first session)."""
-    goal = np.asarray(goal, float)
-    i, first, j = (int(route[0]), float(route[1]), int(route[2]))
-    parts, start = [], goal
-    if i >= 0:
-        start, states = _retreat_states(goal, directions[i], first, resolution, None)
-        parts.append(states)
-    _, states = _retreat_states(start, directions[j], float(length), resolution, None)
-    parts.append(states)
-    return np.concatenate(parts)
-
-
-def lattice_retreat(
-    checker: Callable[[np.ndarray], np.ndarray],
-    goal: np.ndarray,
-    step: float,
-    off: Callable[[np.ndarray], bool],
-    max_nodes: int,
-    bounds: tuple[np.ndarray, np.ndarray] | None = None,
-    resolution: float = 0.002,
-) -> tuple[Retreat | None, int]:
-    """(the shortest retreat from ``goal`` on a lattice of ``step`` translations (26 directions,
-    orientation kept) whose every edge ``checker`` calls free at ``resolution`` and whose end
-    ``off`` accepts, or None within ``max_nodes`` expanded nodes; the nodes expanded). The
-    retreat's ``via`` holds its lattice points between the pre-goal and the goal in approach
-    order. Breadth-first: the fewest steps. Thirty-ninth session (``scripts/probe_route_bfs.py``):
-    19 of the 36 threaded benchmark goals have one at 7.5-mm steps. A node's new edges are
-    checked in one ``checker`` call (forty-third session: a network checker's cost is per call),
-    so the route found is the same as edge by edge."""
-    from collections import deque
-
-    t0 = time.perf_counter()
-    goal = np.asarray(goal, float)
-    dirs = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], int) - 1
-    parent = {(0, 0, 0): None}
-    queue = deque([(0, 0, 0)])
-    expanded = checked = 0
-
-    def pose_of(node):
-        pose = goal.copy()
-        pose[:3] += step * np.asarray(node, float)
-        return pose
-
-    while queue and expanded < max_nodes:
-        node = queue.popleft()
-        expanded += 1
-        here = pose_of(node)
-        edges = []  # this node's new neighbours in bounds, checked in one call
-        for d in dirs:
-            nxt = tuple(int(v) for v in np.asarray(node) + d)
-            if nxt in parent:
-                continue
-            end = pose_of(nxt)
-            if bounds is not None and not (
-                np.all(bounds[0] <= end[:3]) and np.all(end[:3] <= bounds[1])
-            ):
-                continue
-            n = max(1, int(np.ceil(step * np.linalg.norm(d) / resolution)))
-            edges.append((nxt, end, interpolate_segment(here, end, n)))
-        if not edges:
-            continue
-        flat = np.concatenate([states for _, _, states in edges])
-        checked += len(flat)
-        flags = np.asarray(checker(flat), bool).reshape(-1)
-        at = 0
-        for nxt, end, states in edges:
-            colliding = bool(flags[at : at + len(states)].any())
-            at += len(states)
-            if colliding:
-                continue
-            parent[nxt] = node
-            if off(end):
-                route, k = [], parent[nxt]
-                while k is not None and k != (0, 0, 0):
-                    route.append(pose_of(k))
-                    k = parent[k]
-                via = np.array(route) if route else np.zeros((0, 7))  # pre-goal side first
-                direction = end[:3] - (via[0][:3] if len(via) else goal[:3])
-                length = float(np.linalg.norm(direction))
-                return Retreat(end, direction / max(length, 1e-12), length, checked,
-                               time.perf_counter() - t0, via=via), expanded  # fmt: skip
-            queue.append(nxt)
-    return None, expanded
-
-
-def _retreat_states(goal, direction, length: float, resolution: float, bounds):
-    """(far end [7], the straight retreat's states from ``goal`` [n, 7]); states None when
-    the far end leaves ``bounds``."""
-    end = goal.copy()
-    end[:3] = goal[:3] + length * np.asarray(direction, float)
-    if bounds is not None and not (np.all(bounds[0] <= end[:3]) and np.all(end[:3] <= bounds[1])):
-        return end, None
-    return end, interpolate_segment(goal, end, max(1, int(np.ceil(length / resolution))))
-
-
-def free_retreats(
-    checker: Callable[[np.ndarray], np.ndarray],
-    goal: np.ndarray,
-    length: float,
-    resolution: float,
-    bounds: tuple[np.ndarray, np.ndarray] | None = None,
-    directions: np.ndarray = RETREAT_DIRECTIONS,
-) -> np.ndarray:
-    """[D] bool: which straight, orientation-keeping retreats of ``length`` from ``goal``
-    ``checker`` calls free (as :func:`find_retreat` judges one; False when leaving ``bounds``).
-    The approach network's labels (``approach.approach_labels``)."""
-    goal = np.asarray(goal, float)
-    out = np.zeros(len(directions), bool)
-    for i, d in enumerate(directions):
-        _, states = _retreat_states(goal, d, float(length), resolution, bounds)
-        out[i] = states is not None and not any_colliding(checker, states)
-    return out
-
-
-def plan_with_retreat(
-    checker: Callable[[np.ndarray], np.ndarray],
-    start: np.ndarray,
-    goal: np.ndarray,
-    bounds: tuple[np.ndarray, np.ndarray],
-    rotation_weight: float,
-    config: PlannerConfig = PlannerConfig(),
-    retreat_checker: Callable[[np.ndarray], np.ndarray] | None = None,
-    retreat_directions: np.ndarray = RETREAT_DIRECTIONS,
-    retreat: Retreat | None = None,
-) -> tuple[PlanResult, Retreat | None]:
-    """RRT-Connect to a pre-goal, then straight in: :func:`find_retreat` (lengths
-    ``config.retreat_lengths``) and, when a retreat is free, :func:`plan` from ``start`` to its
-    pre-goal with what is left of the time limit, the path ending pre-goal -> goal. Without a
-    free retreat (or with ``retreat_lengths`` empty) the plain plan to the goal. The search's
-    time and states count in the result. ``config.retreat_after`` > 0: the plain plan first,
-    for that many seconds; the retreat only when it returns no path, with the time left (the
-    first plan's time and states count too). ``retreat_checker``: the retreat's checker when
-    not ``checker`` (a probe: ``collision.MeshChecker`` gives the oracle approach).
-    ``retreat_directions``: those tried, in order (the approach network's ranking; empty: the
-    plain plan)."""
-    lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
-    spent_s, spent_states, spent_calls = 0.0, 0, 0
-    if config.retreat_lengths and 0 < config.retreat_after < config.time_limit:
-        first = plan(checker, start, goal, bounds, rotation_weight,
-                     dataclasses.replace(config, time_limit=config.retreat_after))  # fmt: skip
-        if first.path is not None:
-            return first, None
-        spent_s, spent_states, spent_calls = (
-            first.planning_s,
-            first.states_checked,
-            first.checker_calls,
-        )
-        config = dataclasses.replace(config, time_limit=config.time_limit - first.planning_s)
-    found = retreat
-    if found is None and config.retreat_lengths:
-        found = find_retreat(retreat_checker or checker, goal, config.retreat_lengths,
-                             config.resolution, (lo, hi), retreat_directions)  # fmt: skip
-    if found is None:
-        res = plan(checker, start, goal, bounds, rotation_weight, config)
-        return PlanResult(res.path, res.status, res.planning_s + spent_s,
-                          res.states_checked + spent_states, res.checker_calls + spent_calls), None  # fmt: skip
-    left = dataclasses.replace(config, time_limit=max(config.time_limit - found.seconds, 0.01))
-    res = plan(checker, start, found.pregoal, bounds, rotation_weight, left)
-    path = None
-    if res.path is not None:
-        path = np.concatenate([res.path, np.asarray(found.via, float).reshape(-1, 7),
-                               np.asarray(goal, float)[None]])  # fmt: skip
-    return PlanResult(path, res.status, res.planning_s + found.seconds + spent_s,
-                      res.states_checked + found.states_checked + spent_states,
-                      res.checker_calls + spent_calls), found  # fmt: skip
-
-
 # ----------------------------------------------------------------------------------------------
-# A returned path moved away from the observed support (twenty-fourth session)
+# A returned path moved away from the observed support
 
 
 @dataclasses.dataclass(frozen=True)
 class ClearanceConfig:
-    """Settings of :func:`clear_path`. Why (docs/paths.md, twenty-second session): the
+    """Settings of :func:`clear_path`. Why: the
     hybrid's colliding paths meet the support's unobserved side where the observed clouds are
     still 1-25 mm apart (median 6 mm), mostly far from the goal, where a hang needs no contact;
     a hard clearance in the checker blocks routes (time-outs), so here the path the checker
@@ -1180,20 +657,3 @@ def dense_check(
     states = interpolate_path(np.asarray(path, float), resolution, rotation_weight)
     pen = mesh.penetration(states)
     return bool(pen.max() <= mesh.tolerance), float(pen.max()), len(states)
-
-
-def path_scene_xml(scene, path: np.ndarray, max_keys: int = 100) -> str:
-    """The pair's MJCF with the path as keyframes (``<key qpos=...>``, at most ``max_keys``,
-    first = start, last = goal): open it in MuJoCo's viewer and step through the keys."""
-    from sim.scene import scene_xml
-
-    xml, _ = scene_xml(scene.obj, scene.support, scene.physics, pose=path[-1])
-    idx = np.unique(np.linspace(0, len(path) - 1, min(max_keys, len(path))).round().astype(int))
-    nq = scene.model.nq
-    keys = []
-    for k, i in enumerate(idx):
-        qpos = np.zeros(nq)
-        qpos[:7] = path[i]
-        keys.append(f'  <key name="path_{k:03d}" qpos="{" ".join(f"{v:.6g}" for v in qpos)}"/>')
-    block = "<keyframe>\n" + "\n".join(keys) + "\n</keyframe>\n"
-    return xml.replace("</mujoco>", block + "</mujoco>")

@@ -163,13 +163,11 @@ def gather_points(values: jax.Array, idx: jax.Array) -> jax.Array:
 
 
 # FPS is S - 1 sequential steps: on a GPU at batch 1 a step costs about as much at 1,280 as at
-# 1,920 states (the value network's first level, 127 steps: 1.60 / 1.75 ms on one H200,
-# results/profile_stage3_s32_views{2,3}_h200.json), so a loop iteration's overhead, not its
-# arithmetic, sets it. ``unroll`` steps per loop iteration (lax.fori_loop's unroll: the same
-# operations, the same indices) cut that overhead on a GPU: the first level 1.80 -> 1.53 ms at 8
-# (results/profile_stage3_s33_fps_bq_h200.json), the three-view answer pipeline 104.4 -> 97.1 ms
-# at batch 1 on one H200, side by side (results/bench_stage3_s33_fps_h200.json; 97.5 at 4). It
-# lengthens compilation (the answer pipeline on the CPU: 13.6 s at 1, 22.8 s at 8), so on a CPU,
+# 1,920 states (the value network's first level, 127 steps: 1.60 / 1.75 ms on one H200), so a
+# loop iteration's overhead, not its arithmetic, sets it. ``unroll`` steps per loop iteration
+# (lax.fori_loop's unroll: the same operations, the same indices) cut that overhead on a GPU:
+# the first level 1.80 -> 1.53 ms at 8, the three-view answer pipeline 104.4 -> 97.1 ms at
+# batch 1 on one H200, side by side (experiments.bench_stage3; 97.5 at 4). It lengthens compilation (the answer pipeline on the CPU: 13.6 s at 1, 22.8 s at 8), so on a CPU,
 # where the loop's overhead is small beside its arithmetic, it stays 1.
 # FPS_UNROLL: None = FPS_UNROLL_GPU on a GPU backend, 1 elsewhere; an int forces it.
 FPS_UNROLL: int | None = None
@@ -217,8 +215,8 @@ def farthest_point_sample(
 BALL_QUERY_METHODS = ("cumsum", "count", "top_k")
 # the method ``ball_query`` uses when none is given (read at trace time, like FPS_UNROLL; every
 # method gives the same indices). "cumsum" is the fastest on the GPU: V's first level on the
-# three-view CEM population 2.43 ms against 3.15 (count) and 10.04 (top_k) on one H200
-# (results/profile_stage3_s33_fps_bq_h200.json); bench_stage3's "-bqM" answers time the others.
+# three-view CEM population 2.43 ms against 3.15 (count) and 10.04 (top_k) on one H200;
+# bench_stage3's "-bqM" answers time the others.
 BALL_QUERY_METHOD = "cumsum"
 
 
@@ -240,10 +238,9 @@ def ball_query(
     when traced): "cumsum" = the running
     count of hits along N, then a binary search for counts 1..nsample (memory-bound, fast on
     a GPU), "count" = the same running count, the j-th hit's position read as the number of
-    indices whose count is below j (a compare-and-sum instead of the binary search; thirty-second
-    session, for the GPU profile of ``experiments.profile_stage3``), or "top_k" = the
-    ``nsample`` smallest hit indices (``jax.lax.top_k``; the first
-    implementation, kept for the side-by-side benchmark in ``experiments.profile_where``).
+    indices whose count is below j (a compare-and-sum instead of the binary search), or
+    "top_k" = the ``nsample`` smallest hit indices (``jax.lax.top_k``); the three are compared
+    by ``experiments.bench_stage3``.
     """
     method = BALL_QUERY_METHOD if method is None else method
     n = points.shape[1]

@@ -68,7 +68,7 @@ class RLConfig:
     workers: int = 0  # labelling processes (0: in this process)
     seed: int = 0
     time_budget: float = 0.0  # s; 0 = no limit (phases stop cleanly when it runs out)
-    # hard-negative rounds (issue 12): label not only CEM's answers but the keep_top
+    # hard-negative rounds: label not only CEM's answers but the keep_top
     # best-scored members of every final population (V's false positives are among them)
     keep_top: int = 0  # per proposal; 0: only the answers (the earlier rounds)
     explore: bool = True  # also one perturbed copy (+-4 mm, 0.05 rad) of each answer

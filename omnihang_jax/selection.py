@@ -1,31 +1,26 @@
-"""Choosing the pipeline's answer among Stage 3's refined candidates.
+"""Choosing the where-to-hang answer among Stage 3's refined candidates.
 
-The paper (facts file) evaluates "the candidate with the best final Stage-3 score": the
-highest V. On the held-out pairs V's pick hangs in 55-57 % of pairs while *some* refined
-candidate hangs in 75-82 %, and most of V's wrong picks start inside the support (690 of
-842 failures of the eighth session's run are ``penetrating``, median 8 mm): V, which sees
-512 + 512 subsampled points, cannot resolve millimetres. The observed clouds can: a
-candidate whose posed object cloud has points more than ``depth`` behind the observed
-support surface (and within ``radius`` of it sideways) is inside the support as far as the
-camera can tell (the test of :class:`omnihang_jax.collision.GeometricConfig`, on the full
-4,096-point clouds).
+The paper evaluates "the candidate with the best final Stage-3 score": the highest V. V sees
+512 + 512 subsampled points and cannot resolve millimetres, and most of its wrong picks start
+inside the support. The observed clouds can: a candidate whose posed object cloud has points
+more than ``depth`` behind the observed support surface (and within ``radius`` of it sideways)
+is inside the support as far as the camera can tell (the test of
+:class:`omnihang_jax.collision.GeometricConfig`, on the full 4,096-point clouds).
 
 Rules (:class:`SelectConfig`):
 
-* ``"value"``: the highest V (the paper's rule, ``SelectConfig()``).
-* ``"value_clear"``: the highest V among candidates with at most ``max_points`` object points
-  inside the observed support; when every candidate has more, the one with the fewest (ties
-  by V). One key does both: ``score - 1e4 * max(count - max_points, 0)`` (log V lies in
-  [-50, 0] in practice, so one extra inside point outweighs any V difference).
+* ``"value"``: the highest score (the paper's rule, ``SelectConfig()``).
+* ``"value_clear"``: the highest score among candidates with at most ``max_points`` object
+  points inside the observed support; when every candidate has more, the one with the fewest
+  (ties by score). One key does both: ``score - 1e4 * max(count - max_points, 0)`` (log V lies
+  in [-50, 0] in practice, so one extra inside point outweighs any score difference).
 
-:data:`CHOSEN` is the rule chosen on validation objects (``experiments.rerank_stage3``, ninth
-session): ``value_clear`` at depth 0.5 mm, radius 5 mm, no point inside, pooled over the
-candidates refined from Stages 1 and 2 (``stage3.ANSWER_PIPELINE``); the pipeline's default
-answer since the tenth session (held-out: results/hanging_success.json, docs/evaluation.md).
+:data:`CHOSEN` is the default answer's rule (``stage3.ANSWER_PIPELINE``), chosen on the
+validation objects: ``value_clear`` at depth 0.5 mm, radius 5 mm, no point inside.
 
-Both are pure: :func:`inside_counts` ([P] poses of one pair) and :func:`select_key`
-broadcast over leading axes, so the jitted pipeline and the after-the-run study
-(``experiments.rerank_stage3``) compute exactly the same numbers.
+Both functions are pure: :func:`inside_counts` ([P] poses of one pair) and :func:`select_key`
+broadcast over leading axes, so the jitted pipeline and host-side code (the rankers' pools,
+``omnihang_jax.pools``) compute exactly the same numbers.
 """
 
 from __future__ import annotations
@@ -35,23 +30,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-__all__ = [
-    "SelectConfig",
-    "CHOSEN",
-    "RULES",
-    "INSIDE_GRID",
-    "grid_key",
-    "inside_counts",
-    "inside_counts_grid",
-    "support_inside_counts_grid",
-    "select_key",
-    "select",
-]
+__all__ = ["CHOSEN", "RULES", "SelectConfig", "inside_counts", "select", "select_key"]
 
 RULES = ("value", "value_clear")
-# the (depth, radius) settings (m) an evaluation records for every candidate
-# (eval_pipeline's ``inside_counts``), so that rules can be chosen after the run
-INSIDE_GRID = tuple((d, r) for d in (0.0005, 0.001, 0.002, 0.003) for r in (0.002, 0.003, 0.005))
 # weight of one inside point over log V in "value_clear" (lexicographic in practice)
 _INSIDE_WEIGHT = 1e4
 
@@ -77,7 +58,7 @@ class SelectConfig:
             )
 
 
-# chosen on 345 validation-object pairs (results/rerank_stage3_val.json): 58.5 -> 68.9 %
+# the default answer's rule, chosen on the validation objects (docs/where.md)
 CHOSEN = SelectConfig("value_clear", depth=0.0005, radius=0.005, max_points=0)
 
 
@@ -93,50 +74,11 @@ def inside_counts(
     [M, 3] (support frame, unit outward normals), poses [P, 7] (xyz + wxyz) -> [P] int32:
     object points more than ``depth`` behind the nearest observed support point's surface
     and within ``radius`` of it sideways (``collision.inside_points``)."""
-    grid = ((depth, radius),)
-    return inside_counts_grid(object_points, support_points, support_normals, poses, grid)[0]
-
-
-def inside_counts_grid(
-    object_points: jax.Array,
-    support_points: jax.Array,
-    support_normals: jax.Array,
-    poses: jax.Array,
-    grid=INSIDE_GRID,
-) -> jax.Array:
-    """:func:`inside_counts` for every (depth, radius) of ``grid`` (static) -> [G, P] int32;
-    the nearest support points are found once."""
     from omnihang_jax import collision
 
     posed = collision.transform_points(poses, object_points)
     along, length = collision.nearest_support_offsets(posed, support_points, support_normals)
-    return jnp.stack([collision.inside_points(along, length, d, r) for d, r in grid])
-
-
-def support_inside_counts_grid(
-    object_points: jax.Array,
-    object_normals: jax.Array,
-    support_points: jax.Array,
-    poses: jax.Array,
-    grid=INSIDE_GRID,
-) -> jax.Array:
-    """The symmetric test: observed SUPPORT points more than ``depth`` behind the posed
-    observed OBJECT surface (its nearest point's outward normal) and within ``radius`` of it
-    sideways, for every (depth, radius) of ``grid`` -> [G, P] int32. One pair: object
-    points / normals [N, 3] (object frame), support points [M, 3], poses [P, 7]. Catches a
-    thin support (a rod, a hook's tip) passing through the object where the object's points
-    straddle it and none lies behind the observed support surface."""
-    from omnihang_jax import collision
-
-    rot = collision.quaternion_matrix(poses[:, 3:])  # [P, 3, 3] object -> support
-    local = jnp.einsum("pji,pmj->pmi", rot, support_points[None] - poses[:, None, :3])
-    along, length = collision.nearest_support_offsets(local, object_points, object_normals)
-    return jnp.stack([collision.inside_points(along, length, d, r) for d, r in grid])
-
-
-def grid_key(depth: float, radius: float) -> str:
-    """Key of a (depth, radius) setting in recorded ``inside_counts``: "0.001_0.003"."""
-    return f"{depth:g}_{radius:g}"
+    return collision.inside_points(along, length, depth, radius)
 
 
 def select_key(scores: jax.Array, counts: jax.Array, config: SelectConfig) -> jax.Array:

@@ -143,15 +143,13 @@ class Stage1Net(nn.Module):
 
 ROTATIONS = ("axis_angle", "6d")
 
-# The release height of the Stage-1 *answer* (fifteenth session: the default of eval_where and
-# predict_where): the first proposal let go 7.5 mm above the predicted pose (+z of the support
-# frame, rotation kept). 57 % of the network's held-out first proposals start more than 3 mm
-# inside the support (the protocol's penetration failure); a pose a little above the hook drops
-# onto it. Chosen on the 345 validation-object pairs with experiments.release_lift (the mean of
-# two record sets, eval_where K = 5 on the CPU and eval_stage3 K = 10 on the GPU: 33.3 / 38.5 /
-# 41.3 / **43.2** / 43.0 / 39.7 / 33.2 % at 0 / 2.5 / 5 / 7.5 / 10 / 15 / 20 mm); held-out with the
-# committed weights 24.6 -> 36.7 % (results/release_lift/heldout_s16.json). 0 is the network's
-# pose, the paper's Stage 1 (eval_where --stage1-lift 0). The Stage-3 pipeline's candidates are
+# The release height of the Stage-1 *answer* (the default of eval_where and predict_where): the
+# first proposal let go 7.5 mm above the predicted pose (+z of the support frame, rotation kept).
+# 57 % of the network's held-out first proposals start more than 3 mm inside the support (the
+# protocol's penetration failure); a pose a little above the hook drops onto it. Chosen on the
+# 345 validation-object pairs (33.3 / 38.5 / 41.3 / **43.2** / 43.0 / 39.7 / 33.2 % at 0 / 2.5 /
+# 5 / 7.5 / 10 / 15 / 20 mm); held out 24.6 -> 36.7 %. 0 is the network's pose, the paper's
+# Stage 1 (eval_where --stage1-lift 0). The Stage-3 pipeline's candidates are
 # not lifted (CEM moves them out of the support itself; a lift did not help there on validation).
 ANSWER_LIFT = 0.0075
 

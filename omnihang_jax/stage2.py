@@ -95,7 +95,7 @@ class Stage2Config:
     # offsets, so without this 2b cannot tell which object point sits next to which support
     # point; with it the near pairs of the (roughly posed) clouds are the natural candidates.
     pair_offset_scale: float = 0.0
-    # Clearance (ours, issue 14; 0 = paper, bit-identical): after the translation is solved,
+    # Clearance (ours; 0 = paper, bit-identical): after the translation is solved,
     # the object moves this far (metres) along the mean outward normal of the observed support
     # cloud at the chosen (weighted) support correspondence points: contact points solved ON
     # each other leave no gap, and a posed object then often starts > 3 mm inside the support.
@@ -372,27 +372,19 @@ def estimate_support_normals(
 
 
 # The clearance of the Stages 1+2 *answer* (the default of eval_where and predict_where): the
-# Stage-2 pose moved this far along the observed support normal. Fourteenth session: 12 mm,
-# chosen on the 345 validation-object pairs behind the first proposal in the ninth session
-# (Stages 1+2 11.0 / 22.3 / 28.4 / 29.0 / 24.1 % at 0 / 4 / 8 / 12 / 16 mm); held-out 9.1 ->
-# 23.6 %. Fifteenth session: since the answer is the least penetrating of the K Stage-2 poses
-# (evaluate.ANSWER_SELECT), re-chosen behind that selection on the same pairs: 32.9 / **34.6** /
-# 32.4 / 26.4 % at 4 / 8 / 12 / 16 mm (results/validation_where_s15/where_k5_selpen_*): 8 mm
-# (docs/networks.md). The trained model's own Stage2Config.clearance stays 0, and so do the
-# Stage-3 pipeline's CEM starts: with the clearance there all stages fell 73.3 -> 72.6 on the
-# same validation pairs (thirteenth session; CEM moves the proposals out of the support itself).
-# Seventeenth session: re-chosen behind the original-preset Stage 1 (weights/where_original_paper,
-# the Stage-1 network of the answers since then), with the selection and the 5-mm release, on the
-# same 345 pairs: 47.1 / 46.9 / **49.3** / 45.5 / 37.1 % at 0 / 2 / 4 / 8 / 12 mm
-# (results/validation_where_s17/where_orig22k_clear*.json): 4 mm, fixed before the held-out run.
+# Stage-2 pose moved this far along the observed support normal. Chosen on the 345
+# validation-object pairs behind the original-preset Stage 1, the least-penetrating selection
+# of the K Stage-2 poses (evaluate.ANSWER_SELECT) and the 5-mm release: 47.1 / 46.9 / **49.3** /
+# 45.5 / 37.1 % at 0 / 2 / 4 / 8 / 12 mm; 4 mm, fixed before the held-out run (docs/networks.md).
+# The trained model's own Stage2Config.clearance stays 0, and so do the Stage-3 pipeline's CEM
+# starts: with the clearance there all stages fell 73.3 -> 72.6 on the same validation pairs
+# (CEM moves the proposals out of the support itself).
 ANSWER_CLEARANCE = 0.004
 # The Stages 1+2 answer is released this far (m) above the chosen pose (+z of the support frame,
 # after the clearance and after the least-penetrating selection; evaluate.EvalConfig.stage2_lift,
-# eval_where / predict_where --stage2-lift). Sixteenth session, chosen on the 345 validation-object
-# pairs with experiments.release_lift behind the 8-mm clearance and the selection: 34.5 / 37.7 /
-# **39.0** / 38.0 / 37.7 / 37.2 % at 0 / 2.5 / 5 / 7.5 / 10 / 15 mm
-# (results/release_lift/val_where_k5_clear8_s16.json); held-out, applied once: 32.0 -> 34.5 %
-# (results/release_lift/heldout_where_clear8_s16.json). 0: the clearance alone.
+# eval_where / predict_where --stage2-lift). Chosen on the 345 validation-object pairs behind
+# an 8-mm clearance and the selection: 34.5 / 37.7 / **39.0** / 38.0 / 37.7 / 37.2 % at 0 / 2.5 /
+# 5 / 7.5 / 10 / 15 mm; held out, applied once: 32.0 -> 34.5 %. 0: the clearance alone.
 ANSWER_LIFT = 0.005
 
 

@@ -67,16 +67,13 @@ __all__ = [
     "contact_pivot",
     "make_cem",
     "PipelineConfig",
-    "parse_view_set",
     "ANSWER_PIPELINE",
-    "RANK_VALUES",
     "HangOutput",
     "make_hang_pipeline",
     "make_ensemble_score",
     "Refined",
     "make_refiner",
     "cem_keys",
-    "make_smoothed_value",
 ]
 
 
@@ -98,7 +95,7 @@ class ValueConfig:
     feature_scale: float = 0.01  # m: distances are divided by 1 cm (hangs fail at 3 mm)...
     feature_clip: float = 3.0  # ...and clipped to +-3 cm: beyond that only "far" matters
     centre_on_object: bool = True  # ours: clouds relative to the candidate's position
-    # ours (twenty-first session, the answer's ranker): of the num_*_points, this many are the
+    # ours (the near-point ranker): of the num_*_points, this many are the
     # points nearest the other cloud at the candidate pose, taken from ``near_pool`` evenly
     # spaced points of the observed cloud (the rest stay evenly spaced over the whole cloud):
     # the contact region at up to 8x the density (0: the plain subsample; ``near_points``)
@@ -201,9 +198,7 @@ def subset_shift(n: int, config: ValueConfig, which: str, index: int, subsets: i
 def subset_clouds(clouds: PairClouds, config: ValueConfig, index: int = 0, subsets: int = 1):
     """Subset ``index`` of ``subsets`` evenly spaced subsets of the observed clouds: the clouds
     rolled by :func:`subset_shift` points, then :func:`subsample_clouds` (index 0: exactly
-    ``subsample_clouds``). Ours (twenty-sixth session): a ranking network scores each candidate
-    on several such subsets and their mean log P ranks (``PipelineConfig.rank_subsets``),
-    since one network's pick moves with the subset it sees (docs/stage3.md)."""
+    ``subsample_clouds``). The pipeline's views (``PipelineConfig.views``) are such subsets."""
     n, m = clouds.object_points.shape[-2], clouds.support_points.shape[-2]
     so = subset_shift(n, config, "object", index, subsets)
     ss = subset_shift(m, config, "support", index, subsets)
@@ -508,8 +503,8 @@ class PipelineConfig:
     """Stages 1-3 in one call. ``starts``: the proposals CEM refines: "stage2" (all stages,
     the paper's pipeline) and/or "stage1" (the Stages 1+3 ablation). ``select``: how the
     answer is picked among each start's refined candidates (``omnihang_jax.selection``;
-    default the paper's highest V). ``ANSWER_PIPELINE`` is the chosen default of the entry
-    points (``predict.load_hang_pipeline``, ``predict_where``, ``bench_stage3``)."""
+    default the paper's highest V). ``ANSWER_PIPELINE`` is the default answer's
+    (``omnihang_jax.where``)."""
 
     num_proposals: int = 5  # K Stage-1 proposals per pair (facts: 5 at evaluation)
     cem: CEMConfig = CEMConfig()
@@ -518,75 +513,38 @@ class PipelineConfig:
     # True: the answer is picked among the refined candidates of ALL starts (with starts
     # ("stage2", "stage1"): 2K candidates), not only the first start's
     pool_starts: bool = False
-    # ours (twelfth session): R more value networks (params["rank_values"], a list of R
+    # ours: R more value networks (params["rank_values"], a list of R
     # value params of the same ValueConfig) rank the refined candidates: their final score is
     # the mean of log V over the CEM's V and these (a geometric-mean ensemble); CEM itself
     # searches on params["value"] alone. 0: the CEM's V ranks (the paper's)
     rank_values: int = 0
-    # ours (twentieth session): False: the R networks rank alone (the mean log V over them,
+    # ours: False: the R networks rank alone (the mean log V over them,
     # without the CEM's V), e.g. a ranker trained on the pipeline's own refined candidates
     # (experiments.train_ranker); only with rank_values > 0
     rank_with_value: bool = True
-    # ours (twenty-sixth session): each ranking network scores every candidate on this many
+    # ours: each ranking network scores every candidate on this many
     # evenly spaced subsets of the observed clouds, the mean log V ranks (stage3.subset_clouds)
     rank_subsets: int = 1
-    # ours (twenty-sixth session): the subsamples (j, T) of the clouds the pipeline runs on
+    # ours: the subsamples (j, T) of the clouds the pipeline runs on
     # (stage3.subset_clouds); with several, CEM and the ranking run once per view (same keys)
     # and the answer is picked among every view's candidates (their K axes concatenated)
     views: tuple[tuple[int, int], ...] = ((0, 1),)
-    # ours (twenty-seventh session): one CEM over every view and start (their candidates
+    # ours: one CEM over every view and start (their candidates
     # stacked on the pair axis, each with the key it had in its own CEM) and one ranking pass
     # over every view: the same candidates as False, up to float rounding, with one sequence of
     # CEM iterations instead of one per view and start (latency at batch 1; peak memory grows
     # with views x starts). False: each view and start its own CEM, one after the other.
     # None (default): fused on a GPU, one after the other on the CPU, where fusing measured
-    # slower (two views, batch 1 on the 2-core VM: 82.0 s fused against 66.3 s; on one H100
-    # 119.0 against 179.6 ms; docs/stage3.md "Twenty-seventh session")
+    # slower (two views at batch 1: 82.0 s fused against 66.3 s on 2 cores; 119.0 against
+    # 179.6 ms on one H100)
     fuse: bool | None = None
 
 
-def parse_view_set(text: str) -> tuple[tuple[int, int], ...]:
-    """``"0/1,1/2,3/4"`` -> ``((0, 1), (1, 2), (3, 4))`` (``stage3.PipelineConfig.views``:
-    subset J of T of the clouds); refuses J outside [0, T), repeats and empty sets."""
-    views = []
-    for item in filter(None, (x.strip() for x in text.split(","))):
-        j, sep, t = item.partition("/")
-        if not sep or not j.isdigit() or not t.isdigit():
-            raise ValueError(f"{item!r} is not J/T")
-        j, t = int(j), int(t)
-        if not 0 <= j < t:
-            raise ValueError(f"{item!r}: need 0 <= J < T")
-        views.append((j, t))
-    if not views:
-        raise ValueError("no views given")
-    if len({j / t for j, t in views}) < len(views):
-        raise ValueError(
-            f"{text!r} names the same subsample twice (J/T is a shift of J/T of a stride)"
-        )
-    return tuple(views)
-
-
-# The pipeline's default answer (tenth session): both starts refined (2K candidates) and the
-# answer picked among all of them by the observed-cloud rule chosen on validation objects
-# (selection.CHOSEN). K = 10 proposals (20 refined candidates) from the thirteenth session
-# (eleventh session 66.9 -> 71.4 % on validation objects; 76.8 ms per pair at batch 1 on one
-# H100, K = 5: 65.5 ms); since the fifteenth session K = 16 (32 refined candidates), with CEM on
-# CEM_VALUE: validation objects 78.5 (K = 10, ranking s13 + s15) -> 78.8 % (K = 16, CEM's V
-# ranking alone, chosen among the subsets of {s13, s15}), held-out 75.7 -> 76.5 %
-# (docs/stage3.md, "Fifteenth session"; latency in results/bench_stage3_k16_gpu.json).
-# PipelineConfig() keeps the paper's: K = 5, Stage-2 starts, highest V.
-# Since the twentieth session the answer is ranked by RANK_VALUES alone (RANK_WITH_CEM_VALUE).
-# Since the twenty-seventh session two views of the clouds (PipelineConfig.views; the answer the
-# best of both views' candidates) with K = 10 proposals each, fused (PipelineConfig.fuse):
-# validation objects 84.42 (one view, K = 16) -> 85.74 %, then held-out 81.38 -> 82.11 %; 85.5
-# ms per pair at batch 1 on one H100 against 75.0 ms for one view at K = 16, fused, side by
-# side (docs/stage3.md, "Twenty-seventh session").
-# Since the thirty-third session three views (a third subsample, 3/4): validation objects over CEM
-# keys 0-2 84.57 -> 85.28 % (higher under every key), held-out 81.88 -> 82.90 % (higher under every
-# key; docs/stage3.md "Thirty-second session"); with farthest-point sampling unrolled on a GPU
-# (pointnet2.FPS_UNROLL_GPU, the same indices) 97.1 ms per pair at batch 1 on one H200 against
-# 80.5 ms for two views, side by side (results/bench_stage3_s33_fps_h200.json; "Thirty-third
-# session").
+# The default pipeline (``omnihang_jax.where.DEFAULT``): K = 10 proposals, CEM from both the
+# Stage-1 and the Stage-2 proposals on three subsamples of the clouds (views), the ranking
+# networks alone score the candidates, and the answer is picked among all of them by the
+# observed-cloud rule (selection.CHOSEN). Every choice was made on the validation objects
+# (docs/where.md). ``PipelineConfig()`` is the paper's: K = 5, Stage-2 starts, highest V.
 ANSWER_PIPELINE = PipelineConfig(
     num_proposals=10,
     starts=("stage2", "stage1"),
@@ -595,52 +553,6 @@ ANSWER_PIPELINE = PipelineConfig(
     rank_with_value=False,
     views=((0, 1), (1, 2), (3, 4)),
 )
-# The V that CEM searches on in the default pipeline (fifteenth session): the fourteenth
-# session's fifth V (value_s15_hardneg) continued for 18 more hard-negative RL rounds on one warm
-# machine (each round's CEM searching on the V being trained; 1.22 M transitions,
-# results/stage3_train_s16/). Chosen on the 345 validation-object pairs over CEM on the
-# fourteenth session's value_s14_hardneg, both run in the same session: all stages 77.8 -> 78.5 %
-# (each with the ranking chosen there); held-out 75.67 -> 75.69 %, Stages 1+3 71.1 -> 72.7, the
-# paper's answer rule 67.1 -> 68.1 (docs/stage3.md, "Fifteenth session"). Before it:
-# value_s14_hardneg (fourteenth session: 73.3 -> 78.6 % on validation objects over the
-# paper-recipe V weights/value_small_paper; held-out 70.7 -> 74.5 %).
-CEM_VALUE = "weights/value_s16_hardneg"
-# The value folders that rank CEM's candidates beside the CEM's V in the default pipeline
-# (the mean log V of CEM_VALUE and these, PipelineConfig.rank_values). value_s13_hardneg: the
-# thirteenth session's third V (11 hard-negative rounds); value_s15_hardneg: the fourteenth
-# session's fifth (value_s14_hardneg continued 6 rounds on a fresh machine). Chosen twice on the
-# 345 validation-object pairs among every subset of the candidates (experiments.ensemble_stage3
-# on a run's records): fourteenth session, CEM on value_s14_hardneg, {s12, s13, s15}, every V
-# recomputed on the CPU (results/ensemble_stage3_s15_cpu.json): none 77.7, s12 + s13 78.3,
-# **s13 + s15 79.3**; fifteenth session, CEM on CEM_VALUE, {s13, s15, s16} on the GPU
-# (results/validation_where_s15/ensemble_choice_cemv_s16.json): none 77.4, **s13 + s15 78.5**,
-# all three 78.5; fifteenth session at K = 16 (ANSWER_PIPELINE), CEM on CEM_VALUE, {s13, s15}
-# (results/validation_where_s15/ensemble_choice_k16.json): **none 78.8**, s15 78.6, s13 77.4,
-# s13 + s15 77.6. So since then CEM's V ranks alone; value_s13_hardneg and value_s15_hardneg
-# stay committed as the candidates of the next choice. Used by predict.load_hang_pipeline,
-# eval_stage3 --rank-value and the hang command.
-# Twentieth session: a ranker, value_s16_hardneg fine-tuned on the committed pipeline's own
-# refined candidates of 4,840 training pairs of training objects, labelled by the simulation,
-# with a listwise loss over the rule's clear candidates + BCE (experiments.train_ranker,
-# results/ranker_s20/). It ranks ALONE (RANK_WITH_CEM_VALUE = False), chosen on the 345
-# validation-object pairs among 4 training variants x {alone, mean log with CEM's V}: 78.84 ->
-# 83.61 % there; held-out from the records of the three keys 76.74 -> 79.37 % (docs/stage3.md,
-# "Twentieth session").
-# Twenty-second session: three rankers, the mean log V of the twentieth session's ranker, the
-# twenty-first session's big1 (the same recipe on twice the pairs, lists a-d) and its near-point
-# ranker (ValueConfig.support_near = object_near = 256: half of each cloud's state points are
-# those nearest the other cloud at the candidate pose). Chosen on the 345 validation-object
-# pairs among every set of the scored rankers (results/ranker_s21/sets.json): 83.61 -> 84.42 %;
-# held-out from the three keys' records 79.37 -> 81.07 % (docs/stage3.md, "Twenty-first
-# session"; end to end: "Twenty-second session").
-RANK_VALUES: tuple[str, ...] = (
-    "weights/value_s20_ranker",
-    "weights/value_s21_big1",
-    "weights/value_s21_near",
-)
-# Whether the CEM's V ranks beside RANK_VALUES (PipelineConfig.rank_with_value of
-# ANSWER_PIPELINE; eval_stage3 --rank-with-value).
-RANK_WITH_CEM_VALUE = False
 
 
 class HangOutput(NamedTuple):
@@ -661,6 +573,13 @@ class HangOutput(NamedTuple):
     initial_scores: Any
     best: Any
     pose: Any
+    # the answer's pool in the rule's order, best first: [B, C, 7] poses, [B, C] rule keys and
+    # [B, C] int the index in ``PipelineConfig.starts`` each candidate was refined from; the pool
+    # is every start's refined candidates with ``pool_starts``, else the first start's
+    ranked: Any = None
+    ranked_keys: Any = None
+    ranked_start: Any = None
+    ranked_proposal: Any = None  # [B, C] the Stage-1 draw each candidate descends from
 
 
 class Refined(NamedTuple):
@@ -709,35 +628,6 @@ def make_refiner(
         )  # fmt: skip
 
     return refine
-
-
-def make_smoothed_value(
-    value_config: ValueConfig, samples: int = 16, sigma_translation: float = 0.002,
-    sigma_rotation: float = 0.05,
-) -> Callable:  # fmt: skip
-    """``smoothed(value_params, key, clouds unbatched subsampled, poses [P, 7]) -> ([P], [P])``:
-    V averaged over a neighbourhood of each pose, (mean P(hang), mean log P(hang)) over
-    ``samples`` actions (``apply_action`` about the pose's ``contact_pivot``): the first is the
-    pose itself, the others Gaussian with ``sigma_translation`` (m) / ``sigma_rotation`` (rad)
-    per axis. The same actions serve every pose of the call (common random numbers: a
-    comparison between candidates carries no sampling noise of its own). CEM maximises V,
-    so a refined pose may sit on a narrow peak of V that a real hang does not have; the
-    average prefers poses whose neighbourhood V also calls hanging. Pure, un-jitted."""
-    value = make_value(value_config)
-    scale = jnp.asarray([sigma_translation] * 3 + [sigma_rotation] * 3, jnp.float32)
-
-    def smoothed(value_params, key, clouds: PairClouds, poses):
-        actions = jax.random.normal(key, (samples, 6)) * scale
-        actions = actions.at[0].set(0.0)
-
-        def one(pose):
-            moved = apply_action(pose, contact_pivot(clouds, pose), actions)  # [S, 7]
-            log_v = value.score(value_params, clouds, moved)
-            return jnp.mean(jnp.exp(log_v)), jnp.mean(log_v)
-
-        return jax.lax.map(one, poses)
-
-    return smoothed
 
 
 def make_ensemble_score(
@@ -930,13 +820,24 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
                 best[name] = jnp.argmax(keys_of[name], axis=1)
         first = config.starts[0]
         pose = jnp.take_along_axis(refined[first], best[first][:, None, None], axis=1)[:, 0]
+        pooled = config.starts if config.pool_starts else config.starts[:1]
+        cands = jnp.concatenate([refined[n] for n in pooled], axis=1)  # [B, C, 7]
+        keys = jnp.concatenate([keys_of[n] for n in pooled], axis=1)  # [B, C]
+        start = np.concatenate(
+            [np.full(refined[n].shape[1], config.starts.index(n), np.int32) for n in pooled]
+        )
+        # views are laid side by side, K candidates each: position % K is the proposal
+        proposal = np.concatenate([np.arange(refined[n].shape[1]) for n in pooled])
+        proposal = proposal % config.num_proposals
         if config.pool_starts and len(config.starts) > 1:
-            cands = jnp.concatenate([refined[n] for n in config.starts], axis=1)  # [B, SK, 7]
-            keys = jnp.concatenate([keys_of[n] for n in config.starts], axis=1)
             pick = jnp.argmax(keys, axis=1)
             pose = jnp.take_along_axis(cands, pick[:, None, None], axis=1)[:, 0]
+        order = jnp.argsort(-keys, axis=1, stable=True)
+        ranked = jnp.take_along_axis(cands, order[:, :, None], axis=1)
         return HangOutput(
-            pred.stage1_poses, pred.stage2_poses, refined, scores, initial, best, pose
-        )
+            pred.stage1_poses, pred.stage2_poses, refined, scores, initial, best, pose,
+            ranked, jnp.take_along_axis(keys, order, axis=1), jnp.asarray(start)[order],
+            jnp.asarray(proposal)[order],
+        )  # fmt: skip
 
     return hang

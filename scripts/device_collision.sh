@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# One GPU device call (issue 13): derive the clouds and collision labels of training and
-# held-out pairs on all CPU cores, train the NCE (dataset labels + 100 far free poses per pair
-# + the pairs' stable poses as free: train_collision's defaults, docs/paths.md) and the HCE
-# normal net on the GPU under time budgets, print held-out accuracy / precision / recall, benchmark the batched estimators,
-# and bring back the small weights.
+# One GPU device call: derive the clouds and collision labels of training and held-out pairs
+# on all CPU cores, train the NCE (train_collision's defaults: planner labels, 100 far free
+# poses per pair, the stable poses free, a near-contact share of 0.3, cosine lr) and the HCE
+# normal net on the GPU under time budgets, print held-out accuracy / precision / recall,
+# benchmark the batched estimators, and bring back the small weights.
 #
 #   run(carry=[".whl_min", ".whl_train"], timeout_s=600,
 #       command="WHL=.whl_min bash scripts/device_collision.sh")
@@ -13,9 +13,8 @@
 # optax, numpy, scipy, matplotlib, tqdm. OMPL is not needed here: planning runs on the CPU.)
 # Everything comes back in $OUT: device_collision.log (the metrics are printed there and on
 # stdout) and results.tgz (weights/{nce,hce_normals}/, hce_true_normals.json, metrics.json,
-# bench_paths_gpu.json, the logs). Unpack with
-#   tar -xzf results.tgz && cp -r weights weights/collision_<preset>   (see docs/paths.md)
-# Environment knobs: DATA (datasets/paper), PRESET (fast; small = 512+512-point NCE),
+# bench_paths_gpu.json, the logs). Unpack with `tar -xzf results.tgz`.
+# Environment knobs: DATA (datasets/paper), PRESET (contact; collision.NCE_PRESETS),
 # N_TRAIN (3000 pairs), N_TEST (400), DERIVE_S (180: held-out pairs first, then training
 # pairs; whatever is derived by then is used), NCE_S (190), NORMALS_S (40), BATCH (256),
 # END_S (570); SKIP_INSTALL=1 for a dry run here (with .venv/bin first on PATH).
@@ -23,7 +22,7 @@ set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/out}
 DATA=${DATA:-datasets/paper}
-PRESET=${PRESET:-fast}
+PRESET=${PRESET:-contact}
 N_TRAIN=${N_TRAIN:-3000}
 N_TEST=${N_TEST:-400}
 DERIVE_S=${DERIVE_S:-180}

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Device side of issue 4's GPU measurement: paper-dataset generation with `--backend mjx`
+# The GPU measurement of dataset generation: paper-dataset generation with `--backend mjx`
 # (MuJoCo Warp, every pair of a 32-pair shard in one GPU call per round).
 #
 # Run as the last of the warp-bundle calls (scripts/device_bench.md), after join + install

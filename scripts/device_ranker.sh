@@ -1,18 +1,14 @@
 #!/usr/bin/env bash
-# Issue 12 (twentieth session): the answer's ranker (experiments.train_ranker) on one GPU.
+# The answer's rankers (experiments.train_ranker, weights/rankers/) on one GPU.
 #
-#   # records of the committed pipeline on training pairs (one fresh call each, ~425 s):
-#   VAL_PAIRS=results/ranker_pairs_a.jsonl VAL_NAME=rank_a END_S=585 bash scripts/device_full.sh val
-#   VAL_PAIRS=results/ranker_pairs_b.jsonl VAL_NAME=rank_b END_S=585 bash scripts/device_full.sh val
-#   # locally: python -m experiments.train_ranker slim REC.pairs.jsonl.gz out/ranker_s20/in/NAME.npz
-#   MORE=1 RANKER=1 bash scripts/device_slim.sh out
-#   run(carry=[".whl_min", ".whl_train", "out/ranker_s20/in"], command="bash scripts/device_ranker.sh train")
-#   run(carry=[..., "out/ranker_s20/held"], command="bash scripts/device_ranker.sh score")  # same warm machine
-#   bash scripts/device_slim.sh in
+#   # the per-pair records of an evaluation of the answer pipeline on training pairs, made slim
+#   # locally: python -m experiments.train_ranker slim REC.pairs.jsonl.gz out/ranker/in/NAME.npz
+#   run(carry=[".whl_min", ".whl_train", "out/ranker/in"], command="bash scripts/device_ranker.sh train")
+#   run(carry=[..., "out/ranker/held"], command="bash scripts/device_ranker.sh score")  # same warm machine
 #
 # CALL
 #   train  the records of a warm machine's val calls ($C/records/*.pairs.jsonl.gz, made slim)
-#          and the carried slim tables (RANK_IN, default out/ranker_s20/in and /held: rank_*.npz training,
+#          and the carried slim tables (RANK_IN, default out/ranker/in and /held: rank_*.npz training,
 #          val_*.npz validation objects, held_*.npz held-out runs); derives the training and
 #          validation pairs (full recipe), then the held-out pairs in the background; trains
 #          each of RANK_VARIANTS ("NAME=flags ...") side by side on the GPU for at most
@@ -33,7 +29,7 @@ LOG=ranker.log
 R=$C/ranker
 mkdir -p "$R/in"
 # the carried tables (RANK_IN: folders; a warm machine keeps those of earlier calls)
-for d in ${RANK_IN:-out/ranker_s20/in out/ranker_s20/held}; do cp "$d"/*.npz "$R/in/" 2>/dev/null; done
+for d in ${RANK_IN:-out/ranker/in out/ranker/held}; do cp "$d"/*.npz "$R/in/" 2>/dev/null; done
 declare -A VARIANTS=()
 # RANK_VARIANTS="NAME=FLAGS ...": FLAGS with ',' between train_ranker flags, e.g.
 # "main=--steps=1000 bce=--steps=1000,--list-weight=0,--bce-weight=1"
@@ -69,7 +65,7 @@ if [ "$CALL" = train ] || [ "$CALL" = all ]; then
     for name in "${!VARIANTS[@]}"; do
         log "ranker $name: ${VARIANTS[$name]}"
         XLA_PYTHON_CLIENT_MEM_FRACTION=$(awk "BEGIN {print 0.9 / ${#VARIANTS[@]}}") timeout -k 10 $(($(left) - 25)) $PY -m experiments.train_ranker train \
-            --records "$R"/in/rank_*.npz --data "$C/ds" --init "${INIT_VALUE:-weights/value_s16_hardneg}" \
+            --records "$R"/in/rank_*.npz --data "$C/ds" --init "${INIT_VALUE:-weights/value}" \
             --out "$R/$name" --val-records "$R"/in/val_*.npz --time-budget $((${RANK_TRAIN_BUDGET:-$((END_S - 70))} - $(date +%s) + T0)) \
             ${VARIANTS[$name]} --no-progress >>"$C/logs/ranker_$name.log" 2>&1 &
         PIDS="$PIDS $!"

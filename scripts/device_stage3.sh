@@ -1,7 +1,6 @@
 #!/usr/bin/env bash
 # Stage 3 on one GPU machine. Every mode is ONE foreground device call (<= 10 min): a job
-# spread over calls is lost when the next call misses the machine's 30-s warm window
-# (sixth session, call 2: docs/device_runs.md).
+# spread over calls is lost when the next call misses the machine's 30-s warm window.
 #
 #   run(carry=[".whl_min", ".whl_train"], timeout_s=600, command="bash scripts/device_stage3.sh MODE")
 #
@@ -10,13 +9,12 @@
 #             RL rounds); back: $OUT/stage3.tgz (run/ without buffer and train state: value/,
 #             metrics, rounds, curves, split) + logs. Measured: 167 s derive + 318 s training.
 #   eval      derive the held-out pairs of results/hanging_success.pairs.jsonl, eval_stage3 on
-#             all of them with VALUE (default weights/value_small_paper), bench_stage3
+#             all of them with VALUE (default weights/value), bench_stage3
 #   curve     the refinement-learning curve + CEM_ROUNDS-round CEM on a balanced subset
 #   variants  eval again (with the separated answer) + K = 10 proposals on a balanced subset
 # Knobs: NTRAIN (3000), TRAIN_S (360), PRETRAIN (6000), ROUNDS (8), VALUE (the V weights folder of
-# eval / curve / variants: weights/value_small_paper; issue 12's chain-trained V:
-# VALUE=weights/value_small_paper_v2), LABEL, CEM_ROUNDS, PER_CAT.
-# Issue 12's V on ALL training pairs with hard-negative rounds is the chain part
+# eval / curve / variants: weights/value), LABEL, CEM_ROUNDS, PER_CAT.
+# V on ALL training pairs with hard-negative rounds (weights/value) is the chain part
 # scripts/chain/stage3.sh (2-3 calls, resumable), not a mode here.
 set -uo pipefail
 MODE=${1:?usage: device_stage3.sh train|eval|curve|variants}
@@ -32,9 +30,9 @@ setup_env() {  # the carried wheels into /tmp/site; this tree on the path
 
 if [ "$MODE" = eval ]; then
     # one call, foreground: derive the held-out pairs, evaluate the committed V
-    # (VALUE, default weights/value_small_paper) on all of them, benchmark the pipeline
+    # (VALUE, default weights/value) on all of them, benchmark the pipeline
     setup_env || exit 5
-    V=${VALUE:-weights/value_small_paper}
+    V=${VALUE:-weights/value}
     nvidia-smi -L | tee "$OUT/eval.log"
     python3 -m experiments.derive_dataset --data datasets/paper --split test \
         --pairs-from results/hanging_success.pairs.jsonl --workers 16 --no-progress >"$OUT/derive_test.log" 2>&1
@@ -57,11 +55,11 @@ if [ "$MODE" = variants ]; then
     nvidia-smi -L | tee "$OUT/variants.log"
     python3 -m experiments.derive_dataset --data datasets/paper --split test \
         --pairs-from results/hanging_success.pairs.jsonl --workers 16 --no-progress >/dev/null 2>&1
-    timeout 300 python3 -m experiments.eval_stage3 --value "${VALUE:-weights/value_small_paper}" --pairs-from results/hanging_success.pairs.jsonl \
+    timeout 300 python3 -m experiments.eval_stage3 --value "${VALUE:-weights/value}" --pairs-from results/hanging_success.pairs.jsonl \
         --workers 15 --batch 16 --out "$OUT/hanging_success_stage3.json" \
         --label "the 1,814 held-out pairs" --no-progress 2>&1 | tail -9 | tee -a "$OUT/variants.log"
     echo "[$(($(date +%s) - T0)) s] K=5 done" | tee -a "$OUT/variants.log"
-    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 --value "${VALUE:-weights/value_small_paper}" \
+    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 --value "${VALUE:-weights/value}" \
         --pairs-from results/hanging_success.pairs.jsonl --per-category 60 --proposals 10 \
         --workers 15 --batch 8 --out "$OUT/hanging_success_k10.json" \
         --label "K = 10 proposals, balanced subset" --no-progress 2>&1 | tail -9 | tee -a "$OUT/variants.log"
@@ -83,7 +81,7 @@ if [ "$MODE" = curve ]; then
         --out "$OUT/refinement_learning.json" --no-progress 2>&1 | tail -3 | tee -a "$OUT/curve.log"
     echo "[$(($(date +%s) - T0)) s] curve" | tee -a "$OUT/curve.log"
     while [ ! -e /tmp/test_derived ]; do sleep 2; done
-    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 --value "${VALUE:-weights/value_small_paper}" \
+    timeout $((575 - $(date +%s) + T0)) python3 -m experiments.eval_stage3 --value "${VALUE:-weights/value}" \
         --pairs-from results/hanging_success.pairs.jsonl --per-category ${PER_CAT:-60} \
         --rounds ${CEM_ROUNDS:-2} --workers 15 --batch 16 --out "$OUT/hanging_success_cem2.json" \
         --label "CEM ${CEM_ROUNDS:-2} rounds, balanced subset" --no-progress 2>&1 | tail -12 | tee -a "$OUT/curve.log"

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One GPU device call (issue 5): derive the generated dataset's training pairs on all CPU
+# One GPU device call: derive the generated dataset's training pairs on all CPU
 # cores, train Stages 1 / 2a / 2b on the GPU under time budgets, measure inference latency,
 # and keep the CPU busy generating more dataset shards while the GPU trains.
 #
@@ -87,8 +87,8 @@ log "trained: $(tail -1 "$OUT/train.log")"
 # 4. export the weights, inference latency
 python3 -c "from omnihang_jax import train; train.export_weights('/tmp/run', '$OUT/weights')" \
     >>"$OUT/device_train.log" 2>&1
-# the latency benchmark needs ~45 s; skip it when the call's end is nearer than that (the
-# fourth session's call 2 ran past its limit here and lost its tarballs)
+# the latency benchmark needs ~45 s; skip it when the call's end is nearer than that (a call
+# that runs past its limit loses its tarballs)
 if [ $((END_S - $(date +%s) + T0)) -gt 70 ]; then
     timeout 60 python3 -m experiments.bench_where --model /tmp/run --out "$OUT/bench_where.json" \
         >>"$OUT/device_train.log" 2>&1

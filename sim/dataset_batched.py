@@ -2,7 +2,7 @@
 
 :func:`sim.dataset.generate_pair` labels one pair at a time, one kernel call per batch of
 candidates of that pair. On a GPU, MJX's MuJoCo Warp impl is fast only when many pairs
-share a call (one union model, :func:`sim.mjx_kernels.build_warp_batch`), so
+share a call (one union model, :func:`sim.mjx_warp.build_warp_batch`), so
 :func:`shard_records_batched` runs the pairs of a shard *together*, in the same steps as
 ``generate_pair`` and with the same random streams:
 
@@ -20,7 +20,7 @@ pool, so that the CPU stage of one group overlaps the GPU physics of the next (t
 generator's ``--backend mjx --shards-per-call N --workers W``).
 
 The records have exactly the keys of ``generate_pair``'s and go through
-:func:`sim.dataset._pack` unchanged. With ``settings=None`` the physics runs on the CPU
+:func:`sim.dataset_io.pack_shard` unchanged. With ``settings=None`` the physics runs on the CPU
 reference pair by pair, over exactly the poses ``generate_pair`` would give it in the same
 order, so the records equal ``_shard_records(..., backend="cpu")`` bit for bit (tested);
 with the Warp impl labels differ only where the engines do.
@@ -35,7 +35,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sim import dataset, kernels
+from sim import dataset, dataset_io, kernels
 from sim.assets.base import Asset
 from sim.dataset import DatasetConfig
 from sim.library import Library
@@ -118,14 +118,14 @@ def release(scenes: Sequence[Scene], settings: MJXSettings | None) -> None:
     keyed by the batch's ``id``, which may be reused once the batch is freed."""
     if settings is None:
         return
-    from sim import mjx_kernels
+    from sim import mjx_kernels, mjx_warp
 
     key = (tuple(id(s) for s in scenes), settings)
     mjx_kernels._BATCHES.pop(key, None)
-    entry = mjx_kernels._WARP_BATCHES.pop(key, None)
+    entry = mjx_warp._WARP_BATCHES.pop(key, None)
     if entry is not None:
-        for k in [k for k in mjx_kernels._WARP_DATA if k[0] == id(entry[0])]:
-            del mjx_kernels._WARP_DATA[k]
+        for k in [k for k in mjx_warp._WARP_DATA if k[0] == id(entry[0])]:
+            del mjx_warp._WARP_DATA[k]
 
 
 # ----------------------------------------------------------------------------- a shard
@@ -229,7 +229,9 @@ def label_physics(scenes, objs, supports, seeds, config, settings):
         calls["takeoff"] += 1
         removable = [rem[take_pair == p] for p in range(n_pairs)]
     kept = [
-        dataset.dequantise_poses(*dataset.quantise_poses(s[r][: config.max_stable])).astype(float)
+        dataset_io.dequantise_poses(*dataset_io.quantise_poses(s[r][: config.max_stable])).astype(
+            float
+        )
         for s, r in zip(stable_arr, removable)
     ]
 

@@ -56,8 +56,8 @@ ANSWER_TOP = 60
 
 @dataclasses.dataclass(frozen=True)
 class ObservedConfig:
-    # m, sphere radius: 4 mm chosen on the validation records over 1.5-5 mm (docs/stage3.md,
-    # "Fifty-first session"); larger spheres close the gaps between observed points
+    # m, sphere radius: 4 mm chosen on the validation records over 1.5-5 mm (docs/stage3.md);
+    # larger spheres close the gaps between observed points
     radius: float = 0.004
     voxel: float = 0.002  # m, one collision sphere per cube of this side
     crop: float = 0.03  # m, keep points within this of the other posed cloud

@@ -107,10 +107,6 @@ ORIGINAL = BulletConfig(
 LEGACY = dataclasses.replace(ORIGINAL, max_parts=16)
 
 
-def _xyzw(rot: np.ndarray) -> list[float]:
-    return Rotation.from_matrix(rot).as_quat().tolist()
-
-
 def _write_hull_obj(fname: str, vertices) -> None:
     """Write the convex hull of ``vertices`` as a triangulated OBJ file.
 
@@ -467,39 +463,6 @@ class PairWorld:
         self._tmp.cleanup()
 
 
-def resting_contacts(world: PairWorld) -> dict:
-    """The object's contacts with the support (and wall) now: ``points_object`` [C, 3],
-    ``points_support`` [C, 3], ``normals`` [C, 3] (support towards object), ``distance`` [C]
-    (m, negative = penetrating), ``normal_force`` [C] (N, last sub-step), and the summed
-    ``force`` [3] the support exerts on the object (normal + friction)."""
-    pts = world.contacts(world.support)
-    if not pts:
-        z = np.zeros((0, 3))
-        return dict(
-            points_object=z,
-            points_support=z,
-            normals=z,
-            distance=np.zeros(0),
-            normal_force=np.zeros(0),
-            force=np.zeros(3),
-        )
-    a = np.array([p[5] for p in pts])
-    b = np.array([p[6] for p in pts])
-    n = np.array([p[7] for p in pts])  # on B towards A: support -> object
-    fn = np.array([p[9] for p in pts])
-    f1 = np.array([p[10] for p in pts])[:, None] * np.array([p[11] for p in pts])
-    f2 = np.array([p[12] for p in pts])[:, None] * np.array([p[13] for p in pts])
-    force = (fn[:, None] * n + f1 + f2).sum(0)
-    return dict(
-        points_object=a,
-        points_support=b,
-        normals=n,
-        distance=np.array([p[8] for p in pts]),
-        normal_force=fn,
-        force=force,
-    )
-
-
 def stability(
     scene: Scene,
     poses: np.ndarray,
@@ -574,7 +537,3 @@ def stability(
             world.close()
     final[:, 3:] /= np.linalg.norm(final[:, 3:], axis=1, keepdims=True)
     return StabilityResult(status == STABLE, status, final, depth, sim_time)
-
-
-def describe(asset: Asset) -> str:
-    return f"{asset.name} ({len(asset.parts)} parts)"

@@ -31,7 +31,7 @@ Physical settings (:class:`PhysicsConfig`) and why:
   push into it. Up to labels version 2 it was a 2 cm slab; MuJoCo's capsule-box collision
   reports depth ~0 for a capsule that crosses a slab entirely, so a bag strap or a hanger
   hook could pass through it and 7,479 of the paper dataset's 931,512 stable poses hung
-  behind the wall (docs/judges.md, issue 16). The front face, and so every contact in front
+  behind the wall (docs/judges.md). The front face, and so every contact in front
   of the wall, is unchanged.
 - The object's default (qpos0) position is parked 50 m up. MuJoCo resets a diverging world
   to qpos0; a reset world therefore shows up as "flew away" and is labelled a failure

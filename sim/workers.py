@@ -105,6 +105,10 @@ class WorkerPool:
             with contextlib.suppress(Exception):
                 proc.join(timeout=10)
 
+    def submit(self, fn, *args) -> cf.Future:
+        """Start ``fn(*args)`` in a worker now; a Future (``.done()``, ``.result()``)."""
+        return self._executor.submit(fn, *args)
+
     def apply(self, fn, *args):
         """``fn(*args)`` in a worker; its result."""
         return self._executor.submit(fn, *args).result()

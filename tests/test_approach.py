@@ -1,5 +1,5 @@
-"""The approach network (issue 13, thirty-fifth session): labels from the full meshes, a
-network that learns them, and the planner's use of its ranking."""
+"""The approach network: labels from the full meshes, a network that learns them, and the
+planner's use of its ranking."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("ompl")
 
-from omnihang_jax import approach, planner  # noqa: E402
+from omnihang_jax import approach, planner, retreats  # noqa: E402
 
 
 def test_a_ring_on_a_rod_comes_off_along_the_rod_not_straight_up():
@@ -28,7 +28,7 @@ def test_a_ring_on_a_rod_comes_off_along_the_rod_not_straight_up():
     assert labels[outward]
     assert labels.sum() < 13  # most directions run into the rod, the ring or the wall
     mesh = planner.MeshChecker(scene)
-    found = planner.find_retreat(mesh, goal, [0.045], 0.002, planner.default_bounds(scene))
+    found = retreats.find_retreat(mesh, goal, [0.045], 0.002, planner.default_bounds(scene))
     np.testing.assert_allclose(found.direction, approach.DIRECTIONS[np.argmax(labels)])
 
 
@@ -37,10 +37,10 @@ def test_free_retreats_respects_bounds_and_the_checker():
     blocked within 4.5 cm, the rest free, and bounds that end 1 cm above the goal block up."""
     floor = planner.AnalyticChecker([([-1, -1, -1], [1, 1, -0.015])], radius=0.01)
     goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
-    free = planner.free_retreats(floor, goal, 0.045, 0.002)
+    free = retreats.free_retreats(floor, goal, 0.045, 0.002)
     np.testing.assert_array_equal(free, approach.DIRECTIONS[:, 2] >= 0)
     low = (np.array([-1.0, -1, -1]), np.array([1.0, 1, 0.01]))
-    capped = planner.free_retreats(floor, goal, 0.045, 0.002, low)
+    capped = retreats.free_retreats(floor, goal, 0.045, 0.002, low)
     np.testing.assert_array_equal(capped, free & (approach.DIRECTIONS[:, 2] <= 0))
 
 
@@ -112,10 +112,10 @@ def test_predictor_orders_directions_and_refuses_nan(tmp_path):
         approach.load(tmp_path / "missing")
 
 
-@pytest.mark.slow  # averaged approach networks, not adopted (thirty-eighth session); the default suite stays under 20 min
+@pytest.mark.slow  # several networks and cloud subsets: a handful of compilations
 def test_predictor_averages_networks_and_cloud_subsets(tmp_path):
-    """Thirty-eighth session: a list of networks and ``views`` > 1 average the probabilities of
-    each network on each cloud subset (seeds 0..views-1), computed here one by one."""
+    """A list of networks and ``views`` > 1 average the probabilities of each network on each
+    cloud subset (seeds 0..views-1), computed here one by one."""
     import jax
 
     from omnihang_jax import collision
@@ -153,70 +153,6 @@ def test_predictor_averages_networks_and_cloud_subsets(tmp_path):
         approach.ApproachPredictor(cfg, nets, configs=[cfg])
 
 
-def test_only_pairs_keeps_the_named_cases_and_refuses_unknown_ones(tmp_path):
-    from types import SimpleNamespace
-
-    from experiments import eval_paths
-
-    cases = [SimpleNamespace(name=n) for n in ("a", "b", "c")]
-    (tmp_path / "l.txt").write_text("c\na\n")
-    assert [c.name for c in eval_paths.only_pairs(cases, tmp_path / "l.txt")] == ["a", "c"]
-    (tmp_path / "l.json").write_text('["b"]')
-    assert [c.name for c in eval_paths.only_pairs(cases, tmp_path / "l.json")] == ["b"]
-    (tmp_path / "bad.txt").write_text("a\nzz\n")
-    with pytest.raises(ValueError, match="zz"):
-        eval_paths.only_pairs(cases, tmp_path / "bad.txt")
-
-
-def test_eval_paths_keeps_the_directions_at_the_threshold_best_first():
-    """``eval_paths --approach``: 'none' takes the best direction as free (a checker that calls
-    nothing colliding), 'method' hands every direction at the threshold, best first, to the
-    method's checker; below the threshold nothing is tried (the plain plan)."""
-    from types import SimpleNamespace
-
-    from experiments import eval_paths
-
-    dirs = approach.DIRECTIONS[[3, 0, 7]]  # (0, 1, 1), (0, 0, 1), (1, -1, 1) / norms
-
-    class Fake:
-        config = SimpleNamespace(threshold=0.4)
-
-        def __init__(self, probs):
-            self.probs = np.asarray(probs)
-
-        def order(self, obj, sup, goal):
-            return dirs, self.probs
-
-    case = SimpleNamespace(object_points=None, support_points=None, goal=None, wall_y=-0.05)
-    est = SimpleNamespace(approach=Fake([0.9, 0.5, 0.1]), approach_check="none",
-                          approach_open_side=False)  # fmt: skip
-    got, checker, rec = eval_paths.learned_approach(case, est)
-    np.testing.assert_array_equal(got, dirs[:1])
-    assert not checker(np.zeros((5, 7))).any() and rec["best_p"] == 0.9 and rec["tried"] == 1
-    est.approach_check = "method"
-    got, checker, rec = eval_paths.learned_approach(case, est)
-    np.testing.assert_array_equal(got, dirs[:2])
-    assert checker is None and rec["tried"] == 2
-    est.approach = Fake([0.3, 0.2, 0.1])
-    got, _, rec = eval_paths.learned_approach(case, est)
-    assert len(got) == 0 and rec["tried"] == 0
-    # towards the wall (-y) is left out with approach_open_side, for a wall-mounted support only
-    toward_wall = approach.DIRECTIONS[[7, 0, 3]]
-    est = SimpleNamespace(approach=Fake([0.9, 0.8, 0.1]), approach_check="none",
-                          approach_open_side=True)  # fmt: skip
-    Fake.order = lambda self, obj, sup, goal: (toward_wall, self.probs)
-    got, _, rec = eval_paths.learned_approach(case, est)
-    np.testing.assert_array_equal(got, toward_wall[1:2])
-    assert rec["first_tried"] == [0.0, 0.0, 1.0] and rec["best"][1] < 0
-    free_standing = SimpleNamespace(**{**vars(case), "wall_y": None})
-    got, _, _ = eval_paths.learned_approach(free_standing, est)
-    np.testing.assert_array_equal(got, toward_wall[:1])
-    # --approach-replan next (thirty-eighth session): the second usable direction, none when
-    # only one passes (here the wall-side one is not usable, so 0.8's is the first, none second)
-    assert len(eval_paths.next_approach(case, est)) == 0
-    np.testing.assert_array_equal(eval_paths.next_approach(free_standing, est), toward_wall[1:2])
-
-
 def test_ranking_figures_and_the_whole_object_split():
     from experiments.train_approach import object_split, ranking_figures
 
@@ -235,6 +171,14 @@ def test_ranking_figures_and_the_whole_object_split():
     assert np.array_equal(object_split(names[::-1], 7), split[::-1])  # by name, not position
 
 
+def test_threshold_sweep_and_the_rule_threshold():
+    from experiments import train_approach
+
+    sweep = train_approach.threshold_sweep(np.array([[0.9, 0.1], [0.6, 0.2]]),
+                                           np.array([[True, False], [False, True]]))  # fmt: skip
+    assert train_approach.rule_threshold(sweep) == 0.65
+
+
 def _route_data(n, rng, config):
     """The plates above with route labels: a route is free and off when each of its moves
     leaves the plate's open side (cosine with the blocked side < -0.6)."""
@@ -250,9 +194,10 @@ def _route_data(n, rng, config):
     return data
 
 
+@pytest.mark.slow  # trains a 532-output network (~70 s on 2 cores)
 def test_a_route_network_learns_routes_and_warm_starts_from_a_straight_one(tmp_path):
-    """Fortieth session: the route network (``first_lengths``) has one output per route of
-    ``planner.move_routes``; on synthetic plates it learns which routes leave the open side;
+    """The route network (``first_lengths``) has one output per route of
+    ``retreats.move_routes``; on synthetic plates it learns which routes leave the open side;
     ``warm_start`` copies every layer of a straight network and its one-move columns."""
     import dataclasses
 
@@ -286,86 +231,11 @@ def test_a_route_network_learns_routes_and_warm_starts_from_a_straight_one(tmp_p
     assert routes.shape == (532, 3) and np.all(np.diff(probs) <= 0)
     with pytest.raises(ValueError, match="best_routes"):
         pred.order(val.object_points[0], val.support_points[0], val.goals[0])
-    sweep = train_approach.threshold_sweep(np.array([[0.9, 0.1], [0.6, 0.2]]),
-                                           np.array([[True, False], [False, True]]))  # fmt: skip
-    assert train_approach.rule_threshold(sweep) == 0.65
-
-
-def test_eval_paths_takes_the_route_networks_best_route_at_its_threshold():
-    """``eval_paths --routes`` (fortieth session): the best route, when its probability reaches
-    the threshold, becomes the retreat (a two-move route with its corner in ``via``); below it,
-    none."""
-    from types import SimpleNamespace
-
-    from experiments import eval_paths
-
-    routes = planner.move_routes((0.015,))
-    two = routes[26 + 40]
-
-    class Fake:
-        config = SimpleNamespace(threshold=0.6, length=0.045)
-
-        def __init__(self, p):
-            self.p = p
-
-        def best_routes(self, obj, sup, goal):
-            return np.stack([two, routes[0]]), np.array([self.p, 0.1])
-
-    goal = np.array([0.01, 0.02, 0.03, 1, 0, 0, 0])
-    case = SimpleNamespace(object_points=None, support_points=None, goal=goal)
-    found, rec = eval_paths.learned_route(case, SimpleNamespace(routes=Fake(0.7)))
-    corner = goal[:3] + 0.015 * planner.RETREAT_DIRECTIONS[int(two[0])]
-    np.testing.assert_allclose(found.via[0, :3], corner)
-    np.testing.assert_allclose(
-        found.pregoal[:3], corner + 0.045 * planner.RETREAT_DIRECTIONS[int(two[2])]
-    )
-    assert rec["waypoints"] == 2 and rec["best_p"] == 0.7
-    found, rec = eval_paths.learned_route(case, SimpleNamespace(routes=Fake(0.5)))
-    assert found is None and "waypoints" not in rec
-
-
-def test_eval_paths_checked_route_skips_a_route_the_planners_checker_blocks():
-    """``eval_paths --routes-check checker`` (forty-first session): among the confident routes,
-    best first, the first one the method's own checker calls free at every state and whose end
-    is clear between the observed clouds; none when every confident route is blocked; the
-    unchecked rule takes the best route regardless."""
-    from types import SimpleNamespace
-
-    from experiments import eval_paths
-
-    routes = planner.move_routes((0.015,))
-    z = planner.RETREAT_DIRECTIONS[:, 2]
-    up, down = int(np.argmax(z)), int(np.argmin(z))  # the +z and -z one-move routes
-
-    class Fake:
-        config = SimpleNamespace(threshold=0.5, length=0.045)
-
-        def best_routes(self, obj, sup, goal):
-            return np.stack([routes[down], routes[up]]), np.array([0.9, 0.6])
-
-    floor = lambda poses: np.asarray(poses)[:, 2] < -0.01  # noqa: E731  (a plate below the goal)
-    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
-    obj = np.array([[0.0, 0.0, 0.0]])
-    sup = np.array([[0.0, 0.0, -0.02], [0.0, 0.0, 0.05]])
-    case = SimpleNamespace(object_points=obj, support_points=sup, goal=goal)
-    est = SimpleNamespace(
-        routes=Fake(), routes_check="checker", routes_end_gap=0.0, routes_tries=10
-    )
-    found, rec = eval_paths.learned_route(case, est, floor)
-    assert rec["rank"] == 1 and rec["tried"] == 2 and rec["best_p"] == 0.6
-    np.testing.assert_allclose(found.pregoal[:3], [0, 0, 0.045])
-    # the end 4.5 cm up is 5 mm from the observed support point at 5 cm: a 1-cm end gap refuses it
-    est.routes_end_gap = 0.01
-    found, rec = eval_paths.learned_route(case, est, floor)
-    assert found is None and rec["rank"] is None and "waypoints" not in rec
-    unchecked = SimpleNamespace(routes=Fake())
-    found, rec = eval_paths.learned_route(case, unchecked)
-    np.testing.assert_allclose(found.pregoal[:3], [0, 0, -0.045])
 
 
 def test_warm_start_from_a_route_network_keeps_its_last_layer(tmp_path):
-    """Fortieth session: a route network warm-started from one of the same routes takes every
-    layer, the last included (more data, same outputs)."""
+    """A route network warm-started from one of the same routes takes every layer, the last
+    included (more data, same outputs)."""
     import dataclasses
 
     import jax

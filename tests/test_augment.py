@@ -74,7 +74,7 @@ def test_jitter_and_off():
     np.testing.assert_array_equal(np.asarray(out.stable_poses), batch.stable_poses)
 
 
-@pytest.mark.slow  # Stage-1 augmentation, not kept (tenth session); the default suite stays under 20 min
+@pytest.mark.slow  # Stage-1 augmentation, an option off by default
 def test_train_step_augments_stage1_only_when_asked():
     config = train.WHERE_TINY
     batch = jax.tree.map(jnp.asarray, _batch(b=2, n=config.num_object_points, m=64, d=4))

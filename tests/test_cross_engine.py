@@ -5,18 +5,14 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 pytest.importorskip("pybullet")
 
-from omnihang_jax import dataset_bridge, evaluate  # noqa: E402
-from sim import judges, kernels, proposals  # noqa: E402
+from sim import judges  # noqa: E402
 from sim.assets import objects, supports  # noqa: E402, F401
-from sim.assets.base import build_object, build_support  # noqa: E402
-from sim.scene import build_scene  # noqa: E402
 
 PAPER = Path(__file__).resolve().parents[1] / "datasets" / "paper"
 
@@ -72,47 +68,3 @@ def test_agreement_tables_count_both_directions():
     assert (nm["both_fall"], nm["only_a"], nm["b_drops_a"], nm["a_drops_b"]) == (1, 1, 1.0, 0.5)
     assert table["stable"]["per_category"]["mug"]["agree"] == 1.0
     assert table["near_miss"]["per_family"]["mug_tree"]["agree"] == 0.5
-
-
-def test_eval_where_judge_both_records_each_engine(monkeypatch):
-    """``EvalConfig(judge="both")``: success needs both engines; each engine's own success
-    is recorded per stage and summarised under ``by_judge``."""
-    obj, sup = build_object("mug", 7), build_support("single_rod_hook", 3)
-    scene = build_scene(obj, sup)
-    cand = proposals.hang_poses(obj, sup, 16, np.random.default_rng(0))
-    stable = kernels.stability(scene, cand, nthread=1)
-    good = stable.settled_pose[stable.stable][:1]
-    beside = good + np.array([0.08, 0, 0, 0, 0, 0, 0])
-    sample = SimpleNamespace(stable_poses=good.astype(np.float32), pose_mask=np.ones(1, bool))
-    meta = dict(
-        pair_index=0,
-        object_name=obj.name,
-        support_name=sup.name,
-        object_category="mug",
-        support_family="single_rod_hook",
-    )
-    monkeypatch.setattr(dataset_bridge, "load_pair_file", lambda path: (sample, meta))
-    library = SimpleNamespace(objects={obj.name: obj}, supports={sup.name: sup})
-
-    def predict(sample, meta):  # Stage 1 hangs, Stage 1+2 lands beside the hook
-        return evaluate.PairPrediction(good, beside)
-
-    config = evaluate.EvalConfig(judge="both")
-    (record,) = evaluate.evaluate_pairs(["pair.npz"], predict, library, config, progress=False)
-    assert record["stage1"]["success"] and not record["stage1_2"]["success"]
-    for engine in ("mujoco", "pybullet"):
-        assert record["stage1"][f"success_{engine}"] is True
-        assert record["stage1_2"][f"success_{engine}"] is False
-    summary = evaluate.summarize_success([record], "stage1", "success_pybullet")
-    assert summary["mean"] == 100.0
-    with pytest.raises(ValueError, match="judge must be one of"):
-        evaluate.evaluate_pairs(
-            ["pair.npz"], predict, library, evaluate.EvalConfig(judge="bullet"), progress=False
-        )
-
-
-def test_eval_where_accepts_the_judge_option():
-    from experiments import eval_where
-
-    with pytest.raises(SystemExit):
-        eval_where.main(["--data", "x", "--model", "ground_truth", "--out", "o", "--judge", "x"])

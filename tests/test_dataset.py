@@ -11,7 +11,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from sim import dataset
+from sim import dataset, dataset_io
 from sim.library import build_library
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -144,7 +144,7 @@ def test_derived_arrays_are_deterministic_and_export_roundtrips(generated, tmp_p
         np.testing.assert_array_equal(a[key], b[key])
     assert a["object_points"].shape == (256, 3)
     assert a["object_contact_maps"].shape == (len(rec["stable_poses"]), 256)
-    folder = dataset.export_sample(lib, rec, recipe["pairs"], tmp_path / "sample")
+    folder = dataset_io.export_sample(lib, rec, recipe["pairs"], tmp_path / "sample")
     meta = json.loads((folder / "pose.json").read_text())
     mesh = trimesh.load(folder / "object.obj", force="mesh")
     m = np.asarray(meta["matrix_4x4"])
@@ -158,12 +158,12 @@ def test_pose_quantisation_is_below_a_tenth_of_a_millimetre():
     rng = np.random.default_rng(0)
     poses = np.concatenate([rng.uniform(-1.5, 1.5, (200, 3)), rng.normal(size=(200, 4))], axis=1)
     poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
-    back = dataset.dequantise_poses(*dataset.quantise_poses(poses))
-    assert np.abs(back[:, :3] - poses[:, :3]).max() <= dataset.POSITION_STEP / 2 + 1e-6
+    back = dataset_io.dequantise_poses(*dataset_io.quantise_poses(poses))
+    assert np.abs(back[:, :3] - poses[:, :3]).max() <= dataset_io.POSITION_STEP / 2 + 1e-6
     angle = 2 * np.arccos(np.clip(np.abs(np.sum(back[:, 3:] * poses[:, 3:], axis=1)), 0, 1))
     assert angle.max() < 1e-3  # radians
     with pytest.raises(ValueError, match="3.27"):
-        dataset.quantise_poses(np.array([[4.0, 0, 0, 1, 0, 0, 0]]))
+        dataset_io.quantise_poses(np.array([[4.0, 0, 0, 1, 0, 0, 0]]))
 
 
 def test_near_misses_start_close_and_fall(generated):
@@ -369,7 +369,7 @@ def test_grouped_generation_equals_cpu_shards(generated, pooled):
     got = {}
 
     def save(k, records, chunk, ids):
-        got[k] = dataset._pack(records, chunk, ids)
+        got[k] = dataset_io.pack_shard(records, chunk, ids)
 
     seconds = collections.Counter()
     groups = [[0, 1]]

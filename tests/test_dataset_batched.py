@@ -14,13 +14,14 @@ import time
 import numpy as np
 import pytest
 
-from sim import dataset, kernels
+from sim import dataset, dataset_io, kernels
 from sim.library import build_library
 from sim.scene import build_scene
 
 pytest.importorskip("jax")
 pytest.importorskip("warp")
 mjx_kernels = pytest.importorskip("sim.mjx_kernels")
+mjx_warp = pytest.importorskip("sim.mjx_warp")
 from sim import dataset_batched  # noqa: E402
 
 CFG = dataclasses.replace(
@@ -72,7 +73,7 @@ def test_cpu_reference_through_batched_rounds_equals_shard_records(shard):
     assert (run.chunk, run.ids) == (chunk, ids)
     assert run.kernel_calls["stability"] >= 2  # rounds happened
     _same_structure(run.records, ref)
-    a, b = dataset._pack(run.records, chunk, ids), dataset._pack(ref, chunk, ids)
+    a, b = dataset_io.pack_shard(run.records, chunk, ids), dataset_io.pack_shard(ref, chunk, ids)
     assert a.keys() == b.keys()
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
@@ -81,7 +82,7 @@ def test_cpu_reference_through_batched_rounds_equals_shard_records(shard):
 def test_warp_shard_matches_cpu_structure_counts_and_labels(shard):
     library, pairs, rec = shard
     ref, chunk, ids = dataset._shard_records(library, CFG, pairs, rec, 0, "cpu")
-    cached = len(mjx_kernels._WARP_BATCHES)
+    cached = len(mjx_warp._WARP_BATCHES)
     t0 = time.time()
     run = dataset_batched.shard_run_batched(library, CFG, pairs, rec, 0, settings=WARP)
     elapsed = time.time() - t0
@@ -109,7 +110,7 @@ def test_warp_shard_matches_cpu_structure_counts_and_labels(shard):
     assert agree >= 0.9
     assert agree_stable >= 0.9
     # the device model of the shard is released
-    assert len(mjx_kernels._WARP_BATCHES) == cached
+    assert len(mjx_warp._WARP_BATCHES) == cached
 
 
 def test_takeoff_per_pair_materials_equal_scalar_path(shard):
@@ -127,14 +128,14 @@ def test_takeoff_per_pair_materials_equal_scalar_path(shard):
     cfg = kernels.TakeoffConfig(push_time=0.1, free_time=0.1)
     settings = mjx_kernels.MJXSettings(impl="warp", lanes=44, chunk=44)
     scalar = dataclasses.replace(cfg, mass=0.45, friction=0.25)
-    a = mjx_kernels._takeoff_warp_removed(scenes, owner, poses, scalar, settings)
+    a = mjx_warp.takeoff_warp_removed(scenes, owner, poses, scalar, settings)
     mats = (np.full(2, 0.45), np.full(2, 0.25))
-    b = mjx_kernels._takeoff_warp_removed(scenes, owner, poses, cfg, settings, mats)
+    b = mjx_warp.takeoff_warp_removed(scenes, owner, poses, cfg, settings, mats)
     np.testing.assert_array_equal(a, b)
     # per-pair fields: each pair row gets its own material, mirroring kernels.with_material
-    batch = mjx_kernels._warp_batch_for(scenes, settings)
-    fields = mjx_kernels._warp_material(batch.fields, np.array([0.3, 0.8]), np.array([0.1, 0.5]))
-    body = mjx_kernels.W_OBJECT_BODY
+    batch = mjx_warp.warp_batch_for(scenes, settings)
+    fields = mjx_warp.warp_material(batch.fields, np.array([0.3, 0.8]), np.array([0.1, 0.5]))
+    body = mjx_warp.W_OBJECT_BODY
     np.testing.assert_allclose(np.asarray(fields["body_mass"][:, body]), [0.3, 0.8], rtol=1e-6)
     np.testing.assert_allclose(np.asarray(fields["geom_friction"][0, :, 0]), 0.1, rtol=1e-6)
     np.testing.assert_allclose(np.asarray(fields["geom_friction"][1, :, 0]), 0.5, rtol=1e-6)

@@ -1,12 +1,12 @@
 """``train_collision.derive_collision_pairs(derive_only=)``: the chosen pairs are the same list;
-only those the predicate accepts are derived (forty-second session: a probe derives its
-validation objects' pairs, never the rest)."""
+only those the predicate accepts are derived (e.g. a study's validation objects' pairs, never
+the rest)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from experiments import train_collision
+from omnihang_jax import collision_data as train_collision
 from omnihang_jax import dataset_bridge
 
 

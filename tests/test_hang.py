@@ -7,6 +7,7 @@ MuJoCo from that file and simulated again, independently of the kernels that cho
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
@@ -18,7 +19,7 @@ import numpy as np
 import pytest
 
 from omnihang_jax import hang as H
-from omnihang_jax import hang_views
+from omnihang_jax import hang_views, paths, where
 
 ROOT = Path(__file__).resolve().parents[1]
 PAIR = ROOT / "tests" / "fixtures" / "hang_pair"
@@ -71,7 +72,7 @@ def test_user_mug_hangs_on_user_hook(tmp_path):
     scene.xml, and result.json must hold the pose in both forms and every candidate."""
     config = SMALL.__class__(**{**SMALL.__dict__, "cache_dir": str(tmp_path / "coacd")})
     out = tmp_path / "out"
-    how, _ = H.planner_how(5.0, checker="mesh")  # the estimator has its own tests (issue 13)
+    how = paths.make_planner(dataclasses.replace(paths.MESH, plan_time=5.0))  # ground truth
     result = H.hang(PAIR / "mug.obj", PAIR / "l_hook.stl", out, config, how=how, log=None)
     assert result.verified and result.hung, result.steps
     record = json.loads((out / "result.json").read_text())
@@ -136,7 +137,7 @@ def test_clouds_only_are_unverified_and_say_so(tmp_path):
     assert "only clouds" in record["steps"]["check"]
     # the answer check on the observed clouds ran: the first staying candidate, or the best
     check = record["steps"]["observed_check"]
-    assert "observed clouds" in record["steps"]["check"] and check["top"] == H.OBSERVED_CHECK
+    assert "observed clouds" in record["steps"]["check"] and check["top"] == where.DEFAULT.check
     assert check["floor_and_wall"].startswith("unknown") and check["wall_y"] is None
     tried = [s for s in check["status"] if s != "not simulated"]
     assert tried and result.chosen == check["chosen"]
@@ -219,44 +220,40 @@ def test_output_folder_is_complete_or_absent(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow  # compiles the full Stage 1 + 2 networks and CEM: ~60 s on 2 cores
-def test_stage3_is_wired_in_when_value_weights_exist(tmp_path):
-    """With value weights present (here a tiny random network: wiring, not learning), the
-    CEM_STARTS best-V Stage-1 and Stage-2 proposals come back refined by CEM, never below
-    their start in V (CEM scores the start first), and the refined candidates rank first by
-    the chosen answer rule (selection.CHOSEN: log V minus 1e4 per object point inside the
-    observed support)."""
+def test_the_where_answer_is_wired_in(tmp_path, monkeypatch):
+    """``hang`` answers with ``omnihang_jax.where`` (here a tiny random V, no rankers, one view:
+    wiring, not learning): the refined candidates come first in the rule's order, their keys are
+    the rule's key (selection.CHOSEN: log V minus 1e4 per object point inside the observed
+    support) recomputed here, and the unrefined proposals follow."""
     import jax
 
-    from omnihang_jax import refine, selection, stage3
+    from omnihang_jax import refine, selection, stage3, where
 
     folder = tmp_path / "value"
     net = stage3.make_value(stage3.VALUE_TINY)
-    refine.save_value(folder, stage3.VALUE_TINY, net.init(jax.random.key(0)))
-    k = H.CEM_STARTS + 1  # one proposal of each stage is left unrefined
-    config = H.HangConfig(num_proposals=k, value=str(folder), plan=False, verify=False,
-                          image_width=160, image_height=120)  # fmt: skip
+    params = net.init(jax.random.key(0))
+    refine.save_value(folder, stage3.VALUE_TINY, params)
+    pipe = dataclasses.replace(stage3.ANSWER_PIPELINE, num_proposals=3, views=((0, 1),),
+                               cem=stage3.CEMConfig(population=8, iterations=2, elites=3))  # fmt: skip
+    tiny = where.WhereConfig(value=str(folder), rankers=(), pipeline=pipe, check=0)
+    monkeypatch.setitem(where.CONFIGS, "tiny", tiny)
+    config = H.HangConfig(where="tiny", plan=False, verify=False, image_width=160,
+                          image_height=120)  # fmt: skip
     result = H.hang(None, None, None, config, log=None)
     c = result.candidates
-    assert (
-        c.score_name == "stage3_value_clear" and "Stage-3 value network" in result.steps["stage3"]
-    )
-    assert sorted(set(c.stage)) == ["stage1", "stage1_2", "stage1_3", "stage3"]
     refined = np.isin(c.stage, ["stage1_3", "stage3"])
-    n = 2 * min(H.CEM_STARTS, k)  # the best-V starts of each stage
-    assert refined[:n].all() and not refined[n:].any()  # refined ones first
-    for group in (refined, ~refined):
-        assert (np.diff(c.score[group]) <= 1e-6).all()  # each group ranked by the rule's key
-    s3 = H.load_stage3(folder)
+    assert refined.sum() == 2 * 3 and refined[:6].all()  # both starts' candidates first
+    assert sorted(set(c.stage[~refined])) == ["stage1", "stage1_2"]
+    assert (np.diff(c.score[refined]) <= 1e-6).all()
     obj, sup = result.object, result.support
-    log_v = s3.score(obj, sup, c.poses)
-    inside = selection.inside_counts(obj.points, sup.points, sup.normals, c.poses,
+    clouds = stage3.subset_clouds(
+        stage3.PairClouds(obj.points, obj.normals, sup.points, sup.normals), stage3.VALUE_TINY
+    )
+    log_v = np.asarray(net.score(params, clouds, c.poses[refined].astype(np.float32)))
+    inside = selection.inside_counts(obj.points, sup.points, sup.normals, c.poses[refined],
                                      selection.CHOSEN.depth, selection.CHOSEN.radius)  # fmt: skip
     key = np.asarray(selection.select_key(log_v, inside, selection.CHOSEN))
-    np.testing.assert_allclose(key, c.score, rtol=1e-4, atol=1e-3)
-    for i in np.flatnonzero(refined):
-        source = "stage1" if c.stage[i] == "stage1_3" else "stage1_2"
-        start = c.poses[(c.stage == source) & (c.proposal == c.proposal[i])][0]
-        assert log_v[i] >= s3.score(obj, sup, start[None])[0] - 1e-4
+    np.testing.assert_allclose(key, c.score[refined], rtol=1e-3, atol=1e-2)
 
 
 # ----------------------------------------------------------------------------- the page
@@ -345,155 +342,15 @@ def test_viewer_page_in_headless_chromium(tmp_path):
     assert all("boom" in e for e in caught["errors"]) and caught["canvases"] == 0
 
 
-def test_nce_gets_its_support_input_as_in_training():
-    """A support-crop NCE is trained on ``support_input`` (2,048) support points and crops
-    them itself; hang must give it as many (session 8 fix: it gave ``support_points``)."""
-    from experiments.train_collision import planner_clouds
-    from omnihang_jax import collision
-
-    rng = np.random.default_rng(0)
-    obj = rng.normal(size=(4096, 3)).astype(np.float32)
-    sup = rng.normal(size=(4096, 3)).astype(np.float32)
-    crop = collision.NCEConfig(pointnet="fast", object_points=256, support_points=256,
-                               support_crop_from=2048)  # fmt: skip
-    for cfg in (crop, collision.NCE_PRESETS["fast"]):
-        oc, sc = H.nce_clouds(cfg, obj, sup)
-        want = planner_clouds(obj, sup, cfg.object_points, cfg.support_input)
-        np.testing.assert_array_equal(oc, want[0])
-        np.testing.assert_array_equal(sc, want[1])
-    assert len(H.nce_clouds(crop, obj, sup)[1]) == 2048
-
-
-def test_network_sizes_of_a_stage1_mix():
-    """'A+B' (a Stage-1 mix): the clouds are sized for the largest network of the mix; a
-    second folder without a Stage 1 is a clear error."""
-    assert H.network_sizes("weights/where_small_paper") == (2048, 128)
-    assert H.network_sizes("weights/where_original_paper") == (4096, 512)
-    assert H.network_sizes("weights/where_small_paper+weights/where_original_paper") == (4096, 512)
-    with pytest.raises(H.HangInputError, match="no Stage-1 network"):
-        H.network_sizes("weights/where_small_paper+weights/nowhere")
-
-
-def test_hang_plans_with_the_hybrid_checker_of_the_best_planner():
-    """`hang`'s "auto" checker is the best planner of docs/paths.md (the observed-cloud test OR
-    the contact NCE, lenient near the goal), with the committed selection's settings; another
-    NCE folder, or the "nce" checker, gets the estimator alone."""
-    settings, why = H.hybrid_settings(Path(H.HYBRID["weights"]) / "nce")
-    chosen = json.loads(Path(H.HYBRID["selection"]).read_text())["chosen"]
-    assert settings is not None, why
-    assert settings.far_threshold == chosen["nce_threshold"]
-    assert settings.geometric.depth == chosen["depth"]
-    assert (settings.near_threshold, settings.goal_ball) == (0.99, 0.02)
-    assert (H.HYBRID["clear_target"], H.HYBRID["clear_keep_ball"]) == (0.03, 0.045)
-    assert H.hybrid_settings(Path("weights/collision_s16_planner/nce"))[0] is None
-    if H.find_collision_weights() == Path(H.HYBRID["weights"]) / "nce":
-        how, text = H.planner_how(5.0)
-        assert how is not None and "hybrid" in text, text
-        assert "hybrid" not in H.planner_how(5.0, checker="nce")[1]
+def test_network_sizes_of_the_committed_networks():
+    """The clouds are sized for the committed Stage 1 (its first level); a folder without a
+    Stage-1 network is a clear error."""
+    assert H.network_sizes("weights/stage12") == (2048, 128)
+    with pytest.raises(H.HangInputError, match="no trained model there"):
+        H.network_sizes("weights/nowhere")
 
 
 def test_hang_refuses_an_unknown_checker(tmp_path):
     with pytest.raises(H.HangInputError, match="--checker"):
         H.hang(None, None, tmp_path / "out", H.HangConfig(checker="octree"), log=None)
     assert not (tmp_path / "out").exists()
-
-
-def _cloud_bodies():
-    """A made-up object cloud and a support cloud 20 cm in front of it (Bodies, no meshes)."""
-    rng = np.random.default_rng(0)
-    obj = rng.normal(0, 0.03, (2048, 3)).astype(np.float32)
-    sup = (rng.normal(0, 0.03, (2048, 3)) + [0, 0.2, 0]).astype(np.float32)
-
-    def body(kind, pts):
-        normals = pts / np.linalg.norm(pts, axis=1, keepdims=True)
-        return H.Body(kind, kind, "cloud", None, pts, normals, None, None, {})
-
-    return body("object", obj), body("support", sup)
-
-
-@pytest.mark.parametrize(
-    "replan_s, expected", [(0.0, [5.0]), (2.0, [5.0, 2.0]), (None, [5.0, 5.0])]
-)
-def test_hang_replans_once_after_the_hybrids_time_out(monkeypatch, replan_s, expected):
-    """With ``replan_s`` > 0 a time-out of the hybrid's plan is followed by one fresh search
-    of that length (its info keeps the first), and never after an invalid start or goal;
-    ``None`` with ``HYBRID["replan"]`` on replans as long as the first plan."""
-    from omnihang_jax import planner
-
-    monkeypatch.setitem(H.HYBRID, "replan", True)
-    monkeypatch.setitem(H.HYBRID, "approach", None)  # the plain plan (the next test has it)
-
-    if H.find_collision_weights() != Path(H.HYBRID["weights"]) / "nce":
-        pytest.skip("the hybrid's NCE is not committed")
-    limits = []
-
-    def fake_plan(checker, start, goal, bounds, weight, config):
-        limits.append(config.time_limit)
-        return planner.PlanResult(None, "Timeout", config.time_limit, 0, 0)
-
-    monkeypatch.setattr(planner, "plan", fake_plan)
-    obj, sup = _cloud_bodies()
-
-    how, text = H.planner_how(5.0, replan_s=replan_s)
-    assert "hybrid" in text, text
-    pose = np.array([0, 0.2, 0.1, 1, 0, 0, 0], float)
-    plan = how(None, obj, sup, pose)
-    assert len(plan.poses) == 0
-    assert limits == expected
-    if len(expected) == 2:
-        assert plan.info["replanned_after"]["status"] == "Timeout"
-    else:
-        assert "replanned_after" not in plan.info
-    limits.clear()
-    monkeypatch.setattr(
-        planner, "plan",
-        lambda *a: limits.append(a[-1].time_limit) or planner.PlanResult(None, "Invalid goal state", 0.0, 0, 0),
-    )  # fmt: skip
-    how(None, obj, sup, pose)
-    assert limits == [5.0]  # an invalid goal is not replanned
-
-
-@pytest.mark.parametrize("free_standing", [False, True])
-def test_hang_plans_to_the_approach_networks_pre_goal_then_plainly(monkeypatch, free_standing):
-    """Thirty-sixth session: with ``HYBRID["approach"]`` the first plan goes to the pre-goal
-    4.5 cm back along the network's best usable direction (never towards a wall-mounted
-    support's wall), the replan after its time-out plainly to the goal."""
-    from types import SimpleNamespace
-
-    from omnihang_jax import approach, planner
-
-    if H.find_collision_weights() != Path(H.HYBRID["weights"]) / "nce":
-        pytest.skip("the hybrid's NCE is not committed")
-    monkeypatch.setitem(H.HYBRID, "replan", True)
-    monkeypatch.setitem(H.HYBRID, "approach", dict(weights="unused", threshold=0.7,
-                                                  length=0.045, open_side=True, replan="plain"))  # fmt: skip
-    towards_wall, up = approach.DIRECTIONS[10], approach.DIRECTIONS[0]  # (0, -1, 0), (0, 0, 1)
-
-    class Net:  # sure of the wall side first, then straight up
-        config = SimpleNamespace(threshold=0.7)
-
-        def order(self, obj, sup, goal):
-            return np.stack([towards_wall, up, approach.DIRECTIONS[1]]), np.array([0.95, 0.8, 0.1])
-
-    monkeypatch.setattr(H, "hybrid_approach", lambda: (Net(), "the test's approach network"))
-    goals = []
-
-    def fake_plan(checker, start, goal, bounds, weight, config):
-        goals.append(np.asarray(goal, float).copy())
-        return planner.PlanResult(None, "Timeout", config.time_limit, 0, 0)
-
-    monkeypatch.setattr(planner, "plan", fake_plan)
-    obj, sup = _cloud_bodies()
-
-    how, text = H.planner_how(2.0, replan_s=1.0, free_standing=free_standing)
-    assert "approach" in text, text
-    pose = np.array([0, 0.2, 0.1, 1, 0, 0, 0], float)
-    plan = how(None, obj, sup, pose)
-    assert len(plan.poses) == 0 and len(goals) == 2
-    chosen = towards_wall if free_standing else up
-    np.testing.assert_allclose(goals[0][:3], pose[:3] + 0.045 * chosen, atol=1e-9)
-    np.testing.assert_allclose(goals[1], pose)  # the replan: plainly to the goal
-    assert plan.info["approach"]["used"] and plan.info["approach"]["p"] == (
-        0.95 if free_standing else 0.8
-    )
-    assert plan.info["replanned_after"]["approach_direction"] == chosen.tolist()

@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnihang_jax import evaluate, heuristics
-from omnihang_jax.data import HangSample
+from omnihang_jax import heuristics
 
 
 def _clouds(rng):
@@ -43,38 +42,6 @@ def test_rank_by_penetration_orders_least_first_and_is_stable():
     assert np.asarray(order).tolist() == [1, 3, 0, 2]
 
 
-def test_ranked_predictor_puts_the_clear_proposal_first():
-    ball, support, normals = _clouds(np.random.default_rng(2))
-    sample = HangSample(
-        object_points=ball,
-        object_normals=ball,
-        support_points=support,
-        support_normals=normals,
-        stable_poses=_pose(0.02)[None],
-        pose_mask=np.ones(1, bool),
-        object_contact_maps=np.zeros((1, 500), np.float32),
-        support_contact_maps=np.zeros((1, 2000), np.float32),
-        contact_pairs=np.zeros((1, 1, 2), np.int32),
-        contact_mask=np.zeros((1, 1), bool),
-    )
-    sunk, clear = _pose(0.01), _pose(0.025)
-
-    def predict(sample, meta):
-        return evaluate.PairPrediction(np.stack([sunk, clear]), np.stack([clear, sunk]))
-
-    out = evaluate.ranked_fn(predict, object_stride=1)(sample, {"pair_index": 0})
-    np.testing.assert_array_equal(out.stage1_poses[0], clear)
-    np.testing.assert_array_equal(out.stage2_poses[0], clear)
-
-
-def test_pose_errors_default_beside_their_results():
-    assert evaluate.default_errors_path("r/hanging_success.json").name == "pose_errors.json"
-    assert (
-        evaluate.default_errors_path("r/hanging_success_demo.json").name == "pose_errors_demo.json"
-    )
-    assert evaluate.default_errors_path("r/x.json").name == "x.pose_errors.json"
-
-
 def test_separate_backs_a_sunken_pose_out_and_leaves_a_free_one():
     """A flat support patch (normal +z) and an object patch: sunk 1 cm into it, separate
     moves it up until nothing is inside; a pose above the surface is left unchanged."""
@@ -93,13 +60,3 @@ def test_separate_backs_a_sunken_pose_out_and_leaves_a_free_one():
     pose, shift, _ = heuristics.separate(obj, sup, nrm, free)
     assert float(shift) == 0.0
     np.testing.assert_array_equal(np.asarray(pose), free)
-
-
-def test_spread_per_category_is_balanced_and_ordered():
-    from pathlib import Path
-
-    names = [f"{i:05d}_bag_{i % 3:04d}__hook_0000.npz" for i in range(10)]
-    names += [f"{i:05d}_clothes_hanger_0001__hook_0000.npz" for i in range(10, 12)]
-    got = [f.name for f in evaluate.spread_per_category([Path(n) for n in names], 3)]
-    assert got == sorted(got) and len(got) == 5
-    assert [n for n in got if "_bag_" in n] == [names[0], names[3], names[6]]

@@ -15,6 +15,7 @@ from tests.test_kernels import middle_pose, support_of
 
 jax = pytest.importorskip("jax")
 mjx_kernels = pytest.importorskip("sim.mjx_kernels")
+mjx_warp = pytest.importorskip("sim.mjx_warp")
 
 SHORT = kernels.StabilityConfig(duration=0.3)
 BRIEF = kernels.StabilityConfig(duration=0.2)  # the diverged-world test: two checks are enough
@@ -191,7 +192,7 @@ def test_warp_takeoff_matches_cpu(pair):
         assert (got.removed == ref.removed).all()
         every = _cpu_every_direction(scene, two, cfg)
         pair0 = np.zeros(len(two), np.int32)
-        dev = mjx_kernels._takeoff_warp_removed([scene], pair0, two, cfg, settings)
+        dev = mjx_warp.takeoff_warp_removed([scene], pair0, two, cfg, settings)
         assert (dev == every).mean() >= 21 / 22
 
 
@@ -239,7 +240,7 @@ def test_warp_union_shares_mesh_geoms_between_pairs():
     other = Asset("block", "object", "others", 1, [geometry.hull(cube.vertices * 1.5)], [], {})
     hook = support_of("single_rod_hook", style="angled")
     scenes = [build_scene(block, hook), build_scene(block, hook), build_scene(other, hook)]
-    xml, maps = mjx_kernels.union_xml(scenes, mjx_kernels.MJXSettings(impl="warp"))
+    xml, maps = mjx_warp.union_xml(scenes, mjx_kernels.MJXSettings(impl="warp"))
     mj = mujoco.MjModel.from_xml_string(xml)
     names = [mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_GEOM, g) for g in range(mj.ngeom)]
     object_meshes = [n for n in names if n.startswith("o_mesh")]

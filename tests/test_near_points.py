@@ -77,5 +77,5 @@ def test_a_near_point_value_network_scores_and_trains_from_v(tmp_path):
 
 
 def test_old_value_configs_load_without_near_points():
-    config, _ = refine.load_value("weights/value_s20_ranker")
+    config, _ = refine.load_value("weights/rankers/listwise")
     assert config.support_near == 0 and config.object_near == 0

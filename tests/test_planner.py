@@ -5,15 +5,13 @@ ring onto a hook, and the batched estimator checker agrees with per-pose calls."
 from __future__ import annotations
 
 import dataclasses
-import tempfile
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 pytest.importorskip("ompl")
 
-from omnihang_jax import planner  # noqa: E402
+from omnihang_jax import planner, retreats  # noqa: E402
 from sim import geometry, proposals  # noqa: E402
 from sim.assets import objects, supports  # noqa: E402, F401  (registers the generators)
 from sim.assets.base import Asset, HangLoop, build_object, build_support  # noqa: E402
@@ -181,52 +179,6 @@ class _Counting:
         return self.checker(poses)
 
 
-def test_cascade_checker_equals_the_jitted_hybrid_and_skips_the_nce_on_blocked_edges():
-    """eval_paths' hybrid is planner.CascadeChecker(observed-cloud test, NCE): per state the
-    same calls as the one jitted collision.nce_geometric_collides; an edge the test blocks
-    never reaches the NCE, and the NCE sees only the states the test calls free."""
-    import dataclasses
-
-    import jax
-
-    from omnihang_jax import collision
-
-    rng = np.random.default_rng(5)
-    n = 3000  # a 6 x 6 cm flat support patch at z = 0, outward normals +z
-    patch = np.concatenate([rng.uniform(-0.03, 0.03, (n, 2)), np.zeros((n, 1))], 1)
-    patch, normals = patch.astype(np.float32), np.tile([0, 0, 1.0], (n, 1)).astype(np.float32)
-    grid = collision.support_grid(patch, normals, max_voxels=200_000)
-    obj = np.concatenate([rng.uniform(-0.01, 0.01, (64, 2)), np.zeros((64, 1))], 1)
-    obj = obj.astype(np.float32)
-    geo = collision.GeometricConfig(depth=0.002, radius=0.004, min_points=2, object_points=64)
-    cfg = collision.NCE_PRESETS["tiny"]
-    params = collision.make_nce(cfg).init(jax.random.key(0))
-    oc = rng.uniform(-0.01, 0.01, (cfg.object_points, 3)).astype(np.float32)
-    sc = patch[: cfg.support_points]
-    # 5 mm inside the patch (the test's), then poses around it, some of them inside
-    poses = np.tile(np.array([0, 0, 0, 1, 0, 0, 0], np.float32), (24, 1))
-    poses[:, :3] = rng.normal(0, 0.01, (24, 3))
-    poses[0, :3] = (0, 0, -0.005)
-    q = rng.normal(size=(24, 4)) * 0.1 + [1, 0, 0, 0]
-    poses[1:, 3:] = (q / np.linalg.norm(q, axis=1, keepdims=True))[1:]
-    p = np.asarray(jax.jit(collision.nce_probability(cfg))(params, oc, sc, poses))
-    cfg = dataclasses.replace(cfg, threshold=float(np.median(p)))  # the NCE calls half
-    test = planner.EstimatorChecker(jax.jit(collision.geometric_collides(geo)), grid, obj, sc)
-    by_test = test(poses)
-    nce = _Counting(planner.EstimatorChecker(jax.jit(collision.nce_collides(cfg)), params, oc, sc))
-    hybrid = jax.jit(collision.nce_geometric_collides(cfg, geo))
-    want = np.asarray(hybrid(collision.NCEGeometricParams(params, obj, grid), oc, sc, poses))
-    assert by_test.any() and (want & ~by_test).any(), "both parts must call some pose"
-    cascade = planner.CascadeChecker(test, nce)
-    np.testing.assert_array_equal(cascade(poses), want)
-    assert nce.batches == [int((~by_test).sum())]  # only what the test called free
-    nce.batches.clear()
-    assert cascade.any_colliding(poses) and nce.batches == []  # the test blocks the edge
-    free = poses[~want]
-    assert not cascade.any_colliding(free) and nce.batches == [len(free)]
-    assert cascade.states_second == int((~by_test).sum()) + len(free)
-
-
 def test_planner_goes_around_two_obstacles_with_a_cascade():
     """RRT-Connect with a CascadeChecker of two exact checkers avoids both obstacles."""
     slab = planner.AnalyticChecker([([-0.05, -1.0, -1.0], [0.05, 1.0, 0.3])], radius=0.02)
@@ -241,95 +193,6 @@ def test_planner_goes_around_two_obstacles_with_a_cascade():
     assert not slab(dense).any() and not roof.checker(dense).any()
     assert 0.32 < dense[np.abs(dense[:, 0]) < 0.05, 2].min()  # through the gap between them
     assert sum(roof.batches) < cascade.states_first  # the second saw fewer states
-
-
-def test_eval_paths_summary_counts_and_dense_flags():
-    """precision / recall / F1 from the per-pair rows, and how many colliding paths the
-    estimator itself flags when the path is checked at the dense spacing."""
-    from experiments.eval_paths import summarise
-
-    def row(i, returned, free, flags=None):
-        r = dict(pair=f"p{i}", method="nce", object_category="mug" if i % 2 else "cap",
-                 returned=returned, collision_free=free, planning_s=1.0 + i,
-                 status="Exact solution" if returned else "Approximate solution",
-                 start_called_colliding=False, goal_called_colliding=False, states_checked=10)  # fmt: skip
-        if returned:
-            r |= dict(deepest_m=0.0 if free else 0.004, estimator_dense_flags=flags)
-        return r
-
-    rows = [row(0, True, True, 0), row(1, True, False, 3), row(2, True, False, 0),
-            row(3, False, False)]  # fmt: skip
-    s = summarise(rows, methods=("nce",))["nce"]
-    assert (s["returned"], s["collision_free"], s["pairs"]) == (3, 1, 4)
-    assert s["precision"] == round(100 / 3, 1) and s["recall"] == 25.0
-    assert s["f1"] == round(100 * 2 * (1 / 3) * 0.25 / (1 / 3 + 0.25), 1)
-    assert s["colliding_paths_flagged_when_dense"] == 1
-    assert s["timeouts"] == 1 and s["deepest_penetration_of_colliding_paths_m"] == [0.004, 0.004]
-
-
-def test_eval_paths_answer_goals_from_pipeline_records(tmp_path):
-    """--pairs-from RECORDS --goal answer: the all-stages answer of each eval_stage3 record
-    becomes the pair's goal (with its simulated status), broken records are refused with the
-    reason, and the summary adds the figures over the pairs whose answer hangs."""
-    import gzip
-    import json
-
-    import pytest
-
-    from experiments.eval_paths import read_answers, summarise
-
-    poses = [[0.0, 0.0, 0.1 * i, 1.0, 0.0, 0.0, 0.0] for i in range(4)]
-    recs = [
-        {"pair_index": 7, "poses_all": poses, "answer_index": 2, "all_stages": {"status": "stable"}},
-        {"pair_index": 9, "poses_all": poses, "answer_index": 3,
-         "all_stages": {"status": "penetrating"}},
-    ]  # fmt: skip
-    path = tmp_path / "run.pairs.jsonl.gz"
-    with gzip.open(path, "wt") as f:
-        f.write("".join(json.dumps(r) + "\n" for r in recs))
-    goals = read_answers(path)
-    assert sorted(goals) == [7, 9]
-    np.testing.assert_allclose(goals[7][0], poses[2])
-    assert goals[7][1] == "stable"
-    assert goals[9][1] == "penetrating" and goals[9][0][2] == pytest.approx(0.3)
-    bad = tmp_path / "bad.jsonl"
-    bad.write_text(json.dumps({"pair_index": 1, "poses_all": [[np.nan] * 7], "answer_index": 0,
-                               "all_stages": {"status": "stable"}}) + "\n")  # fmt: skip
-    with pytest.raises(ValueError, match="finite"):
-        read_answers(bad)
-    bad.write_text(json.dumps({"pair_index": 1}) + "\n")
-    with pytest.raises(ValueError, match="not an eval_stage3 pairs file"):
-        read_answers(bad)
-
-    def row(i, status, free):
-        return dict(pair=f"p{i}", method="nce", object_category="mug", returned=True,
-                    collision_free=free, planning_s=1.0, status="Exact solution",
-                    start_called_colliding=False, goal_called_colliding=False, states_checked=10,
-                    deepest_m=0.0 if free else 0.004, goal_status=status)  # fmt: skip
-
-    s = summarise([row(0, "stable", True), row(1, "penetrating", False), row(2, "stable", False)],
-                  methods=("nce",))  # fmt: skip
-    assert s["goal_statuses"] == {"penetrating": 1, "stable": 2}
-    assert s["nce"]["recall"] == round(100 / 3, 1)
-    assert set(s["stable_goals"]) == {"nce"}
-    assert s["stable_goals"]["nce"]["pairs"] == 2 and s["stable_goals"]["nce"]["recall"] == 50.0
-
-
-def test_exempt_near_goal_frees_only_the_goal_ball():
-    """ExemptNearGoal: within the radius (planner metric) of the goal every state is free,
-    beyond it the wrapped checker answers; in a cascade the second checker then decides
-    alone near the goal."""
-    everywhere = planner.AnalyticChecker([([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])])  # all inside
-    goal = np.array([0.0, 0, 0, 1, 0, 0, 0])
-    poses = np.tile(goal, (4, 1))
-    poses[:, 0] = [0.0, 0.004, 0.006, 0.5]
-    near = planner.ExemptNearGoal(everywhere, goal, radius=0.005, weight=0.05)
-    np.testing.assert_array_equal(near(poses), [False, False, True, True])
-    assert near.any_colliding(poses) and not near.any_colliding(poses[:2])
-    second = _Counting(planner.AnalyticChecker([([0.003, -1, -1], [0.0045, 1, 1])]))
-    cascade = planner.CascadeChecker(near, second)
-    np.testing.assert_array_equal(cascade(poses), [False, True, True, True])
-    assert second.batches == [2]  # only the two goal-ball states reached the second
 
 
 def test_goal_distances_equal_pose_distance():
@@ -361,18 +224,18 @@ def _slot():
 def test_retreat_leaves_a_slot_along_its_open_direction_and_is_deterministic():
     checker, goal = _slot()
     # every direction but straight up is blocked within 2 cm
-    found = planner.find_retreat(checker, goal, (0.02, 0.06), 0.005)
+    found = retreats.find_retreat(checker, goal, (0.02, 0.06), 0.005)
     assert found is not None
     np.testing.assert_allclose(found.direction, [0, 0, 1])
     assert found.length == 0.02 and found.states_checked >= 4
     np.testing.assert_allclose(found.pregoal, [0, 0, 0.02, 1, 0, 0, 0])
     seg = planner.interpolate_segment(goal, found.pregoal, 20)
     assert not checker(seg).any()
-    again = planner.find_retreat(checker, goal, (0.02, 0.06), 0.005)
+    again = retreats.find_retreat(checker, goal, (0.02, 0.06), 0.005)
     np.testing.assert_array_equal(again.pregoal, found.pregoal)
     # a lid over the slot: no straight retreat of 2 cm is free, so none is returned
     lid = planner.AnalyticChecker([*checker.boxes, ([-0.2, -0.2, 0.025], [0.2, 0.2, 0.2])], 0.01)
-    assert planner.find_retreat(lid, goal, (0.02,), 0.005) is None
+    assert retreats.find_retreat(lid, goal, (0.02,), 0.005) is None
 
 
 def test_plan_with_retreat_ends_straight_in_at_the_goal_or_falls_back():
@@ -381,7 +244,7 @@ def test_plan_with_retreat_ends_straight_in_at_the_goal_or_falls_back():
     bounds = (np.array([-0.4, -0.4, -0.1]), np.array([0.4, 0.4, 0.5]))
     # 10 cm up clears the shaft; RRT-Connect alone would have to find its 4-mm-wide opening
     cfg = planner.PlannerConfig(time_limit=10.0, retreat_lengths=(0.1,))
-    res, found = planner.plan_with_retreat(checker, start, goal, bounds, 0.05, cfg)
+    res, found = retreats.plan_with_retreat(checker, start, goal, bounds, 0.05, cfg)
     assert found is not None and res.path is not None
     np.testing.assert_allclose(res.path[-1], goal)
     np.testing.assert_allclose(res.path[-2], found.pregoal, atol=1e-9)
@@ -389,59 +252,13 @@ def test_plan_with_retreat_ends_straight_in_at_the_goal_or_falls_back():
     assert not checker(dense).any()
     assert res.states_checked > found.states_checked and res.planning_s >= found.seconds
     # retreat off: the plain plan, no retreat searched
-    plain, none = planner.plan_with_retreat(checker, start, goal, bounds, 0.05, FAST)
+    plain, none = retreats.plan_with_retreat(checker, start, goal, bounds, 0.05, FAST)
     assert none is None and plain.status in ("Exact solution", "Approximate solution", "Timeout")
     # no free retreat (a lid over the shaft): the plain plan
     lid = planner.AnalyticChecker([*checker.boxes, ([-0.2, -0.2, 0.03], [0.2, 0.2, 0.04])], 0.01)
     quick = planner.PlannerConfig(time_limit=0.5, retreat_lengths=(0.1,))
-    _, blocked = planner.plan_with_retreat(lid, start, goal, bounds, 0.05, quick)
+    _, blocked = retreats.plan_with_retreat(lid, start, goal, bounds, 0.05, quick)
     assert blocked is None
-
-
-def test_retreat_as_a_fallback_only_after_the_plain_plan_fails():
-    """PlannerConfig.retreat_after: the plain plan first; its path is kept when it finds one
-    (no retreat searched), else the retreat with the time left, every plan's time counted."""
-    checker, goal = _slot()
-    start = np.array([0.3, 0.0, 0.3, 1, 0, 0, 0])
-    bounds = (np.array([-0.4, -0.4, -0.1]), np.array([0.4, 0.4, 0.5]))
-    # a plain plan of 1e-4 s finds nothing: the retreat takes over and ends straight in
-    cfg = planner.PlannerConfig(time_limit=10.0, retreat_lengths=(0.1,), retreat_after=1e-4)
-    res, found = planner.plan_with_retreat(checker, start, goal, bounds, 0.05, cfg)
-    assert found is not None and res.path is not None
-    np.testing.assert_allclose(res.path[-2], found.pregoal, atol=1e-9)
-    assert not checker(planner.interpolate_path(res.path, 0.002, 0.05)).any()
-    assert res.planning_s >= found.seconds
-    # an open space: the plain plan succeeds within its share, no retreat is searched
-    free = planner.AnalyticChecker([], 0.01)
-    easy = planner.PlannerConfig(time_limit=10.0, retreat_lengths=(0.1,), retreat_after=5.0)
-    res, none = planner.plan_with_retreat(free, start, goal, bounds, 0.05, easy)
-    assert none is None and res.path is not None
-
-
-def test_clearance_far_from_goal_blocks_close_states_only_away_from_the_goal():
-    """A 3-point object above a floor of support points (z = 0): a state farther than the
-    ball from the goal collides when a point comes within the margin of the floor, and only
-    then; within the ball every state is free (the checkers after it decide); the rotation is
-    applied (a tilted object reaches down); in a cascade it blocks what it flags."""
-    xs = np.linspace(-0.2, 0.2, 41)
-    floor = np.stack(np.meshgrid(xs, xs, [0.0]), -1).reshape(-1, 3)
-    obj = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [-0.05, 0.0, 0.0]])
-    goal = np.array([0.0, 0.0, 0.001, 1.0, 0.0, 0.0, 0.0])
-    check = planner.ClearanceFarFromGoal(obj, floor, goal, radius=0.05, margin=0.005, weight=0.1)
-    ident = [1.0, 0.0, 0.0, 0.0]
-    poses = np.array([
-        [0.0, 0.0, 0.001] + ident,  # the goal: free (inside the ball)
-        [0.03, 0.0, 0.002] + ident,  # 3 cm away, touching: inside the ball -> free
-        [0.10, 0.0, 0.003] + ident,  # 10 cm away, 3 mm above the floor -> colliding
-        [0.10, 0.0, 0.008] + ident,  # 10 cm away, 8 mm above -> free
-        # 10 cm away, 8 mm up, tilted 6.9 degrees about y: an end point dips to ~2 mm
-        [0.10, 0.0, 0.008, np.cos(0.06), 0.0, np.sin(0.06), 0.0],
-    ])  # fmt: skip
-    np.testing.assert_array_equal(check(poses), [False, False, True, False, True])
-    nothing = planner.AnalyticChecker([])
-    cascade = planner.CascadeChecker(check, nothing)
-    np.testing.assert_array_equal(cascade(poses), check(poses))
-    assert cascade.any_colliding(poses[2:3]) and not cascade.any_colliding(poses[:2])
 
 
 def test_posed_points_matches_the_jax_transform():
@@ -462,7 +279,6 @@ def test_goal_ball_nce_and_the_hang_hybrid_checker():
     the far threshold beyond it; planner.hybrid_checker (the `hang` command's checker) calls
     exactly the observed-cloud test OR that NCE, with the settings of a selection file."""
     import dataclasses
-    import json
 
     import jax
 
@@ -494,54 +310,13 @@ def test_goal_ball_nce_and_the_hang_hybrid_checker():
     assert (got != (p > far_t)).any() and (got != (p > near_t)).any()  # both sides matter
 
     geo = collision.GeometricConfig(depth=0.002, radius=0.004, min_points=2)
-    selection = dict(chosen=dict(depth=0.002, radius=0.004, min_points=2, nce_threshold=far_t))
-    path = Path(tempfile.mkdtemp()) / "selection.json"
-    path.write_text(json.dumps(selection))
-    settings = planner.HybridSettings.from_selection(path, near_t, ball)
-    assert settings.geometric == geo and settings.far_threshold == far_t
+    settings = planner.HybridSettings(geo, far_t, near_t, ball)
     checker = planner.hybrid_checker(cfg, params, obj, patch, normals, settings, goal, weight)
     grid = collision.support_grid(patch, normals, geo.voxel, geo.max_voxels, geo.margin)
     test = np.asarray(jax.jit(collision.geometric_collides(geo))(
         grid, collision.subsample_cloud(obj, geo.object_points, 0), grid.points, poses))  # fmt: skip
     assert test[:4].all() and not test.all()
     np.testing.assert_array_equal(checker(poses), test | got)
-    path.write_text(json.dumps(dict(chosen=None)))
-    with pytest.raises(ValueError, match="no setting"):
-        planner.HybridSettings.from_selection(path, near_t, ball)
-
-
-@pytest.mark.parametrize(
-    "flags, message",
-    [
-        (["--planner-seed", "0"], "planner-seed"),
-        (["--resolution", "0"], "resolution"),
-        (["--far-clearance", "-0.001"], "far-clearance"),
-        (["--clear-path", "-0.01"], "clear-path"),
-        (["--shard", "2/2"], "shard"),
-        (["--routes", "weights/approach_routes_s40"], "--routes needs --approach"),
-        (["--routes-check", "checker"], "--routes-check needs --routes"),
-        (["--routes-tries", "0"], "--routes-tries"),
-        (
-            [
-                "--retreat",
-                "0.045",
-                "--approach",
-                "weights/approach_s37_8k",
-                "--routes",
-                "weights/approach_routes_s40",
-                "--oracle-two-moves",
-            ],
-            "one of them",
-        ),  # fmt: skip
-    ],
-)
-def test_eval_paths_refuses_bad_planner_settings(flags, message, capsys):
-    """eval_paths says what is wrong with a setting before it derives or plans anything."""
-    from experiments.eval_paths import main
-
-    with pytest.raises(SystemExit):
-        main(["--weights", "weights/collision_s18_contact", "--pairs", "1", *flags])
-    assert message in capsys.readouterr().err
 
 
 def _box_surface(lo, hi, n=30):
@@ -611,33 +386,8 @@ def test_clear_path_never_pushes_into_what_the_checker_blocks():
     assert out.moves > 0 and 0.012 < out.gap_after < 0.025
 
 
-def test_eval_paths_summary_pairs_cleared_paths_with_the_plans_as_returned():
-    """--clear-path rows carry the plan as returned (raw_*): the summary gives both figures
-    and how many outcomes clearing changed each way."""
-    from experiments.eval_paths import summarise
-
-    def row(i, returned, raw_free=None, free=False):
-        r = dict(pair=f"p{i}", method="nce_geometric", object_category="mug", returned=returned,
-                 collision_free=free, planning_s=1.0, status="Exact solution" if returned else
-                 "Approximate solution", start_called_colliding=False, goal_called_colliding=False,
-                 states_checked=10)  # fmt: skip
-        if returned:
-            r |= dict(deepest_m=0.0 if free else 0.003, raw_collision_free=raw_free,
-                      raw_deepest_m=0.0, clear_gap_before_m=0.005, clear_gap_after_m=0.02,
-                      clear_s=1.0)  # fmt: skip
-        return r
-
-    rows = [row(0, True, False, True), row(1, True, True, True), row(2, True, True, False),
-            row(3, True, False, True), row(4, False)]  # fmt: skip
-    s = summarise(rows, methods=("nce_geometric",))["nce_geometric"]
-    assert (s["returned"], s["collision_free"]) == (4, 3)
-    assert (s["as_planned"]["returned"], s["as_planned"]["collision_free"]) == (4, 2)
-    assert s["clearing"]["became_free"] == 2 and s["clearing"]["became_colliding"] == 1
-    assert s["clearing"]["median_gap_after_m"] == 0.02
-
-
 def test_the_retreat_can_be_chosen_by_another_checker():
-    """``plan_with_retreat(retreat_checker=...)`` (eval_paths --oracle-retreat): the retreat's
+    """``plan_with_retreat(retreat_checker=...)``: the retreat's
     direction comes from the second checker, the search still from the first. A checker that
     wrongly calls the shaft's walls free would leave sideways (its first direction in order
     after straight up is blocked by nothing it knows); the exact checker sends it up."""
@@ -646,140 +396,37 @@ def test_the_retreat_can_be_chosen_by_another_checker():
     lid = planner.AnalyticChecker([([-0.2, -0.2, 0.02], [0.2, 0.2, 0.2])], radius=0.01)
     # the blind checker with a lid over the goal: up is blocked for it, sideways is not
     blind_lid = planner.AnalyticChecker([*blind.boxes, *lid.boxes], radius=0.01)
-    assert planner.find_retreat(blind_lid, goal, (0.03,), 0.005).direction[2] <= 0
+    assert retreats.find_retreat(blind_lid, goal, (0.03,), 0.005).direction[2] <= 0
     start = np.array([0.3, 0.0, 0.3, 1, 0, 0, 0])
     bounds = (np.array([-0.4, -0.4, -0.1]), np.array([0.4, 0.4, 0.5]))
     cfg = planner.PlannerConfig(time_limit=5.0, retreat_lengths=(0.1,))
-    _, found = planner.plan_with_retreat(
+    _, found = retreats.plan_with_retreat(
         exact, start, goal, bounds, 0.05, cfg, retreat_checker=exact
     )
     np.testing.assert_allclose(found.direction, [0, 0, 1])
-    _, chosen = planner.plan_with_retreat(
+    _, chosen = retreats.plan_with_retreat(
         blind_lid, start, goal, bounds, 0.05, dataclasses.replace(cfg, time_limit=0.2),
         retreat_checker=exact,
     )  # fmt: skip
     np.testing.assert_allclose(chosen.direction, [0, 0, 1])  # the exact checker's choice
 
 
-def test_two_move_retreat_leaves_an_l_shaped_tunnel_and_the_path_turns_its_corner():
-    """``planner.find_two_move_retreat`` (thirty-ninth session, ``eval_paths
-    --oracle-two-moves``): the goal sits under a ceiling in a corridor that opens 3 cm to +x into
-    a shaft going up. No straight move reaches the shaft's top; +x 3 cm then up does, and
-    ``plan_with_retreat`` ends its path through that corner."""
-    exact = planner.AnalyticChecker(L_TUNNEL, radius=0.01)
-    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
-    assert not exact(goal[None])[0]
-    off = lambda pose: pose[2] > 0.04  # noqa: E731  (out of the shaft's bottom)
-    bounds = (np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3]))
-    # one move: nothing; two: +x 3 cm, then straight up
-    one = planner.find_two_move_retreat(exact, goal, (), 0.045, 0.002, bounds, off)
-    assert one is None
-    found = planner.find_two_move_retreat(exact, goal, (0.015, 0.03, 0.045), 0.045, 0.002,
-                                          bounds, off)  # fmt: skip
-    assert found is not None and found.via.shape == (1, 7)
-    np.testing.assert_allclose(found.via[0, :3], [0.03, 0, 0], atol=1e-9)
-    np.testing.assert_allclose(found.direction, [0, 0, 1])
-    np.testing.assert_allclose(found.pregoal[:3], [0.03, 0, 0.045], atol=1e-9)
-    # planned to from above the shaft: the path ends pre-goal -> corner -> goal
-    start = np.array([0.03, 0.0, 0.15, 1, 0, 0, 0])
-    cfg = planner.PlannerConfig(time_limit=5.0, retreat_lengths=(0.045,))
-    res, used = planner.plan_with_retreat(exact, start, goal, bounds, 0.05, cfg, retreat=found)
-    assert used is found and res.path is not None
-    np.testing.assert_allclose(res.path[-2], found.via[0])
-    np.testing.assert_allclose(res.path[-1], goal)
-    assert not planner.any_colliding(exact, planner.interpolate_path(res.path, 0.002, 0.05))
-
-
-def test_route_table_agrees_with_the_two_move_search_in_the_l_shaped_tunnel():
-    """``planner.route_table`` (fortieth session, a route network's labels): in the L-shaped
-    tunnel of the test above no one-move route ends off; +x 1.5 cm stays under the ceiling, so
-    the positive routes are +x 3 cm then an upward move, the first of them in order is the
-    one ``find_two_move_retreat`` returns, and ``route_retreat`` rebuilds it."""
-    exact = planner.AnalyticChecker(L_TUNNEL, radius=0.01)
-    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
-    off = lambda pose: pose[2] > 0.04  # noqa: E731
-    bounds = (np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3]))
-    routes = planner.move_routes((0.015, 0.03))
-    assert len(routes) == 26 + 2 * 506
-    table = planner.route_table(exact, goal, routes, 0.045, 0.002, bounds, off)
-    assert not table[:26].any() and table.any()
-    firsts = routes[table]
-    assert set(firsts[:, 1]) == {0.03}  # 1.5 cm is still under the ceiling
-    np.testing.assert_allclose(
-        planner.RETREAT_DIRECTIONS[firsts[:, 0].astype(int)], [[1, 0, 0]] * len(firsts)
-    )
-    assert (planner.RETREAT_DIRECTIONS[firsts[:, 2].astype(int), 2] > 0).all()
-    found = planner.find_two_move_retreat(exact, goal, (0.015, 0.03), 0.045, 0.002, bounds, off)
-    rebuilt = planner.route_retreat(goal, firsts[0], 0.045)
-    np.testing.assert_allclose(rebuilt.via, found.via, atol=1e-9)
-    np.testing.assert_allclose(rebuilt.pregoal, found.pregoal, atol=1e-9)
-    # a one-move route: no corner
-    straight = planner.route_retreat(goal, routes[0], 0.045)
-    assert straight.via.shape == (0, 7)
-    np.testing.assert_allclose(straight.pregoal[:3], 0.045 * planner.RETREAT_DIRECTIONS[0])
-
-
 def test_route_states_are_free_exactly_for_the_free_routes_of_the_table():
-    """``planner.route_states`` (forty-first session: what a planner's checker is asked before
+    """``retreats.route_states`` (what a planner's checker is asked before
     it takes a route network's choice) walks the route ``route_table`` checks: in the L-shaped
     tunnel the exact checker calls every state free for the table's routes, and some state
     colliding for every route it rejects; a two-move route's states pass its corner and end
     at its pre-goal."""
     exact = planner.AnalyticChecker(L_TUNNEL, radius=0.01)
     goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
-    routes = planner.move_routes((0.015, 0.03))
-    table = planner.route_table(exact, goal, routes, 0.045, 0.002, None, lambda pose: True)
+    routes = retreats.move_routes((0.015, 0.03))
+    table = retreats.route_table(exact, goal, routes, 0.045, 0.002, None, lambda pose: True)
     for r in range(0, len(routes), 7):
-        states = planner.route_states(goal, routes[r], 0.045, 0.002)
+        states = retreats.route_states(goal, routes[r], 0.045, 0.002)
         assert (not exact(states).any()) == table[r], routes[r]
     two = routes[table & (routes[:, 0] >= 0)][0]
-    states = planner.route_states(goal, two, 0.045, 0.005)
-    retreat = planner.route_retreat(goal, two, 0.045)
+    states = retreats.route_states(goal, two, 0.045, 0.005)
+    retreat = retreats.route_retreat(goal, two, 0.045)
     np.testing.assert_allclose(states[-1], retreat.pregoal, atol=1e-9)
     assert np.isclose(np.linalg.norm(states - retreat.via[0], axis=1), 0, atol=1e-9).any()
     assert not np.isclose(np.linalg.norm(states - goal, axis=1), 0).any()  # the goal excluded
-
-
-def test_lattice_retreat_finds_the_tunnels_way_out_with_one_call_per_node():
-    """``planner.lattice_retreat`` (thirty-ninth session; forty-third: a node's new edges in one
-    checker call): in the L-shaped tunnel the breadth-first route on a 7.5-mm lattice goes +x to
-    the shaft and up, every state of it free, and the checker is called at most once a node."""
-    exact = planner.AnalyticChecker(L_TUNNEL, radius=0.01)
-    calls = []
-
-    def counting(poses):
-        calls.append(len(poses))
-        return exact(poses)
-
-    goal = np.array([0.0, 0.0, 0.0, 1, 0, 0, 0])
-    off = lambda pose: pose[2] > 0.04  # noqa: E731
-    bounds = (np.array([-0.3, -0.3, -0.3]), np.array([0.3, 0.3, 0.3]))
-    found, expanded = planner.lattice_retreat(counting, goal, 0.0075, off, 5000, bounds)
-    assert found is not None and 0 < len(calls) <= expanded
-    assert sum(calls) == found.states_checked
-    assert off(found.pregoal) and found.pregoal[0] > 0.02  # out through the shaft, not the ceiling
-    route = np.concatenate([goal[None], found.via[::-1], found.pregoal[None]])
-    assert not planner.any_colliding(exact, planner.interpolate_path(route, 0.002, 0.05))
-    # nothing within reach: None, after expanding at most the cap
-    none, n = planner.lattice_retreat(exact, goal, 0.0075, lambda pose: False, 50, bounds)
-    assert none is None and n == 50
-
-
-def test_routes_mode_only_drops_the_straight_approach_and_the_decision_reads_plain():
-    """``eval_paths --routes-mode only`` (forty-third session): where no checked route is found
-    the straight rule's direction is dropped (kept as ``straight_dropped``), so the plan is plain
-    and ``approach_decisions.decision`` reads the row as planned without an approach."""
-    import sys
-
-    from experiments import eval_paths
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    import approach_decisions
-
-    record = dict(best=[0.0, 0.0, 1.0], best_p=0.93, tried=1, first_tried=[0.0, 0.0, 1.0])
-    assert approach_decisions.decision(record) == (0.0, 0.0, 1.0)
-    directions = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
-    kept = eval_paths.drop_straight(record, directions)
-    assert kept.shape == (0, 3) and record["straight_dropped"] == [0.0, 0.0, 1.0]
-    assert approach_decisions.decision(record) is None
-    assert eval_paths.drop_straight({}, directions).shape == (0, 3)  # nothing to drop

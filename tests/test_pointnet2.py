@@ -79,7 +79,7 @@ def test_fps_matches_numpy(clouds, num_samples):
 
 @pytest.mark.parametrize("unroll", [3, 8, 64])
 def test_fps_unrolled_gives_the_same_indices(clouds, unroll):
-    # FPS_UNROLL (thirty-second session): steps per loop iteration change the loop, not the
+    # FPS_UNROLL: steps per loop iteration change the loop, not the
     # indices, also when the step count is no multiple of it
     want = [fps_numpy(clouds[b], 17) for b in range(3)]
     fps = jax.jit(farthest_point_sample, static_argnums=(1, 2))

@@ -205,32 +205,47 @@ def test_erode_hull_keeps_sharp_tips():
         assert (gap <= depth + 0.001 + 1e-9).all()
 
 
-PAPER_PAIRS = "results/hanging_success_stage3.pairs.jsonl.gz"
+# Pair 4846 of the paper dataset's held-out split (clothes_hanger_0005 on mug_tree_0010): the
+# answers of Stage 1, Stage 1+2, Stage 1+3 and all stages of a held-out evaluation.
+PAIR_4846_POSES = [
+    [0.010519614443182945, -0.007246396038681269, 0.03812822327017784,
+     0.9076762795448303, 0.008303013630211353, -0.13426917791366577, 0.3975256681442261],
+    [0.01873163878917694, -0.0032222222071141005, 0.03739733248949051,
+     0.9076762795448303, 0.008303013630211353, -0.13426917791366577, 0.3975256681442261],
+    [-0.022411059588193893, 0.001722145825624466, 0.051291219890117645,
+     0.7530350685119629, -0.12466730922460556, -0.022271446883678436, -0.6456781029701233],
+    [-0.03358829393982887, 0.01557794027030468, 0.03941619396209717,
+     0.7130275368690491, -0.12208858877420425, -0.05679059773683548, -0.6880850791931152],
+]  # fmt: skip
+
+
+def _library_asset(config, kind: str, name: str):
+    """The dataset library's asset ``name`` ("<category>_<index>"), built alone the way
+    ``sim.library.build_library`` builds it."""
+    from sim.library import asset_seed
+
+    category, index = name.rsplit("_", 1)
+    build = build_object if kind == "object" else build_support
+    return build(category, asset_seed(config.seed, kind, category, int(index)), int(index))
 
 
 @pytest.mark.skipif(
-    not os.path.exists(PAPER_PAIRS) or not os.path.exists("datasets/paper/recipe.json"),
-    reason="paper dataset / held-out run not present",
+    not os.path.exists("datasets/paper/recipe.json"), reason="paper dataset not present"
 )
 def test_poses_judged_in_one_world_do_not_see_the_previous_poses_contacts():
     """Bullet keeps contact manifolds across ``set_pose``: a clothes hanger's hanging pose
     judged after three penetrating poses of the same pair read 28 mm deep in one shared
     world (0 mm alone). ``stability`` must give each pose the verdict it gets alone."""
-    import gzip
-    import json
-
-    from experiments import judge_stage3
+    from omnihang_jax import dataset_bridge
     from omnihang_jax.evaluate import protocol_stability
 
-    with gzip.open(PAPER_PAIRS, "rt") as f:
-        row = next(json.loads(x) for x in f if json.loads(x)["pair_index"] == 4846)
-    judge_stage3._init("datasets/paper")
+    recipe = dataset_bridge.read_recipe("datasets/paper")
+    library = dataset_bridge.dataset_config_from_recipe(recipe).library
     scene = build_scene(
-        judge_stage3._asset("object", row["object"]),
-        judge_stage3._asset("support", row["support"]),
+        _library_asset(library, "object", "clothes_hanger_0005"),
+        _library_asset(library, "support", "mug_tree_0010"),
     )
-    stages = ("stage1", "stage1_2", "stage1_3", "all_stages")
-    poses = np.array([row[s]["pose"] for s in stages], np.float64)
+    poses = np.array(PAIR_4846_POSES, np.float64)
     config = protocol_stability()
     shared = pybullet_ref.stability(scene, poses, config)
     alone = [pybullet_ref.stability(scene, poses[i : i + 1], config) for i in range(4)]

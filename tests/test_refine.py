@@ -41,10 +41,10 @@ def test_simulated_rewards_known_hang_stays_shifted_pose_falls():
     sideways (nothing to hang on) earns 0."""
     import glob
 
-    from sim import dataset
+    from sim import dataset_io
 
     with np.load(sorted(glob.glob(f"{DATA}/shards/shard_*.npz"))[0]) as z:
-        records = dataset.unpack({k: z[k] for k in z.files})
+        records = dataset_io.unpack({k: z[k] for k in z.files})
     from omnihang_jax import dataset_bridge
 
     recipe = dataset_bridge.read_recipe(DATA)
@@ -138,13 +138,13 @@ def test_train_stage3_tiny_runs_and_resumes(tmp_path):
     dataset_bridge.derive_dataset(DATA, splits=("train",), limit=12, progress=False)
     cfg = dataclasses.replace(PRESETS["tiny"], rounds=1, round_start="alternate")
     out = tmp_path / "job"
-    first = rl.train_stage3(cfg, out, DATA, "weights/where_small_paper", progress=False)
+    first = rl.train_stage3(cfg, out, DATA, "weights/stage12", progress=False)
     n1 = first["buffer"]["transitions"]
     assert first["state"]["round"] == 1 and first["state"]["seeded"]
     assert (out / "value" / "params.msgpack").exists() and (out / "curves.png").exists()
     seed_s = json.loads((out / "state.json").read_text())["seed_s"]
     second = rl.train_stage3(dataclasses.replace(cfg, rounds=2), out, DATA,
-                             "weights/where_small_paper", progress=False)  # fmt: skip
+                             "weights/stage12", progress=False)  # fmt: skip
     assert second["state"]["round"] == 2
     assert second["state"]["seed_s"] == seed_s  # seeding not redone
     assert second["buffer"]["transitions"] > n1
@@ -298,14 +298,14 @@ def test_hardneg_job_labels_the_top_members_and_takes_arriving_pairs(tmp_path):
     arrive(files[:8])
     cfg = dataclasses.replace(PRESETS["hardneg_tiny"], rounds=1, val_every=0, round_pairs=3)
     out = tmp_path / "job"
-    first = rl.train_stage3(cfg, out, ds, "weights/where_small_paper", progress=False)
+    first = rl.train_stage3(cfg, out, ds, "weights/stage12", progress=False)
     split1 = json.loads((out / "split.json").read_text())["files"]
     assert first["pairs"] == 8 and first["state"]["seeded_pairs"] == 8
     assert first["state"]["round"] == 1
     n_stable = first["buffer"]["stable"]["n"]
     arrive(files[8:])
     second = rl.train_stage3(dataclasses.replace(cfg, rounds=2), out, ds,
-                             "weights/where_small_paper", progress=False)  # fmt: skip
+                             "weights/stage12", progress=False)  # fmt: skip
     split2 = json.loads((out / "split.json").read_text())["files"]
     assert second["pairs"] == 12 and split2[:8] == split1  # slots never move
     assert second["state"]["seeded_pairs"] == 12 and second["state"]["round"] == 2
@@ -328,8 +328,8 @@ def test_hardneg_job_labels_the_top_members_and_takes_arriving_pairs(tmp_path):
 
 
 def test_train_stage3_cli_applies_every_flag(monkeypatch):
-    """Each train_stage3 flag reaches the job's RLConfig (--seed-share was once parsed and
-    dropped: the thirteenth session's device call seeded 211 s of a 464-s budget at 0.3)."""
+    """Each train_stage3 flag reaches the job's RLConfig (a flag parsed and then dropped once
+    cost a device call 211 s of seeding in a 464-s budget)."""
     from experiments import train_stage3 as T
 
     seen = {}

@@ -1,6 +1,8 @@
-"""The answer rule (omnihang_jax.selection) inside the Stages 1-3 pipeline and the evaluation:
-the paper's rule is unchanged, "value_clear" picks by V and the observed-cloud inside counts,
-and every evaluation record carries what experiments.rerank_stage3 needs."""
+"""The answer rule (omnihang_jax.selection) and the views inside the Stages 1-3 pipeline
+(``stage3.make_hang_pipeline``): "value_clear" picks by the score and the observed-cloud inside
+counts, per start and pooled; each view's candidates are a one-view pipeline's on that subsample
+of the clouds; the fused pipeline gives the sequential one's candidates. The tiny networks and
+clouds here are shared by tests.test_rank_values and tests.test_train_ranker."""
 
 from __future__ import annotations
 
@@ -10,20 +12,37 @@ import jax
 import numpy as np
 import pytest
 
-from omnihang_jax import dataset_bridge, eval_pipeline, predict, refine, selection, stage3
-from omnihang_jax.stage1 import STAGE1_TINY
-from omnihang_jax.stage2 import STAGE2_TINY
-from tests.test_stage2_clearance_pipeline import (
-    PIPE,
-    _fake_load_predictor,
-    _fake_load_value,
-    _fake_pair,
-    _FakeLabeller,
-    _plane_pairs,
-    params,  # noqa: F401  (module fixture)
-)
+from omnihang_jax import selection, stage3
+from omnihang_jax.stage1 import STAGE1_TINY, make_stage1
+from omnihang_jax.stage2 import STAGE2_TINY, make_stage2
+from omnihang_jax.stage3 import CEMConfig, PairClouds
 
+CFG = stage3.VALUE_TINY  # 64 + 64 state points
+PIPE = stage3.PipelineConfig(
+    num_proposals=2, cem=CEMConfig(population=8, iterations=2, elites=3),
+    starts=("stage2", "stage1"),
+)  # fmt: skip
 CLEAR = selection.SelectConfig("value_clear", depth=0.001, radius=0.003, max_points=0)
+
+
+@pytest.fixture(scope="module")
+def params():
+    return {
+        "stage1": make_stage1(STAGE1_TINY).init(jax.random.key(0)),
+        "stage2": make_stage2(STAGE2_TINY).init(jax.random.key(1)),
+        "value": stage3.make_value(CFG).init(jax.random.key(2)),
+    }
+
+
+def plane_pairs(batch=2, n=128, m=128):
+    """A 2-cm sphere over a flat support patch z = 0 (outward normals +z), per pair."""
+    rng = np.random.default_rng(0)
+    obj = rng.normal(size=(batch, n, 3)).astype(np.float32)
+    obj /= np.linalg.norm(obj, axis=-1, keepdims=True)
+    sup = np.zeros((batch, m, 3), np.float32)
+    sup[..., :2] = rng.uniform(-0.05, 0.05, (batch, m, 2))
+    sup_n = np.broadcast_to(np.float32([0, 0, 1]), (batch, m, 3)).copy()
+    return PairClouds(0.02 * obj, obj, sup, sup_n)
 
 
 def _counts(clouds, poses, config):
@@ -35,12 +54,14 @@ def _counts(clouds, poses, config):
     ])  # fmt: skip
 
 
-def test_pipeline_value_clear_per_start_and_pooled(params):  # noqa: F811
+@pytest.mark.slow  # ~55 s on 2 cores (compiles the tiny Stages 1-3)
+def test_pipeline_value_clear_per_start_and_pooled(params):
     """One compiled pipeline (CLEAR, pooled starts; the paper's rule is test_stage3's): each
-    start's pick is the rule over its own refined candidates, the answer the rule over all."""
-    clouds = _plane_pairs()
+    start's pick is the rule over its own refined candidates, the answer the rule over all, and
+    the ranked pool is every candidate in the order of the rule's key."""
+    clouds = plane_pairs()
     cfg = dataclasses.replace(PIPE, select=CLEAR, pool_starts=True)
-    out = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg))(
+    out = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))(
         params, jax.random.key(8), clouds
     )
     for name in cfg.starts:
@@ -49,77 +70,113 @@ def test_pipeline_value_clear_per_start_and_pooled(params):  # noqa: F811
         np.testing.assert_array_equal(np.asarray(out.best[name]), want)
     cands = np.concatenate([np.asarray(out.refined[n]) for n in cfg.starts], axis=1)
     scores = np.concatenate([np.asarray(out.scores[n]) for n in cfg.starts], axis=1)
-    pick = np.asarray(selection.select(scores, _counts(clouds, cands, CLEAR), CLEAR))
+    keys = np.asarray(selection.select_key(scores, _counts(clouds, cands, CLEAR), CLEAR))
+    pick = keys.argmax(1)
     np.testing.assert_array_equal(np.asarray(out.pose), cands[np.arange(len(cands)), pick])
+    np.testing.assert_allclose(np.asarray(out.ranked_keys), -np.sort(-keys, axis=1), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(out.ranked[:, 0]), np.asarray(out.pose))
 
 
-def _evaluate(monkeypatch, select, pool_starts=False):
-    monkeypatch.setattr(predict, "load_predictor", _fake_load_predictor([]))
-    monkeypatch.setattr(refine, "load_value", _fake_load_value)
-    monkeypatch.setattr(refine, "Labeller", _FakeLabeller)
-    monkeypatch.setattr(dataset_bridge, "load_pair_file", _fake_pair)
-    files = ["00003_x.npz", "00004_x.npz"]
-    return eval_pipeline.evaluate_pipeline(
-        files, "W", "V", "D", num_proposals=2, batch=2, progress=False, select=select,
-        cem=stage3.CEMConfig(population=8, iterations=2, elites=3), pool_starts=pool_starts,
-    )[0]  # fmt: skip
+def test_subset_zero_is_the_subsample_and_the_others_are_other_points():
+    rng = np.random.default_rng(0)
+    obj = rng.normal(scale=0.01, size=(2, 256, 3)).astype(np.float32)
+    sup = rng.normal(scale=0.03, size=(2, 256, 3)).astype(np.float32)
+    clouds = PairClouds(obj, obj / np.linalg.norm(obj, axis=-1, keepdims=True), sup, sup)
+    base = stage3.subsample_clouds(clouds, CFG)
+    for a, b in zip(base, stage3.subset_clouds(clouds, CFG, 0, 4), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    seen = []
+    for j in range(4):
+        sub = stage3.subset_clouds(clouds, CFG, j, 4)
+        assert sub.object_points.shape == base.object_points.shape
+        rows = {tuple(p) for p in np.asarray(sub.object_points[0])}
+        assert rows <= {tuple(p) for p in clouds.object_points[0]}  # points of the cloud
+        # each point keeps its own normal through the roll
+        idx = [int(np.flatnonzero((clouds.object_points[0] == p).all(1))[0])
+               for p in np.asarray(sub.object_points[0])]  # fmt: skip
+        np.testing.assert_array_equal(
+            np.asarray(sub.object_normals[0]), clouds.object_normals[0][idx]
+        )
+        seen.append(rows)
+    assert all(not (seen[i] & seen[j]) for i in range(4) for j in range(i))  # disjoint subsets
+    with pytest.raises(ValueError, match="subset 4 of 4"):
+        stage3.subset_clouds(clouds, CFG, 4, 4)
 
 
-def test_evaluation_records_counts_and_applies_the_rule(monkeypatch):
-    """One evaluation with the chosen kind of answer (CLEAR over the pooled starts): the
-    records hold every candidate's V and counts, the rule per start, the pooled answer and
-    the paper's answer (highest V) beside it."""
-    k = 2
-    records = _evaluate(monkeypatch, CLEAR, pool_starts=True)
-    for rc in records:
-        assert len(rc["poses_all"]) == 4 * k + 1 and len(rc["v"]) == 4 * k + 1
-        assert set(rc["inside_counts"]) == {
-            selection.grid_key(d, r) for d, r in selection.INSIDE_GRID
-        }
-        assert all(len(c) == 4 * k for c in rc["inside_counts"].values())
-        counts = np.asarray(rc["inside_counts"][selection.grid_key(CLEAR.depth, CLEAR.radius)])
-        v = np.asarray(rc["v"], np.float32)  # V on the final poses = CEM's final score
-
-        def rule(lo, hi, v=v, counts=counts):
-            return int(np.argmax(np.asarray(selection.select_key(v[lo:hi], counts[lo:hi], CLEAR))))
-
-        assert rc["best_all_stages"] == rule(3 * k, 4 * k)  # the rule over Stage 2's starts
-        assert rc["best_stage1_3"] == rule(2 * k, 3 * k)
-        assert rc["best_all_stages_value"] == int(np.argmax(v[3 * k : 4 * k]))  # the paper's
-        assert rc["answer_index"] == 2 * k + rule(2 * k, 4 * k)  # pooled over both starts
-        a = rc["answer_index"]
-        np.testing.assert_allclose(rc["all_stages"]["pose"], rc["poses_all"][a], atol=1e-6)
-        assert rc["all_stages"]["success"] == rc["stable_all"][a]
-        assert len(rc["all_stages"]["statuses"]) == 2 * k
-        paper = rc["all_stages_paper"]
-        want = rc["poses_all"][3 * k + rc["best_all_stages_value"]]
-        np.testing.assert_allclose(paper["pose"], want, atol=1e-6)
-        assert len(paper["statuses"]) == k
+def test_views_and_rank_subsets_do_not_combine_silently():
+    cfg = dataclasses.replace(PIPE, rank_values=1, rank_subsets=2, views=((0, 1), (1, 2)))
+    with pytest.raises(ValueError, match="not both"):
+        stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg)
+    with pytest.raises(ValueError, match="views"):
+        stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG,
+                                  dataclasses.replace(PIPE, views=((2, 2),)))  # fmt: skip
 
 
-@pytest.mark.slow  # ~40 s on 2 cores, a variant never adopted (forty-first session: the
-# default suite took 20.7 min on the VM)
-def test_smooth_stage3_rescored_records(monkeypatch, tmp_path):
-    """experiments.smooth_stage3 on an evaluation's records: V recomputed from the pair files
-    matches the recorded V of the pooled candidates, and at zero width the smoothed score
-    picks what the recorded V picks."""
-    import json
+@pytest.mark.slow  # 25-45 s on 2 cores
+def test_two_view_pipeline_picks_among_both_views_candidates(params):
+    """PipelineConfig.views = ((0, 1), (1, 2)): CEM and the ranking run on each subsample with
+    the same keys; each view's candidates equal a one-view pipeline's on that subsample, and the
+    answer is the best of all of them by the rule's key."""
+    clouds = plane_pairs(n=256, m=256)
+    v2 = stage3.make_value(CFG).init(jax.random.key(7))
+    base = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=1,
+                               rank_with_value=False, fuse=False)  # fmt: skip
+    prm = {**params, "rank_values": [v2]}
+    key = jax.random.key(3)
+    outs = {}
+    for views in (((0, 1),), ((1, 2),), ((0, 1), (1, 2))):
+        cfg = dataclasses.replace(base, views=views)
+        outs[views] = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))(
+            prm, key, clouds
+        )
+    one, other, both = outs[((0, 1),)], outs[((1, 2),)], outs[((0, 1), (1, 2))]
+    k = base.num_proposals
+    for name in base.starts:
+        np.testing.assert_allclose(
+            np.asarray(both.refined[name][:, :k]), np.asarray(one.refined[name]), atol=1e-6
+        )
+        np.testing.assert_allclose(
+            np.asarray(both.refined[name][:, k:]), np.asarray(other.refined[name]), atol=1e-6
+        )
+        np.testing.assert_allclose(
+            np.asarray(both.scores[name][:, k:]), np.asarray(other.scores[name]), atol=1e-5
+        )
+    assert not np.allclose(np.asarray(one.scores["stage2"]), np.asarray(other.scores["stage2"]))
+    full = jax.tree.map(np.asarray, clouds)
+    cands = np.concatenate([np.asarray(both.refined[n]) for n in base.starts], axis=1)
+    scores = np.concatenate([np.asarray(both.scores[n]) for n in base.starts], axis=1)
+    pick = np.asarray(selection.select(scores, _counts(full, cands, selection.CHOSEN),
+                                       selection.CHOSEN))  # fmt: skip
+    np.testing.assert_allclose(np.asarray(both.pose), cands[np.arange(len(cands)), pick], atol=1e-6)
 
-    from experiments import smooth_stage3
 
-    records = _evaluate(monkeypatch, selection.CHOSEN, pool_starts=True)
-    runs = tmp_path / "run.pairs.jsonl"
-    runs.write_text("".join(json.dumps(r, default=float) + "\n" for r in records))
-    folder = tmp_path / "derived" / "test"
-    folder.mkdir(parents=True)
-    for r in records:
-        (folder / r["file"]).write_bytes(b"")  # _fake_pair reads the name only
-    out = smooth_stage3.main([
-        "--select-on", str(runs), "--select-split", "test", "--data", str(tmp_path),
-        "--proposals", "2", "--samples", "2", "--widths", "0:0,0.002:0.05", "--batch", "2",
-        "--value", "V", "--out", str(tmp_path / "smooth.json"), "--no-progress",
-    ])  # fmt: skip
-    assert out["v_check_select_on"]["max_abs_diff"] < 1e-4
-    rows = {(r["score"], r.get("sigma_translation_m")): r for r in out["table"]}
-    assert rows[("mean V", 0.0)]["mean"] == rows[("recorded V", None)]["mean"]
-    assert len(out["table"]) == 1 + 2 * 2 and (tmp_path / "smooth.json").exists()
+@pytest.mark.slow  # 75-90 s on 2 cores
+def test_fused_pipeline_gives_the_sequential_pipelines_candidates(params):
+    """PipelineConfig.fuse: one CEM over every view and start and one ranking pass (two rankers,
+    one with near points) give the candidates, scores and answer of one CEM per view and start
+    (two views, two starts: the stacking on both axes)."""
+    views = ((0, 1), (1, 2))
+    clouds = plane_pairs(n=256, m=256)
+    near = dataclasses.replace(CFG, support_near=16, object_near=16)
+    rankers = [stage3.make_value(CFG).init(jax.random.key(7)),
+               stage3.make_value(near).init(jax.random.key(8))]  # fmt: skip
+    base = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=2,
+                               rank_with_value=False, views=views)  # fmt: skip
+    prm = {**params, "rank_values": rankers}
+    key = jax.random.key(5)
+    outs = {
+        fuse: jax.jit(stage3.make_hang_pipeline(
+            STAGE1_TINY, STAGE2_TINY, CFG, dataclasses.replace(base, fuse=fuse), [CFG, near]
+        ))(prm, key, clouds)
+        for fuse in (False, True)
+    }  # fmt: skip
+    seq, fused = outs[False], outs[True]
+    for name in base.starts:
+        assert fused.refined[name].shape == (2, len(views) * base.num_proposals, 7)
+        np.testing.assert_allclose(np.asarray(fused.refined[name]),
+                                   np.asarray(seq.refined[name]), atol=1e-5)  # fmt: skip
+        np.testing.assert_allclose(np.asarray(fused.scores[name]),
+                                   np.asarray(seq.scores[name]), atol=1e-4)  # fmt: skip
+        np.testing.assert_allclose(np.asarray(fused.initial_scores[name]),
+                                   np.asarray(seq.initial_scores[name]), atol=1e-4)  # fmt: skip
+    np.testing.assert_allclose(np.asarray(fused.pose), np.asarray(seq.pose), atol=1e-5)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from omnihang_jax import data, losses, poses, train
+from omnihang_jax import data, losses, poses, train, train_losses
 from omnihang_jax.stage1 import STAGE1_ORIGINAL, STAGE1_TINY, make_stage1
 
 
@@ -119,7 +119,7 @@ def test_stage1_overfits_synthetic_pairs():
         train.WHERE_TINY, train=dataclasses.replace(train.WHERE_TINY.train, lr_stage1=1e-3)
     )
     batch = data.synthetic_batch(jax.random.key(0), 4, 128)
-    loss_fn = jax.jit(train.make_loss_fn("1", config))
+    loss_fn = jax.jit(train_losses.make_loss_fn("1", config))
     state = jax.jit(train.make_init_state("1", config))(jax.random.key(1))
     step = jax.jit(train.make_train_step("1", config))
 
@@ -178,7 +178,7 @@ def test_matrix_distance_and_mean_set_loss_against_numpy():
     "changes",
     [
         {"rotation": "6d"},
-        # the mean set loss was not kept (tenth session): slow, so the default suite stays short
+        # the mean set loss is an option off by default: slow, so the default suite stays short
         pytest.param({"set_loss_mean": True}, marks=pytest.mark.slow),
     ],
 )
@@ -192,7 +192,7 @@ def test_stage1_variants_learn_and_propose_pose6(changes):
         train=dataclasses.replace(train.WHERE_TINY.train, lr_stage1=1e-3),
     )
     batch = data.synthetic_batch(jax.random.key(0), 4, 128)
-    loss_fn = jax.jit(train.make_loss_fn("1", config))
+    loss_fn = jax.jit(train_losses.make_loss_fn("1", config))
     state = jax.jit(train.make_init_state("1", config))(jax.random.key(1))
     step = jax.jit(train.make_train_step("1", config))
     key = jax.random.key(7)

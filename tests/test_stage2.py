@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from omnihang_jax import data, losses, poses, train
+from omnihang_jax import data, losses, poses, train, train_losses
 from omnihang_jax.stage2 import (
     STAGE2_ORIGINAL,
     STAGE2_TINY,
@@ -186,7 +186,7 @@ def _memorise_config():
 
 def _fit(stage, config, steps):
     batch = data.synthetic_batch(jax.random.key(0), 4, 128, max_poses=1)
-    loss_fn = jax.jit(train.make_loss_fn(stage, config))
+    loss_fn = jax.jit(train_losses.make_loss_fn(stage, config))
     state = jax.jit(train.make_init_state(stage, config))(jax.random.key(1))
     step = jax.jit(train.make_train_step(stage, config))
     before = {k: float(v) for k, v in loss_fn(state.params, batch, jax.random.key(7))[1].items()}
@@ -271,8 +271,7 @@ def test_contact_loss_options_match_numpy():
     np.testing.assert_allclose(bce, ref, rtol=1e-4)
 
 
-@pytest.mark.slow  # ~49 s on 2 cores, training options off by default (forty-first session: the
-# default suite took 19.9-20.7 min on the VM)
+@pytest.mark.slow  # ~49 s on 2 cores, training options off by default
 def test_predicted_and_mixed_selection_train_without_recompiling():
     """2b with candidates chosen by the net's scores ("predicted") or per pair at random
     ("mixed"): one jit, finite metrics over steps; "mixed" rows are either the GT map or the

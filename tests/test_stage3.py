@@ -161,28 +161,3 @@ def test_cem_keeps_the_top_of_its_final_population():
     np.testing.assert_array_equal(np.asarray(none.pose), np.asarray(res.pose))  # same search
     with pytest.raises(ValueError, match="keep_top"):
         stage3.make_cem(score, cfg, keep_top=cfg.population + 1)
-
-
-@pytest.mark.slow  # the smoothed V, not adopted (eleventh session); the default suite stays under 20 min
-def test_smoothed_value_is_v_at_zero_width_and_averages_a_neighbourhood():
-    """Zero width: every sample is the pose itself, so the average is V there; a width > 0
-    averages V over other poses (the first sample stays the pose itself)."""
-    v = stage3.make_value(stage3.VALUE_TINY)
-    params = v.init(jax.random.key(2))
-    clouds = stage3.subsample_clouds(PairClouds(*_clouds(128, 128)), stage3.VALUE_TINY)
-    poses = jnp.asarray(
-        [[0.0, 0.0, 0.01, 1.0, 0.0, 0.0, 0.0], [0.005, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]]
-    )
-    plain = np.exp(np.asarray(v.score(params, clouds, poses)))
-    flat = stage3.make_smoothed_value(stage3.VALUE_TINY, samples=4, sigma_translation=0.0,
-                                      sigma_rotation=0.0)  # fmt: skip
-    mean_v, mean_log = jax.jit(flat)(params, jax.random.key(0), clouds, poses)
-    np.testing.assert_allclose(np.asarray(mean_v), plain, rtol=1e-4, atol=1e-6)
-    np.testing.assert_allclose(np.asarray(mean_log), np.log(plain), rtol=1e-4, atol=1e-5)
-    wide = stage3.make_smoothed_value(stage3.VALUE_TINY, samples=8, sigma_translation=0.02,
-                                      sigma_rotation=0.5)  # fmt: skip
-    a = np.asarray(jax.jit(wide)(params, jax.random.key(0), clouds, poses)[0])
-    b = np.asarray(jax.jit(wide)(params, jax.random.key(0), clouds, poses)[0])
-    np.testing.assert_array_equal(a, b)  # same key, same average
-    assert a.shape == (2,) and np.all((a >= 0) & (a <= 1))
-    assert not np.allclose(a, plain, atol=1e-6)  # other poses enter the average

@@ -1,26 +1,24 @@
-"""The answer's ranker (experiments.train_ranker, twentieth session): its loss against numpy,
-that it learns, the slim records round trip, the CLI end to end on tiny pair files, and the
-pipeline ranking by the ranker alone (``PipelineConfig.rank_with_value=False``)."""
+"""The answer's rankers: pools of the pipeline's simulated candidates (omnihang_jax.pools: the
+pairs of training and validation objects, shards that round trip and refuse mixed pools,
+resumable building over the product's answer) and the fine-tuning (experiments.train_ranker:
+the loss against numpy, a run on a toy pool that learns to put stable candidates first)."""
 
 from __future__ import annotations
 
 import dataclasses
-import gzip
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import pytest
 
 from experiments import train_ranker
-from omnihang_jax import refine, selection, stage3
+from omnihang_jax import data, dataset_bridge, pools, refine, selection, stage3, where
 from omnihang_jax.dataset_bridge import META_KEYS
-from omnihang_jax.stage1 import STAGE1_TINY
-from omnihang_jax.stage2 import STAGE2_TINY
-from tests.test_stage2_clearance_pipeline import PIPE, _plane_pairs
-from tests.test_stage2_clearance_pipeline import params as params  # noqa: F401 (fixture)
+
+CFG = stage3.VALUE_TINY  # 64 + 64 state points
 
 
 def _numpy_loss(logits, stable, clear, lw, bw):
@@ -49,307 +47,275 @@ def test_ranking_loss_matches_numpy_and_skips_unmixed_pairs():
     # a candidate that is not clear never enters the listwise term
     moved = logits.copy()
     moved[0, ~clear[0], 1] += 5.0
-    l2, m2 = train_ranker.ranking_loss(jnp.asarray(moved), jnp.asarray(stable),
-                                       jnp.asarray(clear), 1.0, 0.0)  # fmt: skip
+    l2, _ = train_ranker.ranking_loss(jnp.asarray(moved), jnp.asarray(stable),
+                                      jnp.asarray(clear), 1.0, 0.0)  # fmt: skip
     l1, _ = train_ranker.ranking_loss(jnp.asarray(logits), jnp.asarray(stable),
                                       jnp.asarray(clear), 1.0, 0.0)  # fmt: skip
     assert float(l2) == pytest.approx(float(l1), rel=1e-6)
     assert 0.0 <= float(m["mixed_pairs"]) <= 0.5
 
 
-def _synthetic(n_pairs=6, p=8, seed=0):
-    """Pairs of tiny clouds; a candidate hangs iff it sits low (z < 0.03): learnable from the
-    posed state."""
+# ---------------------------------------------------------------------------------------------
+# Toy pairs and pools
+
+
+def _name(i: int, category: str, obj: int) -> str:
+    return f"{i:05d}_{category}_{obj:04d}__rack_0000.npz"
+
+
+def _dataset(tmp_path: Path, names: list[str], n: int = 64, seed: int = 0) -> Path:
+    """A dataset folder (recipe.json, derived/train/) of tiny derived pair files."""
+    ds = tmp_path / "ds"
+    folder = ds / "derived" / "train"
+    folder.mkdir(parents=True, exist_ok=True)
+    (ds / "recipe.json").write_text("{}")
     rng = np.random.default_rng(seed)
-    cfg = stage3.VALUE_TINY
-    n, m = cfg.num_object_points, cfg.num_support_points
-    obj = rng.normal(scale=0.01, size=(n_pairs, n, 3)).astype(np.float32)
-    sup = rng.normal(scale=0.03, size=(n_pairs, m, 3)).astype(np.float32)
-    normals = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)  # noqa: E731
-    clouds = stage3.PairClouds(obj, normals(obj), sup, normals(sup))
-    poses = np.zeros((n_pairs, p, 7), np.float32)
+    for name in names:
+        obj = rng.normal(scale=0.01, size=(n, 3)).astype(np.float32)
+        sup = rng.normal(scale=0.03, size=(n, 3)).astype(np.float32)
+        stem = name.split("__")[0].split("_", 1)[1]
+        meta = (int(name[:5]), stem, "rack_0000", stem.rsplit("_", 1)[0], "rack", "train")
+        np.savez(folder / name, object_points=obj,
+                 object_normals=obj / np.linalg.norm(obj, axis=1, keepdims=True),
+                 support_points=sup, support_normals=sup / np.linalg.norm(sup, axis=1, keepdims=True),
+                 stable_poses=np.float32([[0, 0, 0, 1, 0, 0, 0]]),
+                 object_contact_maps=np.zeros((1, n), np.float32),
+                 support_contact_maps=np.zeros((1, n), np.float32),
+                 contact_pairs=np.zeros((1, 1, 2), np.int32),
+                 **{k: np.asarray(v) for k, v in zip(META_KEYS, meta, strict=True)})  # fmt: skip
+    return ds
+
+
+def _poses(n_pairs: int, c: int, seed: int = 0) -> np.ndarray:
+    """[n, c, 7] identity rotations at heights 0-6 cm: a candidate hangs iff low (z < 3 cm),
+    which the posed state shows."""
+    rng = np.random.default_rng(seed)
+    poses = np.zeros((n_pairs, c, 7), np.float32)
     poses[..., 3] = 1.0
-    poses[..., 2] = rng.uniform(0.0, 0.06, size=(n_pairs, p))
-    stable = poses[..., 2] < 0.03
-    return clouds, poses, stable
+    poses[..., 2] = rng.uniform(0.0, 0.06, size=(n_pairs, c))
+    return poses
 
 
-def test_the_ranker_learns_to_put_a_hanging_candidate_first():
-    """A tiny V trained with the ranking loss: the loss falls and the pick among the clear
-    candidates hangs more often than at the start."""
-    clouds, poses, stable = _synthetic()
-    clear = np.ones_like(stable)
-    net = stage3.make_value(stage3.VALUE_TINY)
-    params = net.init(jax.random.key(0))
-    b, p = poses.shape[:2]
-    tiled = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), p, axis=0), clouds)
-
-    def loss_fn(prm):
-        logits = net.logits(prm, tiled, jnp.asarray(poses.reshape(b * p, 7))).reshape(b, p, 2)
-        return train_ranker.ranking_loss(logits, jnp.asarray(stable), jnp.asarray(clear), 1.0, 0.5)
-
-    tx = optax.adam(3e-3)
-    opt = tx.init(params)
-
-    @jax.jit
-    def step(prm, opt):
-        (loss, m), g = jax.value_and_grad(loss_fn, has_aux=True)(prm)
-        up, opt = tx.update(g, opt, prm)
-        return optax.apply_updates(prm, up), opt, loss
-
-    first, _ = loss_fn(params)
-    for _ in range(80):
-        params, opt, loss = step(params, opt)
-    last, m = loss_fn(params)
-    assert float(last) < 0.5 * float(first)
-    assert float(m["pick_hangs_mixed"]) == 1.0
+def _table(names: list[str], poses: np.ndarray) -> dict:
+    n, c = poses.shape[:2]
+    return dict(
+        poses=poses, keys=np.zeros((n, c)), counts=np.zeros((n, c), int),
+        status=np.where(poses[..., 2] < 0.03, 0, 1), stable=poses[..., 2] < 0.03,
+        start=np.zeros((n, c), int), proposal=np.tile(np.arange(c), (n, 1)),
+        pair_index=[int(x[:5]) for x in names], pair_file=names,
+        category=[x.split("__")[0].split("_", 1)[1].rsplit("_", 1)[0] for x in names],
+        object=[x.split("__")[0].split("_", 1)[1] for x in names], support=["rack_0000"] * n,
+    )  # fmt: skip
 
 
-def _write_pair(path, clouds, i, index):
-    np.savez(path, object_points=clouds.object_points[i], object_normals=clouds.object_normals[i],
-             support_points=clouds.support_points[i], support_normals=clouds.support_normals[i],
-             stable_poses=np.zeros((1, 7), np.float32),
-             **{k: np.asarray(v) for k, v in zip(META_KEYS, (index, f"obj_{i}", "sup", "mug",
-                                                              "rod", "train"), strict=True)})  # fmt: skip
+def _shard(path, names, poses):
+    pools.write_shard(path, _table(names, poses), ["stage2", "stage1"], 0, pools.POOL_CONFIG)
 
 
-def _records(clouds, poses, stable, k):
-    """eval_stage3-like records: 4K + 1 candidates, the pool (2K..4K) from ``poses``."""
-    key = selection.grid_key(selection.CHOSEN.depth, selection.CHOSEN.radius)
-    rows = []
-    for i in range(len(poses)):
-        allp = np.zeros((4 * k + 1, 7), np.float32)
-        allp[:, 3] = 1.0
-        allp[2 * k : 4 * k] = poses[i]
-        st = np.zeros(4 * k + 1, bool)
-        st[2 * k : 4 * k] = stable[i]
-        rows.append({
-            "pair_index": i, "file": f"{i:05d}_obj_{i}__sup.npz", "category": "mug",
-            "poses_all": allp.tolist(), "stable_all": st.tolist(),
-            "v": np.full(4 * k + 1, 0.5).tolist(),  # the run's V: no preference
-            "inside_counts": {key: [0] * (4 * k + 1)},
-        })  # fmt: skip
-    return rows
-
-
-def test_cli_slims_trains_and_scores_on_pair_files(tmp_path):
-    """slim -> train (a checkpoint, curves, a value folder that loads) -> score; the ranker's
-    pick beats the run's V (which ties) on the training records; a second train call resumes
-    from the checkpoint instead of starting over."""
-    k = 4
-    clouds, poses, stable = _synthetic(n_pairs=6, p=2 * k)
-    folder = tmp_path / "ds" / "derived" / "train"
-    folder.mkdir(parents=True)
-    rows = _records(clouds, poses, stable, k)
-    for i, r in enumerate(rows):
-        _write_pair(folder / r["file"], clouds, i, i)
-    rec = tmp_path / "run.pairs.jsonl.gz"
-    with gzip.open(rec, "wt") as f:
-        f.write("".join(json.dumps(r) + "\n" for r in rows))
-    init = tmp_path / "v0"
-    refine.save_value(init, stage3.VALUE_TINY, stage3.make_value(stage3.VALUE_TINY).init(
-        jax.random.key(1)))  # fmt: skip
-    slim = tmp_path / "run.npz"
-    assert train_ranker.main(["slim", str(rec), str(slim)])["pairs"] == 6
-    table = train_ranker.load_table(slim)
-    assert table["poses"].shape == (6, 2 * k, 7) and table["stable"].sum() == stable.sum()
-    out = tmp_path / "ranker"
-    args = ["train", "--records", str(slim), "--data", str(tmp_path / "ds"), "--init", str(init),
-            "--out", str(out), "--val-records", str(rec), "--steps", "60", "--pairs-per-batch",
-            "4", "--lr", "3e-3", "--warmup", "5", "--eval-every", "30", "--log-every", "10",
-            "--no-progress"]  # fmt: skip
-    summary = train_ranker.main(args)
-    assert summary["steps"] == 60 and (out / "curves.png").exists()
-    val = summary["validation"]
-    assert val[0]["step"] == 0 and val[-1]["ranker"] >= val[0]["ranker"]
-    assert val[-1]["ranker"] > val[-1]["run_v"] or val[-1]["run_v"] == 100.0
-    config, _ = refine.load_value(out / "value")
-    assert config == stage3.VALUE_TINY
-    # resumed: the checkpoint is at step 60, so a longer run starts there
-    more = train_ranker.main([*args[:-1], "--steps", "70", "--no-progress"])
-    assert more["steps"] == 70
-    assert [v["step"] for v in more["validation"]] == [0, 30, 60, 70]
-    res = train_ranker.main(["score", "--ranker", f"r={out / 'value'}", "--records", str(slim),
-                             "--data", str(tmp_path / "ds"), "--split", "train", "--out",
-                             str(tmp_path / "score.json"), "--no-progress"])  # fmt: skip
-    run = res["runs"]["run.npz"]["r"]
-    # the same ranker on the same pairs: score's table is the last validation row's
-    assert run["ranker"]["mean"] == pytest.approx(more["validation"][-1]["ranker"])
-    assert run["run_v"]["mean"] == pytest.approx(more["validation"][-1]["run_v"])
-    assert (tmp_path / "score.npz").exists()
-
-
-def test_load_table_refuses_non_finite_poses(tmp_path):
-    k = 2
-    clouds, poses, stable = _synthetic(n_pairs=2, p=2 * k)
-    rows = _records(clouds, poses, stable, k)
-    rows[1]["poses_all"][2 * k][0] = float("nan")
-    rec = tmp_path / "bad.pairs.jsonl"
-    rec.write_text("".join(json.dumps(r) + "\n" for r in rows))
+def test_pool_shards_round_trip_and_refuse_mixed_pools(tmp_path):
+    names = [_name(i, "mug", i) for i in range(5)]
+    poses = _poses(5, 4)
+    folder = tmp_path / "pools"
+    folder.mkdir()
+    _shard(folder / "shard_00000.npz", names[:3], poses[:3])
+    _shard(folder / "shard_00001.npz", names[3:], poses[3:])
+    table = pools.read_pools(folder)
+    assert list(table["pair_file"]) == names and list(table["starts"]) == ["stage2", "stage1"]
+    np.testing.assert_array_equal(table["poses"], poses)
+    assert table["counts"].dtype == np.int16 and table["status"].dtype == np.int8
+    assert (
+        pools.pooled_pairs(folder) == set(range(5)) and pools.pooled_pairs(tmp_path / "x") == set()
+    )
+    # the rule: the best-scored clear candidate (an oracle score hangs wherever one does)
+    oracle = np.where(table["stable"], 0.0, -1.0)
+    assert pools.rule_success(table, oracle)["pair_mean"] == 100 * table["stable"].any(1).mean()
+    other = tmp_path / "other"
+    other.mkdir()
+    _shard(other / "shard_00000.npz", names[:1], poses[:1])
+    with pytest.raises(ValueError, match="more than one shard"):
+        pools.read_pools([folder, other])
+    _shard(other / "shard_00000.npz", [_name(9, "mug", 9)], _poses(1, 6))
+    with pytest.raises(ValueError, match="different sizes"):
+        pools.read_pools([folder, other])
+    bad = poses[:1].copy()
+    bad[0, 1, 0] = np.nan
+    _shard(other / "shard_00000.npz", [_name(9, "mug", 9)], bad)
     with pytest.raises(ValueError, match="non-finite"):
-        train_ranker.load_table(rec)
+        pools.read_pools(other)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no pool shards"):
+        pools.read_pools(tmp_path / "empty")
+    with pytest.raises(FileNotFoundError, match="no such pool shard"):
+        pools.read_pools(tmp_path / "missing")
 
 
-@pytest.mark.slow  # 25-45 s on 2 cores (thirty-second session: the default suite neared 20 min)
-def test_pipeline_ranks_by_the_ranker_alone(params):  # noqa: F811
-    """rank_with_value=False: the final scores are the ranking network's log V alone; CEM is
-    unchanged."""
-    clouds = _plane_pairs()
-    v2 = stage3.make_value(stage3.VALUE_TINY).init(jax.random.key(7))
-    base = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=1)
-    mean = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, base))
-    alone_cfg = dataclasses.replace(base, rank_with_value=False)
-    alone = jax.jit(
-        stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, alone_cfg)
-    )
-    key = jax.random.key(3)
-    out_m = mean({**params, "rank_values": [v2]}, key, clouds)
-    out_a = alone({**params, "rank_values": [v2]}, key, clouds)
-    small = stage3.subsample_clouds(jax.tree.map(np.asarray, clouds), stage3.VALUE_TINY)
-    value = stage3.make_value(stage3.VALUE_TINY)
-    for name in base.starts:
-        np.testing.assert_array_equal(np.asarray(out_m.refined[name]),
-                                      np.asarray(out_a.refined[name]))  # fmt: skip
-        poses = np.asarray(out_a.refined[name])
-        want = np.stack([
-            np.asarray(value.score(v2, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
-            for i in range(len(poses))
-        ])  # fmt: skip
-        np.testing.assert_allclose(np.asarray(out_a.scores[name]), want, rtol=1e-5, atol=1e-5)
-    assert stage3.ANSWER_PIPELINE.rank_with_value is stage3.RANK_WITH_CEM_VALUE
+def test_pair_files_are_training_or_validation_objects_balanced_over_categories(tmp_path):
+    names = [_name(100 * c + o, cat, o) for c, cat in enumerate(("bag", "cap", "mug"))
+             for o in range(12)]  # fmt: skip
+    ds = _dataset(tmp_path, names)
+    train = pools.pair_files(ds, "train")
+    val = pools.pair_files(ds, "validation")
+    objects = sorted({data.object_name_of(n) for n in names})
+    want_val = data.validation_objects(objects, 0.1)
+    assert want_val and {data.object_name_of(f.name) for f in val} == want_val
+    assert {f.name for f in train} | {f.name for f in val} == set(names)
+    assert not {data.object_name_of(f.name) for f in train} & want_val
+    assert [f.name.split("_")[1] for f in train[:3]] == ["bag", "cap", "mug"]  # round robin
+    assert pools.pair_files(ds, "train", 4) == train[:4]
+    with pytest.raises(ValueError, match="split"):
+        pools.pair_files(ds, "test")
 
 
-@pytest.mark.slow  # 25-45 s on 2 cores (thirty-second session: the default suite neared 20 min)
-def test_pipeline_ranks_with_a_near_point_ranker(params):  # noqa: F811
-    """Ranking networks of different configs (``make_hang_pipeline(..., rank_configs)``): a
-    plain one and one with near points, each on its own subsample of the clouds; the final
-    scores are the mean of their log V; CEM is unchanged."""
-    clouds = _plane_pairs()
-    near = dataclasses.replace(stage3.VALUE_TINY, support_near=16, object_near=8, near_pool=128)
-    v2 = stage3.make_value(stage3.VALUE_TINY).init(jax.random.key(7))
-    v3 = stage3.make_value(stage3.VALUE_TINY).init(jax.random.key(8))
-    cfg = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=2,
-                              rank_with_value=False)  # fmt: skip
-    plain = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg))
-    ranked = jax.jit(
-        stage3.make_hang_pipeline(
-            STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg, (stage3.VALUE_TINY, near)
-        )
-    )
-    key = jax.random.key(3)
-    out_p = plain({**params, "rank_values": [v2, v3]}, key, clouds)
-    out_n = ranked({**params, "rank_values": [v2, v3]}, key, clouds)
-    full = jax.tree.map(np.asarray, clouds)
-    small = stage3.subsample_clouds(full, near)
-    small3 = stage3.subsample_clouds(full, stage3.VALUE_TINY)
-    value = stage3.make_value(near)
-    value3 = stage3.make_value(stage3.VALUE_TINY)
-    for name in cfg.starts:
-        np.testing.assert_array_equal(np.asarray(out_p.refined[name]),
-                                      np.asarray(out_n.refined[name]))  # fmt: skip
-        poses = np.asarray(out_n.refined[name])
-        want = np.stack([
-            0.5 * np.asarray(value3.score(v2, jax.tree.map(lambda x, i=i: x[i], small3), poses[i]))
-            + 0.5 * np.asarray(value.score(v3, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
-            for i in range(len(poses))
-        ])  # fmt: skip
-        np.testing.assert_allclose(np.asarray(out_n.scores[name]), want, rtol=1e-5, atol=1e-5)
-        assert not np.allclose(np.asarray(out_n.scores[name]), np.asarray(out_p.scores[name]))
+def test_build_pools_labels_every_candidate_and_resumes(tmp_path, monkeypatch):
+    """Over a stand-in answer (the product's own runs in the slow test below): every candidate
+    of the ranked pool is simulated and kept in the rule's order with its inside counts; a
+    second call pools only the pairs not yet in a shard."""
+    names = [_name(i, cat, i) for i, cat in enumerate(("bag", "cap", "mug", "bag", "cap"))]
+    ds = _dataset(tmp_path, names)
+    c = 6
+    poses = _poses(5, c, seed=1)
+    poses[:, :, :2] = 0.0  # over the support's centre: some candidates inside it
+    poses[:, :, 2] -= 0.02
+    answered = []
+
+    def answer(clouds, ids, seed):
+        ids = [int(i) for i in ids]
+        answered.extend(ids)
+        ranked = poses[ids]
+        return where.WhereOutput(
+            ranked[:, :2], ranked[:, :2], ranked, -np.arange(c, dtype=float)[None].repeat(len(ids), 0),
+            np.array([["stage2", "stage1"] * (c // 2)] * len(ids)), np.zeros((len(ids), c), int),
+        )  # fmt: skip
+
+    monkeypatch.setattr(where, "load_where", lambda config: where.Where(config, answer, None, None))
+    monkeypatch.setattr(pools, "_init", lambda dataset_dir: None)
+    monkeypatch.setattr(pools, "simulate", lambda job: np.where(job[2][:, 2] < 0.0, 0, 1))
+    files = sorted((ds / "derived" / "train").glob("*.npz"))
+    first = pools.build_pools(files[:3], tmp_path / "pools", batch=2, shard_pairs=2,
+                              progress=False, dataset_dir=ds)  # fmt: skip
+    assert first == {"pairs": 3, "skipped": 0, "shards": 2}
+    assert set(answered) == {0, 1, 2}  # (a short batch is padded with its first pair)
+    answered.clear()
+    again = pools.build_pools(files, tmp_path / "pools", batch=2, shard_pairs=2, progress=False,
+                              dataset_dir=ds)  # fmt: skip
+    assert again == {"pairs": 2, "skipped": 3, "shards": 1}
+    assert set(answered) == {3, 4}  # only the pairs not yet pooled
+    table = pools.read_pools(tmp_path / "pools")
+    order = [int(f.name[:5]) for f in files]
+    assert list(table["pair_index"]) == order
+    np.testing.assert_allclose(table["poses"], poses[order])
+    np.testing.assert_array_equal(table["stable"], poses[order, :, 2] < 0.0)
+    np.testing.assert_array_equal(table["start"][0], [0, 1] * (c // 2))
+    for b, f in enumerate(files):
+        sample, _ = dataset_bridge.load_pair_file(f)
+        counts = selection.inside_counts(sample.object_points, sample.support_points,
+                                         sample.support_normals, poses[order[b]],
+                                         pools.RULE.depth, pools.RULE.radius)  # fmt: skip
+        np.testing.assert_array_equal(table["counts"][b], np.asarray(counts))
+    assert table["counts"].any()
 
 
-def test_choose_sets_picks_the_set_best_on_the_selection_table(tmp_path):
-    """``train_ranker sets``: every set of scored rankers, ranked by the rule's success on the
-    selection table; a ranker that always prefers the hanging candidate wins alone."""
-    n = 6
-    table = {"poses": np.zeros((n, 2, 7), np.float32), "stable": np.tile([False, True], (n, 1)),
-             "v": np.zeros((n, 2), np.float32), "counts": np.zeros((n, 2), np.int16),
-             "files": np.array([f"{i:05d}_mug_0000__rack_0000.npz" for i in range(n)]),
-             "category": np.array(["mug"] * n), "pair_index": np.arange(n), "k": np.asarray(1)}  # fmt: skip
-    for name in ("val.npz", "held.npz", "x.npz"):
-        np.savez(tmp_path / name, **table)
-    good, bad = np.tile([-2.0, -0.1], (n, 1)), np.tile([-0.1, -5.0], (n, 1))
-    np.savez(tmp_path / "s.npz", **{f"good|{r}": good for r in ("val.npz", "held.npz")},
-             **{f"bad|{r}": bad for r in ("val.npz", "held.npz")})  # fmt: skip
-    res = train_ranker.choose_sets(
-        [tmp_path / "s.npz"], tmp_path / "val.npz", [tmp_path / "held.npz"]
-    )
-    assert res["chosen"]["set"] == ["good"] and res["chosen"]["select_on"] == 100.0
-    assert res["chosen"]["runs"] == [100.0]
-    # {bad} and {bad, good} both pick the falling candidate: a tie, the smaller set first
-    assert [r["set"] for r in res["sets"]][1:] == [["bad"], ["bad", "good"]]
-    assert res["sets"][1]["select_on"] == res["sets"][2]["select_on"] == 0.0
-    with pytest.raises(ValueError, match="no scores"):
-        train_ranker.choose_sets([tmp_path / "s.npz"], tmp_path / "val.npz", [tmp_path / "x.npz"])
+# ---------------------------------------------------------------------------------------------
+# Training
 
 
-def test_ensemble_stacks_networks_of_one_config():
-    """Three ranking networks, two of one config (run as one network over stacked parameters)
-    and one with near points: the ensemble is the plain mean of each network's log V, scored
-    one by one on its own subsample; with_first adds the first V's scores to the mean."""
-    clouds = _plane_pairs()
-    near = dataclasses.replace(stage3.VALUE_TINY, support_near=16, object_near=8, near_pool=128)
-    nets = [stage3.make_value(c).init(jax.random.key(k))
-            for c, k in ((stage3.VALUE_TINY, 7), (near, 9), (stage3.VALUE_TINY, 8))]  # fmt: skip
-    configs = (stage3.VALUE_TINY, near, stage3.VALUE_TINY)
-    full = jax.tree.map(np.asarray, clouds)
-    poses = np.asarray(_plane_pairs_poses(full))
-    first = np.random.default_rng(0).normal(size=poses.shape[:2]).astype(np.float32)
-    alone = jax.jit(stage3.make_ensemble_score(configs, with_first=False))
-    got = np.asarray(alone(first, nets, clouds, poses))
-    each, scorers = [], {}  # one jitted reference scorer per config (eager dispatch is slow)
-    for c, p in zip(configs, nets, strict=True):
-        small = stage3.subsample_clouds(full, c)
-        score = scorers.setdefault(c, jax.jit(stage3.make_value(c).score))
-        each.append(np.stack([
-            np.asarray(score(p, jax.tree.map(lambda x, i=i: x[i], small), poses[i]))
-            for i in range(len(poses))
-        ]))  # fmt: skip
-    np.testing.assert_allclose(got, np.mean(each, axis=0), rtol=1e-5, atol=1e-5)
-    assert not np.allclose(each[0], each[2])  # the two stacked networks differ
-    with_v = jax.jit(stage3.make_ensemble_score(configs, with_first=True))
-    np.testing.assert_allclose(np.asarray(with_v(first, nets, clouds, poses)),
-                               (first + np.sum(each, axis=0)) / 4, rtol=1e-5, atol=1e-5)  # fmt: skip
+def _auc(scores: np.ndarray, stable: np.ndarray) -> float:
+    """Mean over pairs with both outcomes: the share of (stable, unstable) candidate pairs the
+    scores order stable first."""
+    out = []
+    for s, st in zip(scores, stable, strict=True):
+        if st.any() and (~st).any():
+            out.append(np.mean(s[st][:, None] > s[~st][None, :]))
+    return float(np.mean(out))
 
 
-def _plane_pairs_poses(full):
-    """Six poses a pair, near the support (object above the support's points)."""
-    b = full.object_points.shape[0]
-    rng = np.random.default_rng(1)
-    xyz = rng.normal(scale=0.02, size=(b, 6, 3))
-    quat = rng.normal(size=(b, 6, 4))
-    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
-    return np.concatenate([xyz, quat], axis=-1).astype(np.float32)
+def _toy_run(tmp_path, steps: int) -> tuple[list[str], Path, Path, list[str], dict]:
+    names = [_name(i, ("bag", "cap", "mug")[i % 3], i) for i in range(12)]
+    ds = _dataset(tmp_path, names)
+    poses = _poses(12, 8, seed=2)
+    (tmp_path / "pools").mkdir()
+    (tmp_path / "val").mkdir()
+    _shard(tmp_path / "pools" / "shard_00000.npz", names[:8], poses[:8])
+    _shard(tmp_path / "val" / "shard_00000.npz", names[8:], poses[8:])
+    init = tmp_path / "v0"
+    refine.save_value(init, CFG, stage3.make_value(CFG).init(jax.random.key(1)))
+    out = tmp_path / "ranker"
+    args = ["train", "--pools", str(tmp_path / "pools"), "--val-pools", str(tmp_path / "val"),
+            "--data", str(ds), "--init", str(init), "--out", str(out), "--steps", str(steps),
+            "--pairs-per-batch", "4", "--lr", "3e-3", "--warmup", "5", "--eval-every", "15",
+            "--log-every", "5", "--score-batch", "4", "--no-progress"]  # fmt: skip
+    return names, ds, out, args, train_ranker.main(args)
 
 
-def test_union_puts_the_view_runs_of_the_same_pairs_side_by_side(tmp_path):
-    """union: the pool per pair is every run's candidates in run order; the rule on the union
-    picks the best clear candidate over all runs; runs of other pairs are refused."""
-    k = 2
-    tables = []
-    for v in range(3):
-        clouds, poses, stable = _synthetic(n_pairs=5, p=2 * k, seed=v)
-        rows = _records(clouds, poses, stable, k)
-        rec = tmp_path / f"v{v}.pairs.jsonl.gz"
-        with gzip.open(rec, "wt") as f:
-            f.write("".join(json.dumps(r) + "\n" for r in rows))
-        train_ranker.main(["slim", str(rec), str(tmp_path / f"v{v}.npz")])
-        tables.append(train_ranker.load_table(tmp_path / f"v{v}.npz"))
-    res = train_ranker.main(["union", *(str(tmp_path / f"v{v}.npz") for v in range(3)),
-                             str(tmp_path / "u.npz")])  # fmt: skip
-    assert res == {"pairs": 5, "candidates": 6 * k}
-    u = train_ranker.load_table(tmp_path / "u.npz")
-    for f in train_ranker.SLIM_FIELDS:
-        np.testing.assert_array_equal(u[f][:, 2 * k : 4 * k], tables[1][f])
-    assert list(u["files"]) == list(tables[0]["files"])
-    # an oracle score on the union hangs wherever some run's clear candidate hangs
-    oracle = np.where(u["stable"], 0.0, -9.0).astype(np.float32)
-    clear_hang = (u["stable"] & (u["counts"] <= selection.CHOSEN.max_points)).any(1)
-    ok = u["stable"][np.arange(5), np.argmax(np.where(u["counts"] <= selection.CHOSEN.max_points,
-                                                      oracle, -99.0), 1)]  # fmt: skip
-    assert np.array_equal(ok, clear_hang)
-    assert train_ranker.rule_success(u, oracle)["mean"] >= max(
-        train_ranker.rule_success(t, np.where(t["stable"], 0.0, -9.0))["mean"] for t in tables
-    )
-    other = dict(tables[1], pair_index=tables[1]["pair_index"] + 1)
-    with pytest.raises(ValueError, match="different pairs"):
-        train_ranker.union_tables([tables[0], other])
+def test_training_learns_to_put_stable_candidates_first(tmp_path):
+    """train on a toy pool (a candidate hangs iff it sits low): the fine-tuned network orders
+    stable above unstable candidates far better than the V it starts from, and its pick hangs
+    on the validation pools at least as often as at step 0; the run writes a value folder that
+    loads, metrics and curves."""
+    _, ds, out, _, summary = _toy_run(tmp_path, 30)
+    assert summary["steps"] == 30 and (out / "curves.png").exists()
+    val = summary["validation"]
+    assert [v["step"] for v in val] == [0, 15, 30] and val[-1]["ranker"] >= val[0]["ranker"]
+    assert len((out / "metrics.jsonl").read_text().splitlines()) == 6
+    config, tuned = refine.load_value(out / "value")
+    _, start = refine.load_value(tmp_path / "v0")
+    assert config == CFG
+    table = pools.read_pools(tmp_path / "pools")
+    bank = train_ranker.load_bank(table, str(ds), CFG, progress=False)
+    scorer = train_ranker.make_scorer(CFG)
+    before = _auc(train_ranker.score_pools(scorer, start, bank, table["poses"], 4), table["stable"])
+    after = _auc(train_ranker.score_pools(scorer, tuned, bank, table["poses"], 4), table["stable"])
+    assert after > 0.9 and after > before + 0.2, (before, after)
+
+
+@pytest.mark.slow  # ~40 s on 2 cores: two runs, each compiles its step
+def test_training_resumes_from_its_checkpoint(tmp_path):
+    _, _, out, args, _ = _toy_run(tmp_path, 15)
+    more = train_ranker.main([*args[:-1], "--steps", "20", "--no-progress"])  # resumes at 15
+    assert more["steps"] == 20 and [v["step"] for v in more["validation"]] == [0, 15, 20]
+    assert json.loads((out / "summary.json").read_text())["steps"] == 20
+    assert [json.loads(x)["step"] for x in (out / "metrics.jsonl").read_text().splitlines()] == [
+        5,
+        10,
+        15,
+        20,
+    ]
+
+
+def test_train_refuses_overlapping_validation_and_a_missing_init(tmp_path):
+    names = [_name(i, "mug", i) for i in range(4)]
+    _shard(tmp_path / "p.npz", names, _poses(4, 4))
+    with pytest.raises(ValueError, match="share pairs"):
+        train_ranker.main(["train", "--pools", str(tmp_path / "p.npz"), "--val-pools",
+                           str(tmp_path / "p.npz"), "--init", str(tmp_path), "--out", str(tmp_path / "o")])  # fmt: skip
+    with pytest.raises(SystemExit):
+        train_ranker.main(["train", "--pools", str(tmp_path / "p.npz"), "--init",
+                           str(tmp_path / "none"), "--out", str(tmp_path / "o")])  # fmt: skip
+
+
+@pytest.mark.slow  # ~60 s on 2 cores: compiles the real Stage 1 + 2 networks and a tiny CEM
+def test_pools_of_the_product_answer_on_dataset_pairs(tmp_path):
+    """The pools command over the product's answer (a tiny random V, K = 3, one view) on two
+    derived training pairs of datasets/paper, simulated on the true meshes: each pool is the
+    answer's ranked candidates (keys descending) with valid statuses, and resumes."""
+    derived = Path("datasets/paper/derived/train")
+    if not derived.exists() or len(list(derived.glob("*.npz"))) < 2:
+        pytest.skip("no derived training pairs (experiments.derive_dataset --split train)")
+    folder = tmp_path / "value"
+    refine.save_value(folder, CFG, stage3.make_value(CFG).init(jax.random.key(0)))
+    pipe = dataclasses.replace(stage3.ANSWER_PIPELINE, num_proposals=3, views=((0, 1),),
+                               cem=stage3.CEMConfig(population=8, iterations=2, elites=3))  # fmt: skip
+    tiny = dataclasses.replace(pools.POOL_CONFIG, value=str(folder), pipeline=pipe)
+    files = pools.pair_files("datasets/paper", "train", 2)
+    res = pools.build_pools(files, tmp_path / "pools", tiny, batch=2, progress=False)
+    assert res == {"pairs": 2, "skipped": 0, "shards": 1}
+    table = pools.read_pools(tmp_path / "pools")
+    assert table["poses"].shape == (2, 6, 7)
+    assert np.all(np.diff(table["keys"], axis=1) <= 1e-6)
+    assert set(np.unique(table["status"])) <= {0, 1, 2, 3}
+    np.testing.assert_array_equal(table["stable"], table["status"] == 0)
+    # the rule's key is log V minus 1e4 per inside point: the counts are the pipeline's
+    log_v = table["keys"] + 1e4 * table["counts"]
+    assert np.all((log_v <= 1e-3) & (log_v > -200))
+    again = pools.build_pools(files, tmp_path / "pools", tiny, progress=False)
+    assert again == {"pairs": 0, "skipped": 2, "shards": 0}

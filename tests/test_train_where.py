@@ -414,7 +414,7 @@ def test_init_from_exported_weights_starts_there(trained_dir, tmp_path):
 
 
 def test_stage1_mix_splits_the_proposals_over_the_networks(trained_dir, tmp_path):
-    """A Stage-1 mix ("A+B", seventeenth session): K proposals split over the networks,
+    """A Stage-1 mix ("A+B"): K proposals split over the networks,
     network 0's first and identical to a single network's K/2 with the same key; Stage 2
     refines them all; a missing second network is a clear error."""
     assert predict.mix_counts(16, 2) == (8, 8) and predict.mix_counts(5, 2) == (3, 2)
@@ -437,13 +437,3 @@ def test_stage1_mix_splits_the_proposals_over_the_networks(trained_dir, tmp_path
     assert np.abs(a.stage1_poses[:, 3:] - b.stage1_poses).max() > 1e-4
     with pytest.raises(FileNotFoundError, match="stage1"):
         predict.load_predictor(f"{trained_dir}+{tmp_path / 'missing'}")
-
-
-def test_view_set_parses_subsamples_and_refuses_bad_ones():
-    """``predict_where --view-set``: the thirty-first session's third view (0/1,1/2,3/4) as
-    ``PipelineConfig.views``; a shift outside the stride, a repeat (0/1 is 0/2) or junk is refused."""
-    assert predict_where.parse_view_set("0/1,1/2,3/4") == ((0, 1), (1, 2), (3, 4))
-    assert predict_where.parse_view_set(" 0/1 , 1/2 ") == ((0, 1), (1, 2))
-    for bad in ("", "2/2", "0/1,0/2", "1/2,2/4", "a/b", "1"):
-        with pytest.raises(ValueError):
-            predict_where.parse_view_set(bad)

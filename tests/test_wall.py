@@ -1,4 +1,4 @@
-"""The scene's wall is solid (labels version 3, issue 16): a strap can no longer pass
+"""The scene's wall is solid (labels version 3): a strap can no longer pass
 through it, while everything in front of it is as before; and the relabel tool finds and
 splices exactly the changed pairs."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim import dataset, judges, kernels
+from sim import dataset, dataset_io, judges, kernels
 from sim.assets import objects, supports  # noqa: F401  (register the generators)
 from sim.assets.base import build_object, build_support
 from sim.scene import PhysicsConfig, build_scene, wall_box
@@ -92,12 +92,12 @@ def test_splice_replaces_only_the_listed_pairs():
     rng = np.random.default_rng(0)
     recs = [_one_pair_shard(i, n, rng) for i, n in enumerate([3, 0, 5, 2])]
     ids = [(i, i + 1, 1000 + i) for i in range(4)]
-    shard = dataset._pack(recs, [8, 9, 10, 11], ids)
+    shard = dataset_io.pack_shard(recs, [8, 9, 10, 11], ids)
     new = _one_pair_shard(9, 4, rng)
-    repl = {9: dataset._pack([new], [9], [ids[1]])}
+    repl = {9: dataset_io.pack_shard([new], [9], [ids[1]])}
     out = relabel.splice(shard, repl)
     assert set(out) == set(shard) and all(out[k].dtype == shard[k].dtype for k in shard)
-    before, after = dataset.unpack(shard), dataset.unpack(out)
+    before, after = dataset_io.unpack(shard), dataset_io.unpack(out)
     for i in (0, 2, 3):  # untouched pairs: identical stored values
         for k in before[i]:
             np.testing.assert_array_equal(before[i][k], after[i][k])

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Chain part "nce" (issue 13; docs/paths.md): train the neural collision estimator (and the HCE
+# Chain part "nce" (docs/paths.md): train the neural collision estimator (and the HCE
 # normal net) for the planner, resuming across calls of the device chain.
 #
 #   bash scripts/chain/nce.sh BUDGET_S OUT_TGZ        # e.g. 500 /tmp/chain/out/nce_1.tgz
@@ -30,15 +30,8 @@
 # attempt, which overran), one compilation and the reserve for the threshold, held-out
 # metrics, normal net and HCEs; CHAIN_WORKERS (3), CHAIN_DS (/tmp/chain/ds).
 # CHAIN_TINY=1: tiny preset, 4 held-out + 40 training pairs, NCE 20 s, reserve 40 s.
-# CROP_FROM (2048; 0: off): a second NCE trained beside the first on the same GPU, in
-# run_crop/ (tarball: weights_crop/; NCE only, no normal net), that is given 2,048 support points and keeps the 256
-# nearest to the posed object (collision.crop_support: ~8x denser support where contact is).
-# GPU memory: XLA_PYTHON_CLIENT_MEM_FRACTION 0.12 per process unless set (2 x ~9.6 GB).
-# NCE_ARGS: more train_collision flags for both NCEs (e.g. "--planner-labels 1 --near-share
-# 0.3 --lr-schedule cosine --val-curve-every 1000"); CROP_GPU: the crop variant on this GPU
-# (CUDA_VISIBLE_DEVICES; default: the base's); BASE_ARGS / CROP_ARGS: flags for one of the two
-# only (a controlled pair: e.g. the base with --support-crop-from 2048 and the new flags, the
-# crop variant with the old ones).
+# GPU memory: XLA_PYTHON_CLIENT_MEM_FRACTION 0.12 unless set.
+# NCE_ARGS / BASE_ARGS: more train_collision flags (e.g. "--val-curve-every 1000").
 set -uo pipefail
 BUDGET=${1:?usage: nce.sh BUDGET_S OUT_TGZ}
 OUT_TGZ=${2:?usage: nce.sh BUDGET_S OUT_TGZ}
@@ -58,13 +51,11 @@ if [ -n "${CHAIN_TINY:-}" ]; then
     NORMALS_S=${NORMALS_S:-3} EVAL_RESERVE_S=${EVAL_RESERVE_S:-40} RESUME_WAIT_S=${RESUME_WAIT_S:-5}
     EVAL_LABELS=2000 THRESHOLD_LABELS=2000 NORMAL_BATCH=4 NCE_MAX_S=${NCE_MAX_S:-20}
     COMPILE_RESERVE_S=${COMPILE_RESERVE_S:-20} POST_RESERVE_S=${POST_RESERVE_S:-30}
-    CROP_FROM=${CROP_FROM:-256}
 else
     N_TEST=${N_TEST:-150} N_TRAIN=${N_TRAIN:-20000} PRESET=${PRESET:-fast} BATCH=${BATCH:-256}
     NORMALS_S=${NORMALS_S:-30} EVAL_RESERVE_S=${EVAL_RESERVE_S:-110} RESUME_WAIT_S=${RESUME_WAIT_S:-60}
     EVAL_LABELS=50000 THRESHOLD_LABELS=20000 NORMAL_BATCH=32 NCE_MAX_S=${NCE_MAX_S:-100000}
     COMPILE_RESERVE_S=${COMPILE_RESERVE_S:-60} POST_RESERVE_S=${POST_RESERVE_S:-90}
-    CROP_FROM=${CROP_FROM:-2048}
 fi
 DERIVE_FRACTION=${DERIVE_FRACTION:-0.4}
 export PYTHONPATH=${PYTHONPATH:-/tmp/site:$PWD} PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
@@ -112,20 +103,6 @@ if [ "$NCE_S" -lt 5 ]; then
     log "error: no time left to train (budget ${BUDGET} s too small)"
     STATUS=4
 else
-    # the crop variant (CROP_FROM > 0) trains beside the base one on the same GPU (its own
-    # folder run_crop/; the NCE sees CROP_FROM support points and keeps the nearest ones)
-    CROP_PID=
-    if [ "$CROP_FROM" -gt 0 ]; then
-        CROP_RESUME=
-        [ -f "$STATE/run_crop/nce/config.json" ] && CROP_RESUME=--resume
-        CUDA_VISIBLE_DEVICES=${CROP_GPU:-${CUDA_VISIBLE_DEVICES:-0}} \
-        timeout -k 5 $(($(left) - 12)) "$PY" -m experiments.train_collision "${COMMON[@]}" \
-            --out "$STATE/run_crop" --support-crop-from "$CROP_FROM" \
-            --existing-only $CROP_RESUME --batch "$BATCH" --normal-batch "$NORMAL_BATCH" \
-            --time-budget "nce=$NCE_S,normals=0" "${TIMING[@]}" --eval-labels "$EVAL_LABELS" \
-            --threshold-labels "$THRESHOLD_LABELS" ${NCE_ARGS:-} ${CROP_ARGS:-} >"$STATE/logs/train_crop_$CALL.log" 2>&1 &
-        CROP_PID=$!
-    fi
     timeout -k 5 $(($(left) - 12)) "$PY" -m experiments.train_collision "${COMMON[@]}" \
         --existing-only $RESUME --batch "$BATCH" --normal-batch "$NORMAL_BATCH" \
         --time-budget "nce=$NCE_S,normals=$NORMALS_S" "${TIMING[@]}" --eval-labels "$EVAL_LABELS" \
@@ -133,13 +110,6 @@ else
     STATUS=$?
     grep -E "^pairs:|^held-out" "$STATE/logs/train_$CALL.log" | tee -a "$LOG"
     [ "$STATUS" -eq 0 ] || log "error: train_collision exited $STATUS (see logs/train_$CALL.log)"
-    if [ -n "$CROP_PID" ]; then
-        wait "$CROP_PID"
-        CROP_STATUS=$?
-        log "crop variant (support crop from $CROP_FROM points), exit $CROP_STATUS:"
-        grep -E "^held-out" "$STATE/logs/train_crop_$CALL.log" | tee -a "$LOG"
-        [ "$CROP_STATUS" -eq 0 ] || log "warning: the crop variant failed (logs/train_crop_$CALL.log); the base weights are unaffected"
-    fi
 fi
 kill "$DERIVE_PID" 2>/dev/null
 wait "$DERIVE_PID" 2>/dev/null
@@ -149,7 +119,6 @@ log "derived now: $(ls "$STATE/derived/train" | wc -l) training, $(ls "$STATE/de
 PACK=$(mktemp -d)
 mkdir -p "$PACK/weights" "$PACK/logs"
 cp -r "$STATE/run/." "$PACK/weights/" 2>/dev/null
-if [ -d "$STATE/run_crop/nce" ]; then mkdir -p "$PACK/weights_crop" && cp -r "$STATE/run_crop/." "$PACK/weights_crop/"; fi
 cp "$STATE"/logs/*.log "$PACK/logs/" 2>/dev/null
 "$PY" - "$STATE" "$PACK/summary.json" "$CALL" "$STATUS" "$(elapsed)" <<'EOF' >>"$LOG" 2>&1
 import json, os, sys
@@ -167,17 +136,7 @@ summary = dict(
     held_out_labels={k: {x: v.get(x) for x in ("accuracy", "precision", "recall", "balanced_accuracy", "n")}
                      for k, v in m.get("held_out", {}).items()},
     goal_pass=near.get("goal_pass"), near_contact=near.get("near"),
-    transit=near.get("transit"), transit_apart=near.get("transit_apart"),
 )
-if os.path.exists(f"{state}/run_crop/metrics.json"):
-    c = json.load(open(f"{state}/run_crop/metrics.json"))
-    cn = c.get("held_out_near", {}).get("nce", {})
-    summary["crop"] = dict(
-        nce_threshold=c.get("nce_threshold"), nce_steps_this_call=c.get("nce", {}).get("steps"),
-        held_out_labels={x: c.get("held_out", {}).get("nce", {}).get(x) for x in ("accuracy", "precision", "recall")},
-        goal_pass=cn.get("goal_pass"), near_contact=cn.get("near"),
-        transit=cn.get("transit"), transit_apart=cn.get("transit_apart"),
-    )
 json.dump(summary, open(out, "w"), indent=2)
 print(json.dumps(summary))
 EOF

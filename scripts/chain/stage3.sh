@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Chain part "stage3" (issue 12; docs/stage3.md): train the Stage-3 value function V on ALL
+# Chain part "stage3" (docs/stage3.md): train the Stage-3 value function V on ALL
 # derived training pairs with hard-negative RL rounds, resuming across calls of the device chain.
 #
 #   bash scripts/chain/stage3.sh BUDGET_S OUT_TGZ        # e.g. 520 /tmp/chain/out/stage3_1.tgz
@@ -11,7 +11,7 @@
 #    background derive may still be writing them), appends every derived pair to the job's
 #    bank (slots never move; bank.npz) and seeds the new ones in chunks: their stable poses
 #    (reward 1), 8 + 8 perturbations inside CEM's box and +-5 mm / 0.1 rad, the K = 5
-#    Stage-1 and Stage-2 proposals of WHERE (weights/where_small_paper), all labelled by
+#    Stage-1 and Stage-2 proposals of WHERE (weights/stage12), all labelled by
 #    sim.kernels.stability under protocol_stability in CHAIN_WORKERS processes;
 # 2. pretrains V (6,000 steps, once);
 # 3. hard-negative RL rounds until the budget: CEM on the current V from the Stage-2
@@ -27,7 +27,7 @@
 #    (this call). Unpack: mkdir -p DIR && tar -xzf OUT_TGZ -C DIR; the weights are DIR/value.
 # Knobs (env): PRESET (hardneg; CHAIN_TINY=1: hardneg_tiny), MIN_PAIRS (200), RESERVE_S (40:
 # startup + packing outside the job's own budget), INIT_VALUE (start V from a value/ folder),
-# WHERE (weights/where_small_paper), EXTRA (more train_stage3 flags), CHAIN_WORKERS (3),
+# WHERE (weights/stage12), EXTRA (more train_stage3 flags), CHAIN_WORKERS (3),
 # CHAIN_DS (/tmp/chain/ds), STAGE3_STATE (/tmp/chain/stage3). GPU memory: XLA_PYTHON_CLIENT_MEM_FRACTION 0.22 unless set.
 set -uo pipefail
 BUDGET=${1:?usage: stage3.sh BUDGET_S OUT_TGZ}
@@ -48,7 +48,7 @@ if [ -n "${CHAIN_TINY:-}" ]; then
 else
     PRESET=${PRESET:-hardneg} MIN_PAIRS=${MIN_PAIRS:-200} RESERVE_S=${RESERVE_S:-40}
 fi
-WHERE=${WHERE:-weights/where_small_paper}
+WHERE=${WHERE:-weights/stage12}
 export PYTHONPATH=${PYTHONPATH:-/tmp/site:$PWD} PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 export XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.22}
 PY=${PYTHON:-python3}  # the chain's image python; SKIP_INSTALL=1 (local test): the venv's

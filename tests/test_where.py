@@ -1,0 +1,174 @@
+"""``omnihang_jax.where`` (one answer for the command and the evaluation) and its held-out
+evaluation ``omnihang_jax.where_eval`` / ``experiments.evaluate where``, on tiny networks."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import flax.serialization
+import jax
+import numpy as np
+import pytest
+
+from omnihang_jax import config as config_mod
+from omnihang_jax import refine, stage3, train, where, where_eval
+
+PAPER = Path(__file__).resolve().parents[1] / "datasets" / "paper"
+
+
+def save_tiny_stage12(folder: Path) -> None:
+    """A Stage 1 + 2 folder of the tiny preset with random parameters, in the exported
+    format ``predict.load_predictor`` reads (``train.export_weights``)."""
+    cfg = train.WHERE_TINY
+    for i, stage in enumerate(("1", "2b")):
+        dst = Path(train._stage_dir(str(folder), stage))
+        dst.mkdir(parents=True)
+        params = train.make_init_state(stage, cfg)(jax.random.key(i)).params
+        (dst / train.WEIGHTS_FILE).write_bytes(flax.serialization.to_bytes(params))
+        saved = dict(stage=stage, config=config_mod.config_to_dict(cfg), step=0)
+        (dst / "config.json").write_text(json.dumps(saved))
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> where.WhereConfig:
+    root = tmp_path_factory.mktemp("tiny_where")
+    save_tiny_stage12(root / "stage12")
+    for name, seed in (("value", 0), ("ranker", 1)):
+        net = stage3.make_value(stage3.VALUE_TINY)
+        refine.save_value(root / name, stage3.VALUE_TINY, net.init(jax.random.key(seed)))
+    pipe = dataclasses.replace(
+        stage3.ANSWER_PIPELINE, num_proposals=3, views=((0, 1), (1, 2)),
+        cem=stage3.CEMConfig(population=8, iterations=2, elites=3),
+    )  # fmt: skip
+    return where.WhereConfig(stage12=str(root / "stage12"), value=str(root / "value"),
+                             rankers=(str(root / "ranker"),), pipeline=pipe, check=4)  # fmt: skip
+
+
+def pairs(batch: int, seed: int = 0, n: int = 4096) -> stage3.PairClouds:
+    """A small ball over a bar (support along x at z = 0) per pair."""
+    rng = np.random.default_rng(seed)
+    obj = rng.normal(size=(batch, n, 3)).astype(np.float32)
+    obj_n = obj / np.linalg.norm(obj, axis=-1, keepdims=True)
+    sup = np.zeros((batch, n, 3), np.float32)
+    sup[..., 0] = rng.uniform(-0.1, 0.1, (batch, n))
+    ang = rng.uniform(0, 2 * np.pi, (batch, n))
+    sup[..., 1], sup[..., 2] = 0.005 * np.cos(ang), 0.005 * np.sin(ang)
+    sup_n = np.stack([np.zeros_like(ang), np.cos(ang), np.sin(ang)], -1).astype(np.float32)
+    return stage3.PairClouds(0.03 * obj_n + [0, 0, 0.04], obj_n, sup, sup_n)
+
+
+def test_named_configs_differ_where_the_paper_does():
+    assert where.DEFAULT.pipeline == stage3.ANSWER_PIPELINE and where.DEFAULT.check > 0
+    assert where.PAPER.pipeline == stage3.PipelineConfig()  # K = 5, Stage-2 starts, highest V
+    assert where.PAPER.rankers == () and where.PAPER.check == 0
+    assert (where.PAPER.stage12, where.PAPER.value) == (where.DEFAULT.stage12, where.DEFAULT.value)
+    for folder in (where.DEFAULT.stage12, where.DEFAULT.value, *where.DEFAULT.rankers):
+        assert Path(folder).exists(), folder  # the committed weights the configs name
+    with pytest.raises(ValueError, match="check"):
+        where.WhereConfig(check=-1)
+
+
+def test_answer_is_ranked_and_a_pair_does_not_depend_on_its_batch(tiny):
+    w = where.load_where(tiny)
+    clouds = pairs(2)
+    out = w.answer(clouds, [10, 11], seed=0)
+    k, views = 3, 2
+    assert out.stage1.shape == (2, k, 7) and out.stage2.shape == (2, k, 7)
+    assert out.ranked.shape == (2, 2 * k * views, 7)  # both starts, every view
+    assert (np.diff(out.keys, axis=1) <= 1e-6).all()  # the rule's order, best first
+    assert sorted(set(out.start.ravel())) == ["stage1", "stage2"]
+    assert ((out.proposal >= 0) & (out.proposal < k)).all()
+    np.testing.assert_allclose(np.linalg.norm(out.ranked[..., 3:], axis=-1), 1.0, atol=1e-5)
+    # the same pairs in the other order (same shape: no new compile): each pair's answer is
+    # its own, fixed by (seed, pair id), not by its place in the batch
+    swapped = w.answer(jax.tree.map(lambda x: x[::-1], clouds), [11, 10], seed=0)
+    np.testing.assert_allclose(swapped.ranked[::-1], out.ranked, atol=1e-4)
+    other = w.answer(clouds, [10, 11], seed=1)
+    assert not np.allclose(other.stage1, out.stage1)  # the seed changes the draws
+
+
+def test_check_is_the_first_candidate_that_stays_on_the_observed_clouds(tiny, monkeypatch):
+    """``check`` asks sim.observed.first_staying with the config's reach; off (0) it is the
+    rule's first candidate without any simulation."""
+    from sim import observed
+
+    w = where.load_where(tiny)
+    out = w.answer(pairs(2), [0, 1])
+    seen = {}
+
+    def fake(clouds, poses, floor_z, wall_y, top, nthread=1):
+        seen.update(top=top, n=len(poses))
+        return 2, np.array([1, 1, 0] + [-2] * (len(poses) - 3), np.int8)
+
+    monkeypatch.setattr(observed, "first_staying", fake)
+    pick, status = w.check(out, 0, {}, -1.0, None)
+    assert pick == 2 and seen == dict(top=4, n=out.ranked.shape[1]) and status[2] == 0
+    off = where.load_where(dataclasses.replace(tiny, check=0))
+    assert off.check(out, 0, {}, -1.0, None)[0] == 0
+
+
+def test_stage1_answer_releases_the_least_penetrating_proposal():
+    """A proposal sunk into a flat support and one resting on it: the resting one is the
+    answer, lifted by stage1.ANSWER_LIFT."""
+    from omnihang_jax.stage1 import ANSWER_LIFT
+
+    rng = np.random.default_rng(0)
+    obj = rng.uniform(-0.02, 0.02, (400, 3)).astype(np.float32)
+    sup = np.zeros((900, 3), np.float32)
+    sup[:, :2] = rng.uniform(-0.1, 0.1, (900, 2))
+    nrm = np.tile(np.float32([0, 0, 1]), (900, 1))
+    sunk, rest = [0, 0, 0, 1, 0, 0, 0], [0, 0, 0.021, 1, 0, 0, 0]
+    pose = where.stage1_answer(obj, sup, nrm, np.array([sunk, rest], np.float32))
+    np.testing.assert_allclose(pose, np.array(rest) + [0, 0, ANSWER_LIFT, 0, 0, 0, 0], atol=1e-6)
+
+
+def test_summary_is_the_mean_over_categories_and_seeds():
+    rows = [
+        dict(pair_index=i, seed=s, category=c, success={"all_stages": ok})
+        for i, (c, ok) in enumerate([("mug", True), ("mug", False), ("cap", True)])
+        for s in (0, 1)
+    ]
+    rows[-1]["success"]["all_stages"] = False  # seed 1: cap fails
+    out = where_eval.summarise(rows)["all_stages"]
+    assert out["per_seed"] == {"0": 75.0, "1": 25.0} and out["mean"] == 50.0
+    assert out["per_category"] == {"cap": 50.0, "mug": 50.0} and out["pairs"] == 3
+
+
+@pytest.mark.skipif(not (PAPER / "shards").is_dir(), reason="paper dataset labels not present")
+def test_evaluate_where_end_to_end_on_two_held_out_pairs(tiny, tmp_path, monkeypatch):
+    """Two held-out pairs derived from the committed dataset, the tiny answer, every answer
+    simulated on the true meshes; the records resume (a second run simulates nothing new)
+    and ``experiments.evaluate`` writes the summary under the config's name."""
+    from experiments import evaluate
+    from omnihang_jax import dataset_bridge
+
+    derived = tmp_path / "derived"
+    dataset_bridge.derive_dataset(PAPER, derived, splits=("test",), limit=2, progress=False,
+                                  workers=1)  # fmt: skip
+    files = where_eval.pair_files(derived, "test")
+    assert len(files) == 2
+    records = tmp_path / "where.jsonl"
+    rows = where_eval.evaluate_where(tiny, files, records, seed=0, batch=2, progress=False,
+                                     dataset_dir=PAPER)  # fmt: skip
+    assert len(rows) == 2
+    for r in rows:
+        assert set(r["status"]) == set(where_eval.ANSWERS)
+        assert set(r["status"].values()) <= {"stable", "fallen", "penetrating", "diverged"}
+        assert r["check_tried"] <= tiny.check
+    calls = []
+    monkeypatch.setattr(where_eval, "judge_pair", lambda job: calls.append(job))
+    assert len(where_eval.evaluate_where(tiny, files, records, seed=0, progress=False,
+                                         dataset_dir=PAPER)) == 2  # fmt: skip
+    assert calls == []  # resumed: nothing simulated again
+    monkeypatch.setitem(where.CONFIGS, "tiny", tiny)
+    monkeypatch.chdir(tmp_path)
+    os.makedirs("results")
+    entry = evaluate.main(["where", "--config", "tiny", "--data", str(derived), "--seed", "0",
+                           "--records", str(records), "--results", "results/hs.json",
+                           "--no-progress", "--workers", "0"])  # fmt: skip
+    saved = json.loads(Path("results/hs.json").read_text())["tiny"]
+    assert saved["all_stages"]["pairs"] == 2 and saved["seeds"] == [0]
+    assert saved["all_stages"] == entry["all_stages"]
