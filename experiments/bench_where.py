@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import sys
 import time
 
 import numpy as np
@@ -91,7 +92,7 @@ def main(argv=None) -> dict:
     rows = bench({n: where.CONFIGS[n] for n in names}, batches, args.repeat, args.points)
     result = dict(
         what="omnihang_jax.where answer (Stages 1-3, one jitted call per batch), no check",
-        command="python -m experiments.bench_where " + " ".join(argv or []),
+        command="python -m experiments.bench_where " + " ".join(sys.argv[1:] if argv is None else argv),
         device=str(jax.devices()[0]), device_kind=jax.devices()[0].device_kind,
         versions=dict(jax=jax.__version__, python=platform.python_version()), rows=rows,
     )  # fmt: skip

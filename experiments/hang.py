@@ -163,7 +163,7 @@ def heldout_main(args, config, log) -> int:
         print(
             f"expected: {e['all_stages']:.1f} % (all stages, mean over categories, "
             f"{e['pairs']} held-out pairs x seeds {e['seeds']}, {HELDOUT_RESULTS}: "
-            f"{e['command']}); a handful of pairs varies a lot around it"
+            f"{e['source']}); a handful of pairs varies a lot around it"
         )
     print(
         f"wrote {args.out}/heldout.json"

@@ -15,7 +15,8 @@ The committed rankers (``weights/rankers/*``, docs/where.md): ``listwise`` 2,500
 4,840 pairs' pools; ``listwise_big`` 5,000 steps on 9,680 pairs with ``--seed 1``; ``near``
 2,500 steps with ``--support-near 256 --object-near 256`` (each state's 512 points of a cloud
 are 256 evenly spaced ones and the 256 nearest the other cloud). Every other option at its
-default.
+default. Their pools held the 20 candidates of one view (K = 10, Stages 1 and 2 starts); the
+pools here hold the default pipeline's 60 (three views).
 
 Why: V was trained on perturbations and CEM's top members of half-resolution training clouds;
 the answer is chosen among the pipeline's final candidates. A ranker is the same network (same
@@ -119,13 +120,25 @@ def score_pools(scorer, params, bank: refine.PairBank, poses: np.ndarray, batch:
     return out
 
 
+def ordered(scores: np.ndarray, stable: np.ndarray, clear: np.ndarray) -> float:
+    """Of the (stable, unstable) pairs of clear candidates of a pool, the share ``scores`` [N, C]
+    order stable first (%), mean over the pools that hold both (what the listwise term asks)."""
+    both = (stable & clear)[:, :, None] & (~stable & clear)[:, None, :]
+    right = (scores[:, :, None] > scores[:, None, :]) & both
+    n = both.sum((1, 2))
+    return 100.0 * float(np.mean(right.sum((1, 2))[n > 0] / n[n > 0])) if (n > 0).any() else 0.0
+
+
 def score_variants(pools: dict, ranker_logp: np.ndarray) -> dict:
     """The rule's success (mean over categories, %) with the pools' own ranking (V, the
-    pipeline the pools come from) and with the ranker; how often some candidate hangs."""
+    pipeline the pools come from) and with the ranker; how often some candidate hangs; the
+    clear (stable, unstable) pairs the ranker orders right."""
+    clear = pools["counts"] <= pools_mod.RULE.max_points
     return {
         "pool_v": pools_mod.rule_success(pools, pools["keys"])["mean"],
         "ranker": pools_mod.rule_success(pools, ranker_logp)["mean"],
         "any_stable": 100.0 * float(np.mean(pools["stable"].any(1))),
+        "ordered": ordered(ranker_logp, pools["stable"], clear),
     }
 
 

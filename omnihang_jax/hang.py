@@ -646,17 +646,7 @@ def hang(
 def network_sizes(model: str | os.PathLike) -> tuple[int, int]:
     """(points per cloud, fewest points allowed) of a trained model folder, read from its
     Stage-1 config.json without loading the networks: the encoder's ``num_points`` and its
-    first set-abstraction level's ``npoint`` (the centres it samples). ``"A+B"`` (a Stage-1
-    mix, ``predict.load_predictor``): the most over the networks."""
-    if "+" in os.fspath(model):
-        first, *more = os.fspath(model).split("+")
-        sizes = [network_sizes(first)]
-        for other in more:
-            path = Path(other) / "stage1" / "config.json"
-            if not path.exists():
-                raise HangInputError(f"{other}: no Stage-1 network there (the mix {model})")
-            sizes.append(_stage1_sizes(path))
-        return max(n for n, _ in sizes), max(f for _, f in sizes)
+    first set-abstraction level's ``npoint`` (the centres it samples)."""
     path = Path(model) / "stage1" / "config.json"
     if not path.exists() or not (Path(model) / "stage2b" / "config.json").exists():
         raise HangInputError(
@@ -676,7 +666,7 @@ def _stage1_sizes(path: Path) -> tuple[int, int]:
 
 
 def _predictor_sizes(predictor) -> tuple[int, int]:
-    first = max(int(c.encoder.sa_levels[0].npoint) for c in predictor.stage1_configs)
+    first = int(predictor.stage1_config.encoder.sa_levels[0].npoint)
     return predictor.num_points, first
 
 

@@ -183,7 +183,7 @@ class EstimatorChecker:
 class CascadeChecker:
     """``first OR second``, asking the (costly) second checker only where the (cheap) first
     says free. Per state it answers exactly what one checker computing both would
-    (``collision.nce_geometric_collides``); :meth:`any_colliding` (an edge of the planner)
+    (``collision.geometric_collides``); :meth:`any_colliding` (an edge of the planner)
     stops after the first checker when it flags any state, without asking the second.
 
     ``states_first`` / ``states_second`` count the states each checker was asked about."""

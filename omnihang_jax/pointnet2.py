@@ -167,7 +167,7 @@ def gather_points(values: jax.Array, idx: jax.Array) -> jax.Array:
 # loop iteration's overhead, not its arithmetic, sets it. ``unroll`` steps per loop iteration
 # (lax.fori_loop's unroll: the same operations, the same indices) cut that overhead on a GPU:
 # the first level 1.80 -> 1.53 ms at 8, the three-view answer pipeline 104.4 -> 97.1 ms at
-# batch 1 on one H200, side by side (experiments.bench_stage3; 97.5 at 4). It lengthens compilation (the answer pipeline on the CPU: 13.6 s at 1, 22.8 s at 8), so on a CPU,
+# batch 1 on one H200, side by side (97.5 at 4). It lengthens compilation (the answer pipeline on the CPU: 13.6 s at 1, 22.8 s at 8), so on a CPU,
 # where the loop's overhead is small beside its arithmetic, it stays 1.
 # FPS_UNROLL: None = FPS_UNROLL_GPU on a GPU backend, 1 elsewhere; an int forces it.
 FPS_UNROLL: int | None = None
@@ -216,7 +216,7 @@ BALL_QUERY_METHODS = ("cumsum", "count", "top_k")
 # the method ``ball_query`` uses when none is given (read at trace time, like FPS_UNROLL; every
 # method gives the same indices). "cumsum" is the fastest on the GPU: V's first level on the
 # three-view CEM population 2.43 ms against 3.15 (count) and 10.04 (top_k) on one H200;
-# bench_stage3's "-bqM" answers time the others.
+# the others give the same indices at other speeds.
 BALL_QUERY_METHOD = "cumsum"
 
 
@@ -240,7 +240,7 @@ def ball_query(
     a GPU), "count" = the same running count, the j-th hit's position read as the number of
     indices whose count is below j (a compare-and-sum instead of the binary search), or
     "top_k" = the ``nsample`` smallest hit indices (``jax.lax.top_k``); the three are compared
-    by ``experiments.bench_stage3``.
+    by a benchmark.
     """
     method = BALL_QUERY_METHOD if method is None else method
     n = points.shape[1]

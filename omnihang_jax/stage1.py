@@ -143,14 +143,12 @@ class Stage1Net(nn.Module):
 
 ROTATIONS = ("axis_angle", "6d")
 
-# The release height of the Stage-1 *answer* (the default of eval_where and predict_where): the
-# first proposal let go 7.5 mm above the predicted pose (+z of the support frame, rotation kept).
-# 57 % of the network's held-out first proposals start more than 3 mm inside the support (the
-# protocol's penetration failure); a pose a little above the hook drops onto it. Chosen on the
-# 345 validation-object pairs (33.3 / 38.5 / 41.3 / **43.2** / 43.0 / 39.7 / 33.2 % at 0 / 2.5 /
-# 5 / 7.5 / 10 / 15 / 20 mm); held out 24.6 -> 36.7 %. 0 is the network's pose, the paper's
-# Stage 1 (eval_where --stage1-lift 0). The Stage-3 pipeline's candidates are
-# not lifted (CEM moves them out of the support itself; a lift did not help there on validation).
+# The release height of the Stage-1 answer (omnihang_jax.where.stage1_answer): the chosen
+# proposal let go 7.5 mm above the predicted pose (+z of the support frame, rotation kept). Most
+# first proposals start a few millimetres inside the support (the protocol's > 3 mm penetration
+# failure); a pose a little above the hook drops onto it. Chosen on the validation objects over
+# 0-20 mm (33.3 / 38.5 / 41.3 / 43.2 / 43.0 / 39.7 / 33.2 % at 0 / 2.5 / 5 / 7.5 / 10 / 15 /
+# 20 mm). The Stage-3 candidates are not lifted: CEM moves them out of the support itself.
 ANSWER_LIFT = 0.0075
 
 

@@ -58,7 +58,6 @@ __all__ = [
     "solve_translation",
     "estimate_support_normals",
     "clearance_offset",
-    "ANSWER_CLEARANCE",
     "ANSWER_LIFT",
 ]
 
@@ -371,20 +370,9 @@ def estimate_support_normals(
     return jnp.where(side < 0, -normal, normal)
 
 
-# The clearance of the Stages 1+2 *answer* (the default of eval_where and predict_where): the
-# Stage-2 pose moved this far along the observed support normal. Chosen on the 345
-# validation-object pairs behind the original-preset Stage 1, the least-penetrating selection
-# of the K Stage-2 poses (evaluate.ANSWER_SELECT) and the 5-mm release: 47.1 / 46.9 / **49.3** /
-# 45.5 / 37.1 % at 0 / 2 / 4 / 8 / 12 mm; 4 mm, fixed before the held-out run (docs/networks.md).
-# The trained model's own Stage2Config.clearance stays 0, and so do the Stage-3 pipeline's CEM
-# starts: with the clearance there all stages fell 73.3 -> 72.6 on the same validation pairs
-# (CEM moves the proposals out of the support itself).
-ANSWER_CLEARANCE = 0.004
-# The Stages 1+2 answer is released this far (m) above the chosen pose (+z of the support frame,
-# after the clearance and after the least-penetrating selection; evaluate.EvalConfig.stage2_lift,
-# eval_where / predict_where --stage2-lift). Chosen on the 345 validation-object pairs behind
-# an 8-mm clearance and the selection: 34.5 / 37.7 / **39.0** / 38.0 / 37.7 / 37.2 % at 0 / 2.5 /
-# 5 / 7.5 / 10 / 15 mm; held out, applied once: 32.0 -> 34.5 %. 0: the clearance alone.
+# The Stages 1+2 answer (omnihang_jax.where.stage1_2_answer) is the least penetrating Stage-2
+# pose released this far (m) above (+z of the support frame). Chosen on the validation objects:
+# 34.5 / 37.7 / 39.0 / 38.0 / 37.7 / 37.2 % at 0 / 2.5 / 5 / 7.5 / 10 / 15 mm.
 ANSWER_LIFT = 0.005
 
 

@@ -648,7 +648,7 @@ def make_ensemble_score(
     the R networks scores the poses on that many evenly spaced subsets of the clouds
     (:func:`subset_clouds`) and its log V is their mean (``PipelineConfig.rank_subsets``).
     ``view`` = (j, T) with ``subsets`` = 1: every network sees subset j of T instead of subset
-    0 (a study of the pipeline on another subsample, ``eval_stage3 --view``). ``stacked`` V
+    0 (the pipeline on another subsample). ``stacked`` V
     views (j, T): scores [V*B, P] and poses [V*B, P, 7] hold V views' candidates, view-major,
     of the B pairs of ``clouds``; rows of view v are scored on its subset, every view in one
     pass of each network (``PipelineConfig.fuse``). Pure, un-jitted."""

@@ -56,7 +56,7 @@ from omnihang_jax.train_losses import STAGES, make_loss_fn
 __all__ = [
     "STAGES",
     "TrainConfig",
-    "WhereConfig",
+    "NetworksConfig",
     "WHERE_ORIGINAL",
     "WHERE_TINY",
     "WHERE_SMALL",
@@ -107,7 +107,7 @@ class TrainConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class WhereConfig:
+class NetworksConfig:
     """Everything needed to rebuild and train the "where to hang" networks."""
 
     stage1: Stage1Config = STAGE1_ORIGINAL
@@ -120,8 +120,8 @@ class WhereConfig:
         return self.stage1.encoder.num_points
 
 
-WHERE_ORIGINAL = WhereConfig()
-WHERE_TINY = WhereConfig(
+WHERE_ORIGINAL = NetworksConfig()
+WHERE_TINY = NetworksConfig(
     stage1=STAGE1_TINY,
     stage2=STAGE2_TINY,
     # constant lr, no clipping: the tests memorise a few pairs in a few hundred steps
@@ -137,7 +137,7 @@ WHERE_TINY = WhereConfig(
     ),
     preset="tiny",
 )
-WHERE_SMALL = WhereConfig(
+WHERE_SMALL = NetworksConfig(
     stage1=STAGE1_SMALL,
     stage2=STAGE2_SMALL,
     train=TrainConfig(batch_size=8, log_every=25, checkpoint_every=250, synthetic_pairs=32),
@@ -159,7 +159,7 @@ class TrainState:
 # Train state and step
 
 
-def learning_rate_schedule(stage: str, config: WhereConfig) -> optax.Schedule:
+def learning_rate_schedule(stage: str, config: NetworksConfig) -> optax.Schedule:
     """The stage's learning rate per step (``TrainConfig.schedule``, warm-up + cosine)."""
     cfg = config.train
     lr = cfg.lr_stage1 if stage == "1" else cfg.lr_stage2
@@ -178,7 +178,7 @@ def learning_rate_schedule(stage: str, config: WhereConfig) -> optax.Schedule:
     )
 
 
-def make_optimizer(stage: str, config: WhereConfig) -> optax.GradientTransformation:
+def make_optimizer(stage: str, config: NetworksConfig) -> optax.GradientTransformation:
     """Adam on the stage's schedule, after global-norm clipping (``clip_norm`` > 0)."""
     adam = optax.adam(learning_rate_schedule(stage, config))
     if config.train.clip_norm > 0:
@@ -186,7 +186,7 @@ def make_optimizer(stage: str, config: WhereConfig) -> optax.GradientTransformat
     return adam
 
 
-def make_init_state(stage: str, config: WhereConfig) -> Callable[..., TrainState]:
+def make_init_state(stage: str, config: NetworksConfig) -> Callable[..., TrainState]:
     """``init(key, params=None) -> TrainState``; ``params`` overrides the random init (2b from
     2a)."""
     tx = make_optimizer(stage, config)
@@ -199,7 +199,7 @@ def make_init_state(stage: str, config: WhereConfig) -> Callable[..., TrainState
     return init
 
 
-def make_train_step(stage: str, config: WhereConfig) -> Callable:
+def make_train_step(stage: str, config: NetworksConfig) -> Callable:
     """``train_step(state, batch: HangSample, key) -> (state, metrics)``: one Adam step.
 
     Pure; jit it once at the top (``jax.jit(make_train_step(stage, config))``).
@@ -224,7 +224,7 @@ def make_train_step(stage: str, config: WhereConfig) -> Callable:
     return train_step
 
 
-def make_eval_step(stage: str, config: WhereConfig) -> Callable:
+def make_eval_step(stage: str, config: NetworksConfig) -> Callable:
     """``eval_step(params, batch, key) -> metrics``: the stage's loss and metrics, no update."""
     loss_fn = make_loss_fn(stage, config)
 
@@ -239,7 +239,7 @@ def make_eval_step(stage: str, config: WhereConfig) -> Callable:
 
 
 @functools.lru_cache(maxsize=16)
-def _jitted(stage: str, config: WhereConfig) -> tuple[Callable, Callable, Callable]:
+def _jitted(stage: str, config: NetworksConfig) -> tuple[Callable, Callable, Callable]:
     """Jit init and step once per (stage, config): resuming in one process does not recompile."""
     return (
         jax.jit(make_init_state(stage, config)),
@@ -252,12 +252,12 @@ def _stage_dir(workdir: str, stage: str) -> str:
     return os.path.join(os.path.abspath(workdir), f"stage{stage}")
 
 
-def _write_config(stage_dir: str, stage: str, config: WhereConfig) -> None:
+def _write_config(stage_dir: str, stage: str, config: NetworksConfig) -> None:
     """Write config.json; refuse to resume a folder trained with another architecture."""
     path = os.path.join(stage_dir, "config.json")
     if os.path.exists(path):
         with open(path) as f:
-            old = config_from_dict(WhereConfig, json.load(f)["config"])
+            old = config_from_dict(NetworksConfig, json.load(f)["config"])
         if (old.stage1, old.stage2) != (config.stage1, config.stage2):
             raise ValueError(
                 f"{stage_dir} holds a model with a different architecture (preset "
@@ -267,7 +267,7 @@ def _write_config(stage_dir: str, stage: str, config: WhereConfig) -> None:
         json.dump({"stage": stage, "config": config_to_dict(config)}, f, indent=2)
 
 
-def _checkpoint_manager(stage_dir: str, config: WhereConfig) -> ocp.CheckpointManager:
+def _checkpoint_manager(stage_dir: str, config: NetworksConfig) -> ocp.CheckpointManager:
     return ocp.CheckpointManager(
         os.path.join(stage_dir, "checkpoints"),
         options=ocp.CheckpointManagerOptions(max_to_keep=config.train.max_to_keep, create=True),
@@ -282,7 +282,7 @@ def _restore(manager: ocp.CheckpointManager, target: TrainState, step: int) -> T
     return flax.serialization.from_state_dict(target, restored)
 
 
-def restore_stage(stage_dir: str, step: int | None = None) -> tuple[WhereConfig, Any, int]:
+def restore_stage(stage_dir: str, step: int | None = None) -> tuple[NetworksConfig, Any, int]:
     """Rebuild a trained stage from its folder alone.
 
     stage_dir: e.g. ``out/stage1``. Returns (config, params, step) of the latest (or given)
@@ -294,7 +294,7 @@ def restore_stage(stage_dir: str, step: int | None = None) -> tuple[WhereConfig,
         raise FileNotFoundError(f"{path} not found: not a trained stage folder")
     with open(path) as f:
         saved = json.load(f)
-    stage, config = saved["stage"], config_from_dict(WhereConfig, saved["config"])
+    stage, config = saved["stage"], config_from_dict(NetworksConfig, saved["config"])
     exported = os.path.join(stage_dir, WEIGHTS_FILE)
     if not os.path.isdir(os.path.join(stage_dir, "checkpoints")) and os.path.exists(exported):
         target = jax.eval_shape(make_init_state(stage, config), jax.random.key(0)).params
@@ -314,7 +314,7 @@ def restore_stage(stage_dir: str, step: int | None = None) -> tuple[WhereConfig,
 WEIGHTS_FILE = "params.msgpack"
 
 
-def _network_fields(config: WhereConfig, stage: str):
+def _network_fields(config: NetworksConfig, stage: str):
     """The parts of a config that shape a stage's parameters."""
     return config.stage1 if stage == "1" else config.stage2.pointnet
 
@@ -402,7 +402,7 @@ def plot_metrics(metrics_path: str, png_path: str) -> None:
 
 def train_stage(
     stage: str,
-    config: WhereConfig,
+    config: NetworksConfig,
     dataset: data_lib.HangDataset,
     workdir: str,
     steps: int | None = None,
@@ -562,7 +562,7 @@ STAGE1_FIELDS = ("object_points", "support_points", "stable_poses", "pose_mask")
 
 def make_dataset(
     data: str,
-    config: WhereConfig,
+    config: NetworksConfig,
     split: str = "train",
     on_device: bool = False,
     fields: Sequence[str] | None = None,
@@ -614,7 +614,7 @@ def train_where(
     data: str,
     out: str,
     stages: Sequence[str] = STAGES,
-    config: WhereConfig = WHERE_ORIGINAL,
+    config: NetworksConfig = WHERE_ORIGINAL,
     steps: int | None = None,
     progress: bool = True,
     time_budget_s: dict[str, float] | None = None,

@@ -29,7 +29,7 @@ from omnihang_jax.stage2 import (
 )
 
 if TYPE_CHECKING:
-    from omnihang_jax.train import WhereConfig
+    from omnihang_jax.train import NetworksConfig
 
 STAGES = ("1", "2a", "2b")
 
@@ -80,7 +80,7 @@ def _contact_loss(cfg2: Stage2Config, scores, logits, target, num_object: int) -
     )
 
 
-def make_loss_fn(stage: str, config: WhereConfig) -> Callable:
+def make_loss_fn(stage: str, config: NetworksConfig) -> Callable:
     """Loss of one stage: ``loss_fn(params, batch: HangSample, key) -> (loss, metrics)``.
 
     "1": set loss L_M (Eq. 1) between ``num_train_samples`` proposals and the stable poses.

@@ -18,7 +18,7 @@
 #   DERIVE_S caps the derive (default: until 120 s are left).
 # paths: PATHS_CONFIG (default "default"), PATHS_PAIRS (default 300), PATHS_SEEDS (default 1),
 #   16 planning processes (needs .whl_plan).
-# bench: bench_where over BENCH_CONFIGS (default,paper) and BENCH_BATCHES (1,8,64,256).
+# bench: bench_where over BENCH_CONFIGS (default,paper), BENCH_BATCHES (1,8,64,256), BENCH_REPEAT (10).
 # Each step stops itself before END_S (default 560 s) and leaves its records resumable: a warm
 # next call resumes from the machine's copy, a fresh one from RESUME=DIR (a carried folder
 # holding an earlier call's $OUT files). Back in $OUT: evaluate.log (timings, the summaries),
@@ -55,8 +55,8 @@ keep() {
     cp "$OUT/$1" "$C/rec/$1"
     gzip -f "$OUT/$1"
 }
-# the project's summary of records cut short (the evaluate command prints it when it finishes)
-partial() {  # figure records
+# the project's summary of the records, whole or cut short (the means in the log)
+summary() {  # figure records
     $PY - "$@" <<'EOF' 2>&1 | tee -a "$OUT/$LOG"
 import json, sys
 from omnihang_jax import paths_eval, where_eval
@@ -69,7 +69,7 @@ if rows:
         s = {k: {"mean": v["mean"], "pairs": v["pairs"]} for k, v in s.items()}
     else:
         s = {k: v for k, v in s.items() if not isinstance(v, dict)}
-    print(f"partial {figure} summary of {len(rows)} rows:", json.dumps(s))
+    print(f"{figure} summary of {len(rows)} rows:", json.dumps(s))
 EOF
 }
 run_step() {  # name seconds command...: the command under a time limit, its tail in the log
@@ -91,7 +91,7 @@ where_step() {
     n=$(ls "$DS/derived/test" 2>/dev/null | wc -l)
     log "derive: $n held-out pairs on the machine"
     t=$(date +%s)
-    run_step derive "${DERIVE_S:-$(($(left) - 120))}" $PY -m experiments.derive_dataset --data "$DS" \
+    TAIL=0 run_step derive "${DERIVE_S:-$(($(left) - 120))}" $PY -m experiments.derive_dataset --data "$DS" \
         --split test --workers "${DERIVE_WORKERS:-$CORES}" --no-progress \
         ${PAIRS:+--limit $((PAIRS + 16))}
     # a derive cut short writes no derived.json, which evaluate reads: a no-op derive writes it
@@ -104,13 +104,13 @@ where_step() {
         restore "where_$cfg.jsonl"
         t=$(date +%s)
         local before=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)
-        TAIL=40 run_step "where_$cfg" $(($(left) - 15)) $PY -m experiments.evaluate where \
+        run_step "where_$cfg" $(($(left) - 15)) $PY -m experiments.evaluate where \
             --config "$cfg" --data "$DS" --seed ${SEEDS:-0 1 2} --batch "${BATCH:-64}" \
             --workers "${EVAL_WORKERS:-$((CORES - 1))}" ${PAIRS:+--pairs $PAIRS} --no-progress \
             --records "$OUT/where_$cfg.jsonl" --results "$OUT/where_results.json"
-        local rc=$? after=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)
+        local after=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)
         log "where $cfg: $((after - before)) new rows in $(($(date +%s) - t)) s ($after in all)"
-        [ $rc = 0 ] || partial where "$OUT/where_$cfg.jsonl"
+        summary where "$OUT/where_$cfg.jsonl"
         keep "where_$cfg.jsonl"
     done
 }
@@ -123,13 +123,13 @@ paths_step() {
         cp "$RESUME/paths_$cfg.config.json" "$OUT/"
     [ -s "$C/rec/paths_$cfg.config.json" ] && cp "$C/rec/paths_$cfg.config.json" "$OUT/"
     local before=$(cat "$OUT/paths_$cfg.jsonl" 2>/dev/null | wc -l)
-    TAIL=30 run_step "paths_$cfg" $(($(left) - 15)) $PY -m experiments.evaluate paths --config "$cfg" \
+    run_step "paths_$cfg" $(($(left) - 15)) $PY -m experiments.evaluate paths --config "$cfg" \
         --data "$DS" --pairs "${PATHS_PAIRS:-300}" --seed ${PATHS_SEEDS:-1} \
         --workers "${PATHS_WORKERS:-$CORES}" --no-progress \
         --records "$OUT/paths_$cfg.jsonl" --results "$OUT/paths_results.json"
-    local rc=$? after=$(cat "$OUT/paths_$cfg.jsonl" 2>/dev/null | wc -l)
+    local after=$(cat "$OUT/paths_$cfg.jsonl" 2>/dev/null | wc -l)
     log "paths $cfg: $((after - before)) new rows in $(($(date +%s) - t)) s ($after in all)"
-    [ $rc = 0 ] || partial paths "$OUT/paths_$cfg.jsonl"
+    summary paths "$OUT/paths_$cfg.jsonl"
     [ -s "$OUT/paths_$cfg.config.json" ] && cp "$OUT/paths_$cfg.config.json" "$C/rec/"
     keep "paths_$cfg.jsonl"
 }
@@ -137,7 +137,7 @@ paths_step() {
 bench_step() {
     TAIL=12 run_step bench $(($(left) - 10)) $PY -m experiments.bench_where \
         --configs "${BENCH_CONFIGS:-default,paper}" --batches "${BENCH_BATCHES:-1,8,64,256}" \
-        --out "$OUT/bench_where.json"
+        --repeat "${BENCH_REPEAT:-10}" --out "$OUT/bench_where.json"
 }
 
 for step in $MODE; do

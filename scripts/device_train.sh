@@ -3,16 +3,11 @@
 # cores, train Stages 1 / 2a / 2b on the GPU under time budgets, measure inference latency,
 # and keep the CPU busy generating more dataset shards while the GPU trains.
 #
-#   run(carry=[".whl_min", ".whl_train"], timeout_s=600, command="WHL=.whl_min bash scripts/device_train.sh")
+#   run(carry=[".whl_min", ".whl_train"], timeout_s=600, command="bash scripts/device_train.sh")
 #
-# (.whl_min: the 7 wheels below without mujoco-mjx and the PyBullet sdist, 25 MB: with a
-# 28+ MB tree the full .whl no longer fits the 64 MiB a call carries. Make it here with
-#  mkdir -p .whl_min && cp .whl/{mujoco,mujoco_core,mujoco_studio,websockets,glfw,trimesh,manifold3d}-*.whl .whl_min/
-# and add /.whl_min/ to .git/info/exclude.)
-#
-# .whl/ holds the py3.12 wheels of mujoco 4.0.0 (+ core, studio, websockets, glfw), trimesh
-# and manifold3d (scripts/device_bench.md); .whl_train/ jaxlie + jax_dataclasses + tyro
-# (pure Python). The device image has jax (CUDA), flax, optax, orbax, scipy, matplotlib, tqdm.
+# The carried wheels (docs/device.md): .whl_min (mujoco, mujoco_core, trimesh for Python 3.12)
+# and .whl_train (jaxlie, jax_dataclasses). The device image has jax (CUDA), flax, optax,
+# orbax, scipy, matplotlib, tqdm.
 # Everything comes back in $OUT as three files (the device returns at most 8 files of
 # 16 MiB): device_train.log, new_shards.tgz and results.tgz (the run's configs, metrics,
 # loss curves, throughput.json per stage, the final weights from train.export_weights,
@@ -42,8 +37,7 @@ fi
 log() { echo "[$(($(date +%s) - T0)) s] $*" | tee -a "$OUT/device_train.log"; }
 
 [ -n "${SKIP_INSTALL:-}" ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
-    ${WHL:=.whl}/mujoco-*.whl "$WHL"/mujoco_core-*.whl "$WHL"/mujoco_studio-*.whl "$WHL"/websockets-*.whl \
-    "$WHL"/glfw-*.whl "$WHL"/trimesh-*.whl "$WHL"/manifold3d-*.whl .whl_train/*.whl || exit 5
+    .whl_min/*.whl .whl_train/*.whl || exit 5
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 nvidia-smi -L | tee -a "$OUT/device_train.log"
 log "installed; $(ls "$DATA/shards" | wc -l) shards in $DATA"

@@ -24,4 +24,4 @@ export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=${JAX_PERSISTENT_CACHE_MIN_COM
 # passing. Slower code, results equal up to the last bits (LLVM may contract fewer multiply-adds).
 # TEST_XLA_FLAGS= (empty) keeps XLA's default; the caller's XLA_FLAGS come after these and win.
 export XLA_FLAGS="${TEST_XLA_FLAGS---xla_backend_optimization_level=0} ${XLA_FLAGS:-}"
-.venv/bin/python -m pytest -q -n "${PYTEST_WORKERS:-2}" --durations=25 "$@"
+.venv/bin/python -m pytest -q -n "${PYTEST_WORKERS:-2}" --dist loadgroup --durations=25 "$@"

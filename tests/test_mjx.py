@@ -72,6 +72,7 @@ def test_compiled_once_and_reused(pair):
     assert dict(mjx_kernels.COMPILES) == before
 
 
+@pytest.mark.slow  # a second MJX batch shape: ~2 min of compiling on 2 cores
 def test_diverged_world_does_not_poison_batch(pair):
     """A world whose state is NaN is labelled diverged; its neighbours are unaffected."""
     scene, poses = pair

@@ -88,21 +88,6 @@ def test_a_partly_nan_cloud_keeps_its_finite_points():
     assert observed.observed_stability(c, HANGING[None], -0.5, None)[0] == kernels.STABLE
 
 
-def test_the_records_rule_takes_the_first_staying_of_the_top_m():
-    """experiments.observed_check.rules on a made-up pool: pair 0's best-keyed candidate
-    falls on the observed clouds and the second stays (and hangs); pair 1's best stays."""
-    from experiments.observed_check import rules
-
-    rows = [{"category": "mug"}, {"category": "mug"}]
-    keys = np.array([[3.0, 2.0, 1.0], [3.0, 2.0, 1.0]])
-    stable = np.array([[False, True, False], [True, False, False]])
-    obs = np.array([[kernels.FALLEN, kernels.STABLE, -2], [kernels.STABLE, -2, -2]], np.int8)
-    out = rules(dict(rows=rows, keys=keys, stable=stable), obs)
-    assert out["default"]["mean"] == 50.0
-    assert out["first_of_2"]["mean"] == 100.0 and out["first_of_2"]["changed"] == 1
-    assert out["some_candidate"]["mean"] == 100.0
-
-
 def test_the_pose_rotation_is_the_object_frame_s():
     """The same hang with the object's own frame turned: the clouds given in a frame rotated by
     R^T and the pose rotated by R put the same points in the same place, and the ring stays."""

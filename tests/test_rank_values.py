@@ -7,6 +7,7 @@ the clouds (near points, views, subsets); CEM itself is unchanged. And the commi
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import numpy as np
@@ -18,13 +19,26 @@ from omnihang_jax.stage2 import STAGE2_TINY
 from tests.test_selection_pipeline import CLEAR, PIPE, params, plane_pairs  # noqa: F401
 
 CFG = stage3.VALUE_TINY
-V2 = stage3.make_value(CFG).init(jax.random.key(7))  # a second, different V
+
+
+@functools.cache
+def _jitted(config: stage3.ValueConfig):
+    """(init, score) of a value network of ``config``, jitted once (eager dispatch is slow)."""
+    net = stage3.make_value(config)
+    return jax.jit(net.init), jax.jit(net.score)
+
+
+def _init(config, seed: int):
+    return _jitted(config)[0](jax.random.key(seed))
+
+
+V2 = _init(CFG, 7)  # a second, different V
 
 
 def _scores(net_params, config, clouds, poses):
     """[B, P] log V of ``poses`` [B, P, 7] by one network on its own subsample of ``clouds``."""
     small = stage3.subsample_clouds(jax.tree.map(np.asarray, clouds), config)
-    score = jax.jit(stage3.make_value(config).score)
+    score = _jitted(config)[1]
     return np.stack([np.asarray(score(net_params, jax.tree.map(lambda x, i=i: x[i], small),
                                       poses[i])) for i in range(len(poses))])  # fmt: skip
 
@@ -82,7 +96,7 @@ def test_pipeline_ranks_with_a_near_point_ranker(params):  # noqa: F811
     scores are the mean of their log V; CEM is unchanged."""
     clouds = plane_pairs()
     near = dataclasses.replace(CFG, support_near=16, object_near=8, near_pool=128)
-    v3 = stage3.make_value(CFG).init(jax.random.key(8))
+    v3 = _init(CFG, 8)
     cfg = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=2,
                               rank_with_value=False)  # fmt: skip
     plain = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))
@@ -115,8 +129,7 @@ def test_ensemble_stacks_networks_of_one_config():
     clouds = plane_pairs()
     near = dataclasses.replace(CFG, support_near=16, object_near=8, near_pool=128)
     configs = (CFG, near, CFG)
-    nets = [stage3.make_value(c).init(jax.random.key(k))
-            for c, k in zip(configs, (7, 9, 8), strict=True)]  # fmt: skip
+    nets = [_init(c, k) for c, k in zip(configs, (7, 9, 8), strict=True)]
     poses = _poses_near(clouds)
     first = np.random.default_rng(0).normal(size=poses.shape[:2]).astype(np.float32)
     alone = jax.jit(stage3.make_ensemble_score(configs, with_first=False))
@@ -133,8 +146,8 @@ def test_ensemble_stacks_networks_of_one_config():
 def test_ensemble_over_subsets_is_the_mean_of_each_subsets_score():
     clouds = plane_pairs(n=256, m=256)
     poses = _poses_near(clouds, 8)
-    nets = [stage3.make_value(CFG).init(jax.random.key(k)) for k in (3, 4)]
-    value = jax.jit(stage3.make_value(CFG).score)
+    nets = [_init(CFG, k) for k in (3, 4)]
+    value = _jitted(CFG)[1]
     first = np.zeros(poses.shape[:2], np.float32)
     got = np.asarray(jax.jit(stage3.make_ensemble_score(CFG, False, 2))(first, nets, clouds, poses))
     want = np.zeros_like(got)
@@ -160,12 +173,20 @@ def test_load_rank_values_keeps_each_config(monkeypatch):
     assert predict.load_rank_values([]) == ((), [])
 
 
-def test_committed_rankers_load_beside_the_cem_value():
-    """The default answer's CEM V and rankers are committed and load; each ranker shares the
-    V's encoder and head (fine-tuned from it), differing at most in how the state picks its
-    points (near points: its own subsample of the clouds)."""
-    config, _ = refine.load_value(where.DEFAULT.value)
-    configs, _ = predict.load_rank_values(where.DEFAULT.rankers)
+def test_committed_rankers_fit_beside_the_cem_value():
+    """The default answer's CEM V and rankers are committed; each ranker shares the V's encoder
+    and head (fine-tuned from it), differing at most in how the state picks its points (near
+    points: its own subsample of the clouds)."""
+    from pathlib import Path
+
+    from omnihang_jax.config import load_config
+
+    def config_of(folder):
+        assert (Path(folder) / "params.msgpack").exists(), folder
+        return load_config(stage3.ValueConfig, Path(folder) / "config.json")[0]
+
+    config = config_of(where.DEFAULT.value)
+    configs = [config_of(f) for f in where.DEFAULT.rankers]
     assert len(configs) == 3 and where.DEFAULT.value not in where.DEFAULT.rankers
     for folder, c in zip(where.DEFAULT.rankers, configs, strict=True):
         plain = dataclasses.replace(c, support_near=0, object_near=0)

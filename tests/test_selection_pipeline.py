@@ -28,9 +28,9 @@ CLEAR = selection.SelectConfig("value_clear", depth=0.001, radius=0.003, max_poi
 @pytest.fixture(scope="module")
 def params():
     return {
-        "stage1": make_stage1(STAGE1_TINY).init(jax.random.key(0)),
-        "stage2": make_stage2(STAGE2_TINY).init(jax.random.key(1)),
-        "value": stage3.make_value(CFG).init(jax.random.key(2)),
+        "stage1": jax.jit(make_stage1(STAGE1_TINY).init)(jax.random.key(0)),
+        "stage2": jax.jit(make_stage2(STAGE2_TINY).init)(jax.random.key(1)),
+        "value": jax.jit(stage3.make_value(CFG).init)(jax.random.key(2)),
     }
 
 
@@ -118,7 +118,7 @@ def test_two_view_pipeline_picks_among_both_views_candidates(params):
     the same keys; each view's candidates equal a one-view pipeline's on that subsample, and the
     answer is the best of all of them by the rule's key."""
     clouds = plane_pairs(n=256, m=256)
-    v2 = stage3.make_value(CFG).init(jax.random.key(7))
+    v2 = jax.jit(stage3.make_value(CFG).init)(jax.random.key(7))
     base = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=1,
                                rank_with_value=False, fuse=False)  # fmt: skip
     prm = {**params, "rank_values": [v2]}
@@ -158,8 +158,8 @@ def test_fused_pipeline_gives_the_sequential_pipelines_candidates(params):
     views = ((0, 1), (1, 2))
     clouds = plane_pairs(n=256, m=256)
     near = dataclasses.replace(CFG, support_near=16, object_near=16)
-    rankers = [stage3.make_value(CFG).init(jax.random.key(7)),
-               stage3.make_value(near).init(jax.random.key(8))]  # fmt: skip
+    rankers = [jax.jit(stage3.make_value(CFG).init)(jax.random.key(7)),
+               jax.jit(stage3.make_value(near).init)(jax.random.key(8))]  # fmt: skip
     base = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=2,
                                rank_with_value=False, views=views)  # fmt: skip
     prm = {**params, "rank_values": rankers}

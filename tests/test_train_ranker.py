@@ -219,16 +219,6 @@ def test_build_pools_labels_every_candidate_and_resumes(tmp_path, monkeypatch):
 # Training
 
 
-def _auc(scores: np.ndarray, stable: np.ndarray) -> float:
-    """Mean over pairs with both outcomes: the share of (stable, unstable) candidate pairs the
-    scores order stable first."""
-    out = []
-    for s, st in zip(scores, stable, strict=True):
-        if st.any() and (~st).any():
-            out.append(np.mean(s[st][:, None] > s[~st][None, :]))
-    return float(np.mean(out))
-
-
 def _toy_run(tmp_path, steps: int) -> tuple[list[str], Path, Path, list[str], dict]:
     names = [_name(i, ("bag", "cap", "mug")[i % 3], i) for i in range(12)]
     ds = _dataset(tmp_path, names)
@@ -238,7 +228,7 @@ def _toy_run(tmp_path, steps: int) -> tuple[list[str], Path, Path, list[str], di
     _shard(tmp_path / "pools" / "shard_00000.npz", names[:8], poses[:8])
     _shard(tmp_path / "val" / "shard_00000.npz", names[8:], poses[8:])
     init = tmp_path / "v0"
-    refine.save_value(init, CFG, stage3.make_value(CFG).init(jax.random.key(1)))
+    refine.save_value(init, CFG, jax.jit(stage3.make_value(CFG).init)(jax.random.key(1)))
     out = tmp_path / "ranker"
     args = ["train", "--pools", str(tmp_path / "pools"), "--val-pools", str(tmp_path / "val"),
             "--data", str(ds), "--init", str(init), "--out", str(out), "--steps", str(steps),
@@ -248,24 +238,22 @@ def _toy_run(tmp_path, steps: int) -> tuple[list[str], Path, Path, list[str], di
 
 
 def test_training_learns_to_put_stable_candidates_first(tmp_path):
-    """train on a toy pool (a candidate hangs iff it sits low): the fine-tuned network orders
-    stable above unstable candidates far better than the V it starts from, and its pick hangs
-    on the validation pools at least as often as at step 0; the run writes a value folder that
+    """train on a toy pool (a candidate hangs iff it sits low): on the validation pools the
+    fine-tuned network orders stable above unstable candidates far better than the V it starts
+    from, and its pick hangs at least as often as at step 0; the run writes a value folder that
     loads, metrics and curves."""
     _, ds, out, _, summary = _toy_run(tmp_path, 30)
     assert summary["steps"] == 30 and (out / "curves.png").exists()
     val = summary["validation"]
     assert [v["step"] for v in val] == [0, 15, 30] and val[-1]["ranker"] >= val[0]["ranker"]
     assert len((out / "metrics.jsonl").read_text().splitlines()) == 6
-    config, tuned = refine.load_value(out / "value")
-    _, start = refine.load_value(tmp_path / "v0")
+    config, _ = refine.load_value(out / "value")
     assert config == CFG
-    table = pools.read_pools(tmp_path / "pools")
-    bank = train_ranker.load_bank(table, str(ds), CFG, progress=False)
-    scorer = train_ranker.make_scorer(CFG)
-    before = _auc(train_ranker.score_pools(scorer, start, bank, table["poses"], 4), table["stable"])
-    after = _auc(train_ranker.score_pools(scorer, tuned, bank, table["poses"], 4), table["stable"])
-    assert after > 0.9 and after > before + 0.2, (before, after)
+    # the held-out toy pairs' (stable, unstable) candidate pairs ordered right, % (by hand too)
+    assert val[-1]["ordered"] > 90.0 and val[-1]["ordered"] > val[0]["ordered"] + 20.0, val
+    stable = np.array([[True, False, False], [True, True, True]])
+    scores = np.array([[0.0, 1.0, -1.0], [0.0, 0.0, 0.0]])
+    assert train_ranker.ordered(scores, stable, np.ones_like(stable)) == 50.0
 
 
 @pytest.mark.slow  # ~40 s on 2 cores: two runs, each compiles its step
@@ -302,7 +290,7 @@ def test_pools_of_the_product_answer_on_dataset_pairs(tmp_path):
     if not derived.exists() or len(list(derived.glob("*.npz"))) < 2:
         pytest.skip("no derived training pairs (experiments.derive_dataset --split train)")
     folder = tmp_path / "value"
-    refine.save_value(folder, CFG, stage3.make_value(CFG).init(jax.random.key(0)))
+    refine.save_value(folder, CFG, jax.jit(stage3.make_value(CFG).init)(jax.random.key(0)))
     pipe = dataclasses.replace(stage3.ANSWER_PIPELINE, num_proposals=3, views=((0, 1),),
                                cem=stage3.CEMConfig(population=8, iterations=2, elites=3))  # fmt: skip
     tiny = dataclasses.replace(pools.POOL_CONFIG, value=str(folder), pipeline=pipe)

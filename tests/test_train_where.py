@@ -8,8 +8,8 @@ import jax
 import numpy as np
 import pytest
 
-from experiments import pack_dataset, predict_where, train_where
-from omnihang_jax import data, predict, stage1, stage2, train
+from experiments import pack_dataset, train_where
+from omnihang_jax import data, predict, train
 from omnihang_jax.config import config_from_dict, config_to_dict
 
 
@@ -29,7 +29,7 @@ def pool():
 def test_config_json_round_trip(preset):
     cfg = train.PRESETS[preset]
     text = json.dumps(config_to_dict(cfg))
-    assert config_from_dict(train.WhereConfig, json.loads(text)) == cfg
+    assert config_from_dict(train.NetworksConfig, json.loads(text)) == cfg
 
 
 def test_checkpoint_resume_round_trip(tmp_path, pool):
@@ -84,47 +84,18 @@ def trained_dir(tmp_path_factory):
 
 
 def test_cli_train_and_predict(trained_dir):
+    """The trained folder loads as a predictor: K finite Stage-1 and Stage-2 poses per pair."""
     for stage in ("stage1", "stage2a", "stage2b"):
         assert os.path.exists(os.path.join(trained_dir, stage, "config.json"))
-    out = os.path.join(trained_dir, "predictions.json")  # the default is out/predict_where/
-    summary = predict_where.main(
-        ["--model", trained_dir, "--pairs", "2", "--proposals", "3", "--out", out]
-    )
-    assert summary["pairs"] == 2
-    assert np.isfinite(summary["mean_stage1_position_error_m"])
-    with open(os.path.join(trained_dir, "predictions.json")) as f:
-        pairs = json.load(f)["pairs"]
-    assert np.asarray(pairs[0]["stage2_poses"]).shape == (3, 7)
-    # the Stages 1+2 answer's clearance is the default: the same Stage-2 poses moved
-    # stage2.ANSWER_CLEARANCE along the observed support normal, 0 gives the solved ones
-    assert summary["stage2_clearance_m"] == stage2.ANSWER_CLEARANCE
-    # each stage's answer is one of its proposals, the least penetrating by default; the
-    # Stages 1+2 answer is then released stage2.ANSWER_LIFT higher (+z, rotation kept)
-    assert summary["select"] == "penetration"
-    assert summary["stage2_lift_m"] == stage2.ANSWER_LIFT
-    for p in pairs:
-        assert p["stage1_answer"] == p["stage1_poses"][p["stage1_answer_index"]]
-        chosen = np.asarray(p["stage2_poses"][p["stage2_answer_index"]])
-        up = np.asarray(p["stage2_answer"]) - chosen
-        np.testing.assert_allclose(up[2], stage2.ANSWER_LIFT, atol=1e-7)
-        np.testing.assert_allclose(up[[0, 1, 3, 4, 5, 6]], 0.0, atol=1e-7)
-    out0 = os.path.join(trained_dir, "predictions_0.json")
-    predict_where.main(
-        ["--model", trained_dir, "--pairs", "2", "--proposals", "3", "--out", out0,
-         "--stage2-clearance", "0", "--stage1-lift", "0"]
-    )  # fmt: skip
-    with open(out0) as f:
-        pairs0 = json.load(f)["pairs"]
-    for a, b in zip(pairs, pairs0, strict=True):
-        moved = np.asarray(a["stage2_poses"]) - np.asarray(b["stage2_poses"])
-        np.testing.assert_allclose(
-            np.linalg.norm(moved[:, :3], axis=1), stage2.ANSWER_CLEARANCE, atol=1e-4
-        )
-        np.testing.assert_allclose(moved[:, 3:], 0.0, atol=1e-6)  # rotations untouched
-        # the Stage-1 answer is released stage1.ANSWER_LIFT above the network's pose
-        up = np.asarray(a["stage1_poses"]) - np.asarray(b["stage1_poses"])
-        np.testing.assert_allclose(up[:, 2], stage1.ANSWER_LIFT, atol=1e-6)
-        np.testing.assert_allclose(up[:, [0, 1, 3, 4, 5, 6]], 0.0, atol=1e-7)
+    predictor = predict.load_predictor(trained_dir)
+    rng = np.random.default_rng(0)
+    obj = rng.normal(scale=0.03, size=(2, 256, 3)).astype(np.float32)
+    sup = rng.normal(scale=0.05, size=(2, 256, 3)).astype(np.float32)
+    out = predictor(obj, sup, num_proposals=3)
+    assert out.stage1_poses.shape == (2, 3, 7) and out.stage2_poses.shape == (2, 3, 7)
+    assert np.isfinite(out.stage1_poses).all() and np.isfinite(out.stage2_poses).all()
+    # Stage 2 keeps Stage 1's rotation and moves only the translation
+    np.testing.assert_allclose(out.stage2_poses[..., 3:], out.stage1_poses[..., 3:], atol=1e-6)
 
 
 def test_exported_weights_predict_like_the_checkpoints(trained_dir, tmp_path):
@@ -137,24 +108,6 @@ def test_exported_weights_predict_like_the_checkpoints(trained_dir, tmp_path):
     a = predict.load_predictor(trained_dir)(obj, sup, key=key, num_proposals=3)
     b = predict.load_predictor(str(tmp_path / "w"))(obj, sup, key=key, num_proposals=3)
     np.testing.assert_allclose(a.stage2_poses, b.stage2_poses, rtol=1e-6, atol=1e-6)
-
-
-def test_bench_where_writes_latencies(trained_dir, tmp_path):
-    from experiments import bench_where
-
-    out = tmp_path / "bw.json"
-    result = bench_where.main(["--model", trained_dir, "--batches", "1,2", "--repeat", "2",
-                               "--out", str(out)])  # fmt: skip
-    assert [r["batch"] for r in result["latency"]] == [1, 2]
-    assert all(r["median_ms"] > 0 for r in result["latency"])
-    assert json.loads(out.read_text())["device"]
-    # --compare: a second model timed beside it in the same run, with the ratio of medians
-    both = bench_where.main(["--model", trained_dir, "--compare", trained_dir, "--batches", "1",
-                             "--repeat", "2", "--out", str(tmp_path / "cmp.json")])  # fmt: skip
-    row = both["compare"]["latency"][0]
-    assert row["batch"] == 1 and row["ratio_to_model"] == pytest.approx(
-        row["median_ms"] / both["latency"][0]["median_ms"]
-    )
 
 
 def test_predictor_is_jitted_batched_and_finite(trained_dir):
@@ -411,29 +364,3 @@ def test_init_from_exported_weights_starts_there(trained_dir, tmp_path):
     with pytest.raises(ValueError, match="network config differs"):
         small = argv[:3] + ["small"] + argv[4:]
         train_where.main(small + ["--out", str(tmp_path / "x"), "--init-from", str(tmp_path / "w")])
-
-
-def test_stage1_mix_splits_the_proposals_over_the_networks(trained_dir, tmp_path):
-    """A Stage-1 mix ("A+B"): K proposals split over the networks,
-    network 0's first and identical to a single network's K/2 with the same key; Stage 2
-    refines them all; a missing second network is a clear error."""
-    assert predict.mix_counts(16, 2) == (8, 8) and predict.mix_counts(5, 2) == (3, 2)
-    with pytest.raises(ValueError):
-        predict.mix_counts(1, 2)
-    other = str(tmp_path / "b")
-    train.export_weights(trained_dir, other, ("1",))
-    obj = np.random.default_rng(0).normal(scale=0.05, size=(2, 128, 3)).astype(np.float32)
-    sup = np.random.default_rng(1).normal(scale=0.1, size=(2, 128, 3)).astype(np.float32)
-    key = jax.random.key(5)
-    mix = predict.load_predictor(f"{trained_dir}+{other}")
-    single = predict.load_predictor(trained_dir)
-    assert len(mix.stage1_mix) == 1 and mix.num_points == single.num_points
-    a = mix(obj, sup, key=key, num_proposals=6)
-    b = single(obj, sup, key=key, num_proposals=3)
-    assert a.stage1_poses.shape == (2, 6, 7) and a.stage2_poses.shape == (2, 6, 7)
-    np.testing.assert_allclose(a.stage1_poses[:, :3], b.stage1_poses, atol=1e-6)
-    np.testing.assert_allclose(a.stage2_poses[:, :3], b.stage2_poses, atol=1e-6)
-    # network 1 (the same weights here) draws its own noise: other proposals
-    assert np.abs(a.stage1_poses[:, 3:] - b.stage1_poses).max() > 1e-4
-    with pytest.raises(FileNotFoundError, match="stage1"):
-        predict.load_predictor(f"{trained_dir}+{tmp_path / 'missing'}")

@@ -17,6 +17,8 @@ from omnihang_jax import config as config_mod
 from omnihang_jax import refine, stage3, train, where, where_eval
 
 PAPER = Path(__file__).resolve().parents[1] / "datasets" / "paper"
+# one worker for the module: its tests share the tiny answer's compiled program
+pytestmark = pytest.mark.xdist_group("where")
 
 
 def save_tiny_stage12(folder: Path) -> None:
@@ -108,6 +110,23 @@ def test_check_is_the_first_candidate_that_stays_on_the_observed_clouds(tiny, mo
     assert pick == 2 and seen == dict(top=4, n=out.ranked.shape[1]) and status[2] == 0
     off = where.load_where(dataclasses.replace(tiny, check=0))
     assert off.check(out, 0, {}, -1.0, None)[0] == 0
+
+
+def test_bench_times_configs_side_by_side(tiny, tmp_path, monkeypatch):
+    """experiments.bench_where: a row per config and batch, the first config's ratio 1."""
+    from experiments import bench_where
+
+    monkeypatch.setitem(where.CONFIGS, "tiny", tiny)
+    monkeypatch.setitem(where.CONFIGS, "tiny2", tiny)  # the same program: no second compile
+    out = tmp_path / "bench.json"
+    result = bench_where.main(["--configs", "tiny,tiny2", "--batches", "2", "--repeat", "1",
+                               "--out", str(out)])  # fmt: skip
+    rows = result["rows"]
+    assert [(r["config"], r["batch"]) for r in rows] == [("tiny", 2), ("tiny2", 2)]
+    assert rows[0]["ratio_to_first_config"] == 1.0 and all(r["median_ms"] > 0 for r in rows)
+    assert json.loads(out.read_text())["device_kind"]
+    with pytest.raises(ValueError, match="configs"):
+        bench_where.main(["--configs", "nope"])
 
 
 def test_stage1_answer_releases_the_least_penetrating_proposal():

@@ -22,7 +22,7 @@
 #    same is measured on 128 validation pairs (objects of a fixed 10 % of the training objects,
 #    never trained on): success of V's pick, of any refined candidate, V's precision on them.
 # 4. OUT_TGZ (~5 MiB): value/ (config.json + params.msgpack: the weights for
-#    eval_stage3 --value / device_stage3.sh VALUE=...), metrics.jsonl, rounds.jsonl,
+#    omnihang_jax.where.WhereConfig.value), metrics.jsonl, rounds.jsonl,
 #    curves.png, split.json, state.json, config.json, job summary.json, logs/, and summary.json
 #    (this call). Unpack: mkdir -p DIR && tar -xzf OUT_TGZ -C DIR; the weights are DIR/value.
 # Knobs (env): PRESET (hardneg; CHAIN_TINY=1: hardneg_tiny), MIN_PAIRS (200), RESERVE_S (40:
