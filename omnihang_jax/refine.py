@@ -503,9 +503,10 @@ def load_value(folder: str | os.PathLike) -> tuple[ValueConfig, Any]:
             f"{folder}/params.msgpack not found: train V first (python -m experiments.train_stage3)"
         )
     config, _ = load_config(ValueConfig, folder / "config.json")
-    template = stage3.make_value(config).init(jax.random.key(0))
+    # the parameters' shapes without running the network (an eager init compiles every layer)
+    template = jax.eval_shape(stage3.make_value(config).init, jax.random.key(0))
     params = flax.serialization.from_bytes(template, (folder / "params.msgpack").read_bytes())
-    return config, params
+    return config, jax.tree.map(jnp.asarray, params)
 
 
 def write_json(path: str | os.PathLike, data: dict) -> None:

@@ -643,7 +643,7 @@ def make_ensemble_score(
     config ``rank_configs[i]`` scoring its own subsample of the clouds (configs may differ from
     each other and from the CEM's V, e.g. near points; one ``ValueConfig``: all R share it): a
     geometric-mean ensemble that ranks CEM's candidates (``PipelineConfig.rank_values``,
-    ``eval_pipeline.evaluate_pipeline(rank_value_dirs=)``). ``with_first=False``: the mean
+    ``omnihang_jax.where``). ``with_first=False``: the mean
     over the R networks alone (``PipelineConfig.rank_with_value``). ``subsets`` > 1: each of
     the R networks scores the poses on that many evenly spaced subsets of the clouds
     (:func:`subset_clouds`) and its log V is their mean (``PipelineConfig.rank_subsets``).
