@@ -102,6 +102,7 @@ def test_pipeline_clearance_zero_is_the_output_before_the_normals(params):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))  # bit-identical
 
 
+@pytest.mark.slow  # a second pipeline compile (~25 s on 2 cores)
 def test_pipeline_clearance_c_moves_stage2_exactly(params):
     clouds = _plane_pairs()
     key = jax.random.key(5)

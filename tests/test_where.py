@@ -112,19 +112,33 @@ def test_check_is_the_first_candidate_that_stays_on_the_observed_clouds(tiny, mo
     assert off.check(out, 0, {}, -1.0, None)[0] == 0
 
 
-def test_bench_times_configs_side_by_side(tiny, tmp_path, monkeypatch):
-    """experiments.bench_where: a row per config and batch, the first config's ratio 1."""
+def test_bench_times_configs_side_by_side(tmp_path, monkeypatch):
+    """experiments.bench_where: a row per config and batch, timed calls of each config's
+    answer (here stand-ins of known cost: the harness, not the networks), the first config's
+    ratio 1 and the slower one's about its cost ratio."""
+    import time
+
     from experiments import bench_where
 
-    monkeypatch.setitem(where.CONFIGS, "tiny", tiny)
-    monkeypatch.setitem(where.CONFIGS, "tiny2", tiny)  # the same program: no second compile
+    def fake(cost):
+        def answer(clouds, ids, seed):
+            assert clouds.object_points.shape == (2, 64, 3) and len(ids) == 2
+            time.sleep(cost)
+
+        return where.Where(None, answer, None, None)
+
+    loaded = {"fast": fake(0.01), "slow": fake(0.03)}
+    monkeypatch.setattr(where, "load_where", lambda config: loaded[config])
+    monkeypatch.setattr(where, "CONFIGS", {"fast": "fast", "slow": "slow"})
     out = tmp_path / "bench.json"
-    result = bench_where.main(["--configs", "tiny,tiny2", "--batches", "2", "--repeat", "1",
-                               "--out", str(out)])  # fmt: skip
+    result = bench_where.main(["--configs", "fast,slow", "--batches", "2", "--repeat", "3",
+                               "--points", "64", "--out", str(out)])  # fmt: skip
     rows = result["rows"]
-    assert [(r["config"], r["batch"]) for r in rows] == [("tiny", 2), ("tiny2", 2)]
-    assert rows[0]["ratio_to_first_config"] == 1.0 and all(r["median_ms"] > 0 for r in rows)
-    assert json.loads(out.read_text())["device_kind"]
+    assert [(r["config"], r["batch"]) for r in rows] == [("fast", 2), ("slow", 2)]
+    assert rows[0]["ratio_to_first_config"] == 1.0
+    assert 2.0 < rows[1]["ratio_to_first_config"] < 4.0
+    assert rows[0]["median_ms"] >= 10 and rows[0]["pairs_per_s"] <= 200
+    assert json.loads(out.read_text())["rows"] == rows
     with pytest.raises(ValueError, match="configs"):
         bench_where.main(["--configs", "nope"])
 
