@@ -139,6 +139,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--dataset", default="datasets/paper",
         help="labelled dataset whose test split --heldout draws from (default datasets/paper)",
     )  # fmt: skip
+    p.add_argument(
+        "--compile-cache", default=None, metavar="DIR",
+        help="where compiled networks are kept between runs (default ~/.cache/omnihang/jax, "
+        "or $OMNIHANG_CACHE/jax; 'off': compile every run)",
+    )  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     return p
 
@@ -209,6 +214,12 @@ def main(argv=None) -> int:
 
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", flush=True)
+
+    from omnihang_jax.hang import compile_cache
+
+    cached = compile_cache(args.compile_cache)
+    if cached is not None and not args.quiet:
+        log(f"compiled networks are kept in {cached} (--compile-cache DIR to move, off to disable)")
 
     if args.heldout is not None:
         return heldout_main(args, config, None if args.quiet else log)

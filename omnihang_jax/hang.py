@@ -140,6 +140,34 @@ def _clearance_scores(obj: Body, sup: Body, poses: np.ndarray) -> np.ndarray:
     return 1.0 - np.asarray(pen, np.float64)
 
 
+def compile_cache(folder: str | None = None) -> Path | None:
+    """Keep JAX's compiled programs on disk so that a second run loads the networks' programs
+    instead of compiling them again (minutes on a 2-core CPU). ``folder``: None for the default,
+    ``$OMNIHANG_CACHE/jax`` else ``$XDG_CACHE_HOME/omnihang/jax`` else ``~/.cache/omnihang/jax``;
+    "off" for none. A ``JAX_COMPILATION_CACHE_DIR`` set by the caller wins. Call it before the
+    first compile of the process; returns the folder in use (None: off)."""
+    import jax
+
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return Path(os.environ["JAX_COMPILATION_CACHE_DIR"])
+    if folder == "off":
+        return None
+    if folder is None:
+        root = os.environ.get("OMNIHANG_CACHE") or os.path.join(
+            os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "omnihang"
+        )
+        folder = os.path.join(root, "jax")
+    path = Path(folder).expanduser()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HangInputError(f"--compile-cache {folder}: cannot create it ({exc})") from exc
+    jax.config.update("jax_compilation_cache_dir", os.fspath(path))
+    # programs that took at least this long to compile are kept (the networks take tens of s)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    return path
+
+
 def where_config(config: HangConfig):
     """The ``omnihang_jax.where.WhereConfig`` of ``config``: the named answer (``--where``)
     with the overrides of ``--model``, ``--num-proposals`` and ``--observed-check``."""

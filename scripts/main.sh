@@ -6,7 +6,7 @@
 #     the answer rule), every candidate simulated in MuJoCo, a path planned by the default
 #     planner (omnihang_jax.paths.DEFAULT), reference poses from the data engine's sampler
 #     (--search); writes result.json, scene.xml (MuJoCo's viewer), hang.png and viewer.html;
-#  2. OUT/hang_heldout: PAIRS (default 6) held-out library pairs spread over the support
+#  2. OUT/hang_heldout: PAIRS (default 3) held-out library pairs spread over the support
 #     families and object categories; for each, the answer from the clouds alone (checked on the
 #     observed clouds) is simulated on the true meshes, and the rate is quoted beside the one
 #     `python -m experiments.evaluate where` measured (results/hanging_success.json);
@@ -24,7 +24,7 @@ for arg in "$@"; do
     *) OUT="$arg" ;;
   esac
 done
-PAIRS=${PAIRS:-6}
+PAIRS=${PAIRS:-3}
 bash scripts/setup.sh
 if [ "$ASSETS" = 1 ]; then
   .venv/bin/python -m experiments.assets --out "$OUT/assets"
