@@ -111,7 +111,7 @@ class Predictor:
 
     @property
     def stage1_spec(self) -> tuple:
-        """(config, params) of Stage 1, for ``make_predict`` / ``stage3.make_hang_pipeline``."""
+        """(config, params) of Stage 1, for ``make_predict`` / ``pipeline.make_hang_pipeline``."""
         return self.stage1_config, self.stage1_params
 
     @property

@@ -84,7 +84,7 @@ class RLConfig:
     cem_batch: int = 32  # pairs per jitted CEM call (B x K x population states at once)
     # the proposals CEM starts from in a round: "stage2" (the paper's), "stage1", or
     # "alternate" (Stage 2 in odd rounds, Stage 1 in even ones: the answer pipeline refines
-    # both, stage3.ANSWER_PIPELINE, so V's hard cases should come from both)
+    # both, pipeline.ANSWER_PIPELINE, so V's hard cases should come from both)
     round_start: str = "stage2"
 
 

@@ -15,7 +15,7 @@ Rules (:class:`SelectConfig`):
   (ties by score). One key does both: ``score - 1e4 * max(count - max_points, 0)`` (log V lies
   in [-50, 0] in practice, so one extra inside point outweighs any score difference).
 
-:data:`CHOSEN` is the default answer's rule (``stage3.ANSWER_PIPELINE``), chosen on the
+:data:`CHOSEN` is the default answer's rule (``pipeline.ANSWER_PIPELINE``), chosen on the
 validation objects: ``value_clear`` at depth 0.5 mm, radius 5 mm, no point inside.
 
 Both functions are pure: :func:`inside_counts` ([P] poses of one pair) and :func:`select_key`

@@ -8,7 +8,7 @@ code::
     out = where.answer(clouds, pair_ids, seed)   # jitted, batched over pairs (device)
     pick, status = where.check(out, b, clouds_of_pair_b, floor_z, wall_y)   # host MuJoCo
 
-``answer`` runs Stages 1-3 in one XLA program (``stage3.make_hang_pipeline``): K Stage-1
+``answer`` runs Stages 1-3 in one XLA program (``pipeline.make_hang_pipeline``): K Stage-1
 proposals, their Stage-2 refinements, CEM on the value function V from the configured starts on
 every view of the clouds, the ranking networks and the answer rule; it returns every pooled
 candidate in the rule's order. Each pair runs under its own key, ``fold_in(key(seed), pair_id)``,
@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from omnihang_jax import selection, stage3
+from omnihang_jax import pipeline, selection, stage3
 
 __all__ = [
     "CONFIGS",
@@ -58,7 +58,7 @@ class WhereConfig:
         "weights/rankers/listwise_big",
         "weights/rankers/near",
     )
-    pipeline: stage3.PipelineConfig = stage3.ANSWER_PIPELINE
+    pipeline: pipeline.PipelineConfig = pipeline.ANSWER_PIPELINE
     # the observed-cloud check's reach: the first of the best ``check`` candidates that stays
     # on the partial clouds (60 = the default's whole pool, chosen on the validation objects);
     # 0: off, the rule's first candidate is the answer
@@ -74,7 +74,7 @@ class WhereConfig:
 DEFAULT = WhereConfig()
 # The paper's pipeline: K = 5 proposals, CEM from the Stage-2 proposals on one view, the
 # highest final V is the answer, no check.
-PAPER = WhereConfig(rankers=(), pipeline=stage3.PipelineConfig(), check=0)
+PAPER = WhereConfig(rankers=(), pipeline=pipeline.PipelineConfig(), check=0)
 CONFIGS = {"default": DEFAULT, "paper": PAPER}
 
 
@@ -132,7 +132,7 @@ def _load(config: WhereConfig, overrides) -> Where:
     rank_configs, rank_params = predict.load_rank_values(config.rankers)
     pipe = dataclasses.replace(config.pipeline, rank_values=len(rank_params))
     stage1_config, stage1_params = nets.stage1_spec
-    hang = stage3.make_hang_pipeline(
+    hang = pipeline.make_hang_pipeline(
         stage1_config, nets.stage2_config, value_config, pipe, rank_configs or None
     )
     params = {"stage1": stage1_params, "stage2": nets.stage2_params, "value": value_params}

@@ -227,13 +227,13 @@ def test_the_where_answer_is_wired_in(tmp_path, monkeypatch):
     support) recomputed here, and the unrefined proposals follow."""
     import jax
 
-    from omnihang_jax import refine, selection, stage3, where
+    from omnihang_jax import pipeline, refine, selection, stage3, where
 
     folder = tmp_path / "value"
     net = stage3.make_value(stage3.VALUE_TINY)
     params = net.init(jax.random.key(0))
     refine.save_value(folder, stage3.VALUE_TINY, params)
-    pipe = dataclasses.replace(stage3.ANSWER_PIPELINE, num_proposals=3, views=((0, 1),),
+    pipe = dataclasses.replace(pipeline.ANSWER_PIPELINE, num_proposals=3, views=((0, 1),),
                                cem=stage3.CEMConfig(population=8, iterations=2, elites=3))  # fmt: skip
     tiny = where.WhereConfig(value=str(folder), rankers=(), pipeline=pipe, check=0)
     monkeypatch.setitem(where.CONFIGS, "tiny", tiny)

@@ -1,7 +1,7 @@
 """Value networks ranking CEM's candidates (``PipelineConfig.rank_values``): the pipeline's
 final scores are the mean log V over CEM's V and the ranking networks, or over the networks
 alone (``rank_with_value=False``, the default answer's), each network on its own subsample of
-the clouds (near points, views, subsets); CEM itself is unchanged. And the committed rankers
+the clouds (near points, views); CEM itself is unchanged. And the committed rankers
 (``where.DEFAULT.rankers``) load beside the CEM's V they were fine-tuned from."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import jax
 import numpy as np
 import pytest
 
-from omnihang_jax import predict, refine, selection, stage3, where
+from omnihang_jax import pipeline, predict, refine, selection, stage3, where
 from omnihang_jax.stage1 import STAGE1_TINY
 from omnihang_jax.stage2 import STAGE2_TINY
 from tests.test_selection_pipeline import CLEAR, PIPE, params, plane_pairs  # noqa: F401
@@ -50,9 +50,9 @@ def test_pipeline_ranks_by_the_mean_log_v(params):  # noqa: F811
     member changes nothing; a wrong number of networks is refused."""
     clouds = plane_pairs()
     base = dataclasses.replace(PIPE, select=CLEAR, pool_starts=True)
-    one = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, base))
+    one = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, base))
     ens_cfg = dataclasses.replace(base, rank_values=1)
-    ens = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, ens_cfg))
+    ens = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, ens_cfg))
     key = jax.random.key(3)
     out1 = one(params, key, clouds)
     out2 = ens({**params, "rank_values": [V2]}, key, clouds)
@@ -75,9 +75,9 @@ def test_pipeline_ranks_by_the_ranker_alone(params):  # noqa: F811
     network's log V alone; CEM is unchanged."""
     clouds = plane_pairs()
     base = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=1)
-    mean = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, base))
+    mean = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, base))
     alone_cfg = dataclasses.replace(base, rank_with_value=False)
-    alone = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, alone_cfg))
+    alone = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, alone_cfg))
     key = jax.random.key(3)
     out_m = mean({**params, "rank_values": [V2]}, key, clouds)
     out_a = alone({**params, "rank_values": [V2]}, key, clouds)
@@ -86,7 +86,7 @@ def test_pipeline_ranks_by_the_ranker_alone(params):  # noqa: F811
                                       np.asarray(out_a.refined[name]))  # fmt: skip
         want = _scores(V2, CFG, clouds, np.asarray(out_a.refined[name]))
         np.testing.assert_allclose(np.asarray(out_a.scores[name]), want, rtol=1e-5, atol=1e-5)
-    assert stage3.ANSWER_PIPELINE.rank_with_value is False
+    assert pipeline.ANSWER_PIPELINE.rank_with_value is False
 
 
 @pytest.mark.slow  # 25-45 s on 2 cores
@@ -99,8 +99,8 @@ def test_pipeline_ranks_with_a_near_point_ranker(params):  # noqa: F811
     v3 = _init(CFG, 8)
     cfg = dataclasses.replace(PIPE, select=selection.CHOSEN, pool_starts=True, rank_values=2,
                               rank_with_value=False)  # fmt: skip
-    plain = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))
-    ranked = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg, (CFG, near)))
+    plain = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))
+    ranked = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg, (CFG, near)))
     key = jax.random.key(3)
     out_p = plain({**params, "rank_values": [V2, v3]}, key, clouds)
     out_n = ranked({**params, "rank_values": [V2, v3]}, key, clouds)
@@ -132,35 +132,14 @@ def test_ensemble_stacks_networks_of_one_config():
     nets = [_init(c, k) for c, k in zip(configs, (7, 9, 8), strict=True)]
     poses = _poses_near(clouds)
     first = np.random.default_rng(0).normal(size=poses.shape[:2]).astype(np.float32)
-    alone = jax.jit(stage3.make_ensemble_score(configs, with_first=False))
+    alone = jax.jit(pipeline.make_ensemble_score(configs, with_first=False))
     got = np.asarray(alone(first, nets, clouds, poses))
     each = [_scores(p, c, clouds, poses) for c, p in zip(configs, nets, strict=True)]
     np.testing.assert_allclose(got, np.mean(each, axis=0), rtol=1e-5, atol=1e-5)
     assert not np.allclose(each[0], each[2])  # the two stacked networks differ
-    with_v = jax.jit(stage3.make_ensemble_score(configs, with_first=True))
+    with_v = jax.jit(pipeline.make_ensemble_score(configs, with_first=True))
     np.testing.assert_allclose(np.asarray(with_v(first, nets, clouds, poses)),
                                (first + np.sum(each, axis=0)) / 4, rtol=1e-5, atol=1e-5)  # fmt: skip
-
-
-@pytest.mark.slow  # ~37 s on 2 cores
-def test_ensemble_over_subsets_is_the_mean_of_each_subsets_score():
-    clouds = plane_pairs(n=256, m=256)
-    poses = _poses_near(clouds, 8)
-    nets = [_init(CFG, k) for k in (3, 4)]
-    value = _jitted(CFG)[1]
-    first = np.zeros(poses.shape[:2], np.float32)
-    got = np.asarray(jax.jit(stage3.make_ensemble_score(CFG, False, 2))(first, nets, clouds, poses))
-    want = np.zeros_like(got)
-    for p in nets:
-        for j in range(2):
-            sub = stage3.subset_clouds(jax.tree.map(np.asarray, clouds), CFG, j, 2)
-            want += np.stack([np.asarray(value(p, jax.tree.map(lambda x, i=i: x[i], sub),
-                                               poses[i])) for i in range(len(poses))]) / 4  # fmt: skip
-    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
-    one = np.asarray(jax.jit(stage3.make_ensemble_score(CFG, False, 1))(first, nets, clouds, poses))
-    assert not np.allclose(one, got)  # a second subset changes the scores
-    with pytest.raises(ValueError, match="subsets must be >= 1"):
-        stage3.make_ensemble_score(CFG, False, 0)
 
 
 def test_load_rank_values_keeps_each_config(monkeypatch):

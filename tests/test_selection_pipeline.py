@@ -1,5 +1,5 @@
 """The answer rule (omnihang_jax.selection) and the views inside the Stages 1-3 pipeline
-(``stage3.make_hang_pipeline``): "value_clear" picks by the score and the observed-cloud inside
+(``pipeline.make_hang_pipeline``): "value_clear" picks by the score and the observed-cloud inside
 counts, per start and pooled; each view's candidates are a one-view pipeline's on that subsample
 of the clouds; the fused pipeline gives the sequential one's candidates. The tiny networks and
 clouds here are shared by tests.test_rank_values and tests.test_train_ranker."""
@@ -12,13 +12,13 @@ import jax
 import numpy as np
 import pytest
 
-from omnihang_jax import selection, stage3
+from omnihang_jax import pipeline, selection, stage3
 from omnihang_jax.stage1 import STAGE1_TINY, make_stage1
 from omnihang_jax.stage2 import STAGE2_TINY, make_stage2
 from omnihang_jax.stage3 import CEMConfig, PairClouds
 
 CFG = stage3.VALUE_TINY  # 64 + 64 state points
-PIPE = stage3.PipelineConfig(
+PIPE = pipeline.PipelineConfig(
     num_proposals=2, cem=CEMConfig(population=8, iterations=2, elites=3),
     starts=("stage2", "stage1"),
 )  # fmt: skip
@@ -61,7 +61,7 @@ def test_pipeline_value_clear_per_start_and_pooled(params):
     the ranked pool is every candidate in the order of the rule's key."""
     clouds = plane_pairs()
     cfg = dataclasses.replace(PIPE, select=CLEAR, pool_starts=True)
-    out = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))(
+    out = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))(
         params, jax.random.key(8), clouds
     )
     for name in cfg.starts:
@@ -103,15 +103,6 @@ def test_subset_zero_is_the_subsample_and_the_others_are_other_points():
         stage3.subset_clouds(clouds, CFG, 4, 4)
 
 
-def test_views_and_rank_subsets_do_not_combine_silently():
-    cfg = dataclasses.replace(PIPE, rank_values=1, rank_subsets=2, views=((0, 1), (1, 2)))
-    with pytest.raises(ValueError, match="not both"):
-        stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg)
-    with pytest.raises(ValueError, match="views"):
-        stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG,
-                                  dataclasses.replace(PIPE, views=((2, 2),)))  # fmt: skip
-
-
 @pytest.mark.slow  # 25-45 s on 2 cores
 def test_two_view_pipeline_picks_among_both_views_candidates(params):
     """PipelineConfig.views = ((0, 1), (1, 2)): CEM and the ranking run on each subsample with
@@ -126,7 +117,7 @@ def test_two_view_pipeline_picks_among_both_views_candidates(params):
     outs = {}
     for views in (((0, 1),), ((1, 2),), ((0, 1), (1, 2))):
         cfg = dataclasses.replace(base, views=views)
-        outs[views] = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))(
+        outs[views] = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, CFG, cfg))(
             prm, key, clouds
         )
     one, other, both = outs[((0, 1),)], outs[((1, 2),)], outs[((0, 1), (1, 2))]
@@ -165,7 +156,7 @@ def test_fused_pipeline_gives_the_sequential_pipelines_candidates(params):
     prm = {**params, "rank_values": rankers}
     key = jax.random.key(5)
     outs = {
-        fuse: jax.jit(stage3.make_hang_pipeline(
+        fuse: jax.jit(pipeline.make_hang_pipeline(
             STAGE1_TINY, STAGE2_TINY, CFG, dataclasses.replace(base, fuse=fuse), [CFG, near]
         ))(prm, key, clouds)
         for fuse in (False, True)

@@ -1,4 +1,4 @@
-"""The Stage-2 clearance through the Stages 1-3 code: ``stage3.make_hang_pipeline`` takes the
+"""The Stage-2 clearance through the Stages 1-3 code: ``pipeline.make_hang_pipeline`` takes the
 support normals from its clouds."""
 
 from __future__ import annotations
@@ -10,14 +10,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from omnihang_jax import stage3
+from omnihang_jax import pipeline, stage3
+from omnihang_jax.pipeline import HangOutput
 from omnihang_jax.predict import Predictor, make_predict
 from omnihang_jax.stage1 import STAGE1_TINY, make_stage1
 from omnihang_jax.stage2 import STAGE2_TINY, clearance_offset, make_stage2
-from omnihang_jax.stage3 import CEMConfig, HangOutput, PairClouds
+from omnihang_jax.stage3 import CEMConfig, PairClouds
 
 C = 0.006  # m
-PIPE = stage3.PipelineConfig(
+PIPE = pipeline.PipelineConfig(
     num_proposals=2, cem=CEMConfig(population=8, iterations=2, elites=3),
     starts=("stage2", "stage1"),
 )  # fmt: skip
@@ -96,9 +97,10 @@ def test_pipeline_clearance_zero_is_the_output_before_the_normals(params):
     clouds = _plane_pairs()
     key = jax.random.key(5)
     old = jax.jit(_old_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, PIPE))
-    new = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, PIPE))
+    new = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, PIPE))
     a, b = old(params, key, clouds), new(params, key, clouds)
-    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+    # the fields the old pipeline had (the new one also returns the ranked pool)
+    for x, y in zip(jax.tree.leaves(a[:7]), jax.tree.leaves(b[:7]), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))  # bit-identical
 
 
@@ -106,9 +108,9 @@ def test_pipeline_clearance_zero_is_the_output_before_the_normals(params):
 def test_pipeline_clearance_c_moves_stage2_exactly(params):
     clouds = _plane_pairs()
     key = jax.random.key(5)
-    new = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, PIPE))
+    new = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, PIPE))
     b = new(params, key, clouds)
-    moved = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, _tiny2(C), stage3.VALUE_TINY, PIPE))
+    moved = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, _tiny2(C), stage3.VALUE_TINY, PIPE))
     m = moved(params, key, clouds)
     np.testing.assert_array_equal(np.asarray(m.stage1_poses), np.asarray(b.stage1_poses))
     np.testing.assert_array_equal(  # Stage 2 keeps the Stage-1 rotation

@@ -6,7 +6,7 @@ import jaxlie
 import numpy as np
 import pytest
 
-from omnihang_jax import stage3
+from omnihang_jax import pipeline, stage3
 from omnihang_jax.stage3 import CEMConfig, PairClouds
 
 
@@ -117,11 +117,11 @@ def test_value_pipeline_runs_in_one_jit():
         "stage2": s2.init(jax.random.key(1)),
         "value": v.init(jax.random.key(2)),
     }
-    cfg = stage3.PipelineConfig(
+    cfg = pipeline.PipelineConfig(
         num_proposals=2, cem=CEMConfig(population=8, iterations=2, elites=3),
         starts=("stage2", "stage1"),
     )  # fmt: skip
-    hang = jax.jit(stage3.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg))
+    hang = jax.jit(pipeline.make_hang_pipeline(STAGE1_TINY, STAGE2_TINY, stage3.VALUE_TINY, cfg))
     c = _clouds(128, 128)
     batch = PairClouds(*(jnp.stack([x, x]) for x in c))
     out = hang(params, jax.random.key(5), batch)

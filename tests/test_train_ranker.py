@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from experiments import train_ranker
-from omnihang_jax import data, dataset_bridge, pools, refine, selection, stage3, where
+from omnihang_jax import data, dataset_bridge, pipeline, pools, refine, selection, stage3, where
 from omnihang_jax.dataset_bridge import META_KEYS
 
 CFG = stage3.VALUE_TINY  # 64 + 64 state points
@@ -291,7 +291,7 @@ def test_pools_of_the_product_answer_on_dataset_pairs(tmp_path):
         pytest.skip("no derived training pairs (experiments.derive_dataset --split train)")
     folder = tmp_path / "value"
     refine.save_value(folder, CFG, jax.jit(stage3.make_value(CFG).init)(jax.random.key(0)))
-    pipe = dataclasses.replace(stage3.ANSWER_PIPELINE, num_proposals=3, views=((0, 1),),
+    pipe = dataclasses.replace(pipeline.ANSWER_PIPELINE, num_proposals=3, views=((0, 1),),
                                cem=stage3.CEMConfig(population=8, iterations=2, elites=3))  # fmt: skip
     tiny = dataclasses.replace(pools.POOL_CONFIG, value=str(folder), pipeline=pipe)
     files = pools.pair_files("datasets/paper", "train", 2)

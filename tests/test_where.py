@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from omnihang_jax import config as config_mod
-from omnihang_jax import refine, stage3, train, where, where_eval
+from omnihang_jax import pipeline, refine, stage3, train, where, where_eval
 
 PAPER = Path(__file__).resolve().parents[1] / "datasets" / "paper"
 # one worker for the module: its tests share the tiny answer's compiled program
@@ -42,7 +42,7 @@ def tiny(tmp_path_factory) -> where.WhereConfig:
         net = stage3.make_value(stage3.VALUE_TINY)
         refine.save_value(root / name, stage3.VALUE_TINY, net.init(jax.random.key(seed)))
     pipe = dataclasses.replace(
-        stage3.ANSWER_PIPELINE, num_proposals=3, views=((0, 1), (1, 2)),
+        pipeline.ANSWER_PIPELINE, num_proposals=3, views=((0, 1), (1, 2)),
         cem=stage3.CEMConfig(population=8, iterations=2, elites=3),
     )  # fmt: skip
     return where.WhereConfig(stage12=str(root / "stage12"), value=str(root / "value"),
@@ -63,8 +63,8 @@ def pairs(batch: int, seed: int = 0, n: int = 4096) -> stage3.PairClouds:
 
 
 def test_named_configs_differ_where_the_paper_does():
-    assert where.DEFAULT.pipeline == stage3.ANSWER_PIPELINE and where.DEFAULT.check > 0
-    assert where.PAPER.pipeline == stage3.PipelineConfig()  # K = 5, Stage-2 starts, highest V
+    assert where.DEFAULT.pipeline == pipeline.ANSWER_PIPELINE and where.DEFAULT.check > 0
+    assert where.PAPER.pipeline == pipeline.PipelineConfig()  # K = 5, Stage-2 starts, highest V
     assert where.PAPER.rankers == () and where.PAPER.check == 0
     assert (where.PAPER.stage12, where.PAPER.value) == (where.DEFAULT.stage12, where.DEFAULT.value)
     for folder in (where.DEFAULT.stage12, where.DEFAULT.value, *where.DEFAULT.rankers):
