@@ -82,8 +82,11 @@ def _init(dataset_dir: str) -> None:
     from omnihang_jax import dataset_bridge
     from sim.library import build_library
 
+    if _W.get("dataset_dir") == dataset_dir:  # built already in this process
+        return
     config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(dataset_dir))
     _W["library"] = build_library(config.library, progress=False)
+    _W["dataset_dir"] = dataset_dir
 
 
 def judge_pair(job: dict) -> dict:
@@ -160,6 +163,8 @@ def evaluate_where(
     records_path.parent.mkdir(parents=True, exist_ok=True)
     done = {int(r["pair_index"]) for r in read_records(records_path) if r.get("seed") == seed}
     todo = [f for f in files if _pair_index(f) not in done]
+    if not todo:
+        return read_records(records_path)
     where = where_mod.load_where(config)
     starts = config.pipeline.starts
     pool = None

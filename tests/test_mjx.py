@@ -67,6 +67,7 @@ def test_stability_labels_match_cpu(pair):
     assert np.linalg.norm(got.settled_pose[0, :3] - ref.settled_pose[0, :3]) < 0.02
 
 
+@pytest.mark.slow  # a compile-count guard; the labels test above covers correctness
 def test_compiled_once_and_reused(pair):
     scene, poses = pair
     kernels.stability(
