@@ -130,3 +130,29 @@ def test_evaluate_two_held_out_pairs_with_the_meshes(tmp_path):
     again = paths_eval.evaluate_paths(config, tmp_path, pairs=2, progress=False)
     assert again["f1"] == s["f1"]
     assert (tmp_path / "pairs.jsonl").read_text().splitlines() == lines
+
+
+def test_evaluate_paths_command_writes_the_config_entry(tmp_path, monkeypatch):
+    """``experiments.evaluate paths`` passes the named config and the flags to
+    ``paths_eval.evaluate_paths`` and merges its summary under the config's name, other keys
+    kept; an unknown config is a one-line error before any planning."""
+    from experiments import evaluate
+
+    seen = {}
+
+    def fake(config, **kw):
+        seen.update(config=config, **kw)
+        return dict(precision=90.0, recall=60.0, f1=72.0, pairs=kw["pairs"], seeds=kw["seeds"])
+
+    monkeypatch.setattr(paths_eval, "evaluate_paths", fake)
+    results = tmp_path / "paths.json"
+    results.write_text(json.dumps({"published_paper": {"paper_nce": [65.8, 43.2, 52.1]}}))
+    entry = evaluate.main(["paths", "--config", "mesh", "--pairs", "3", "--seed", "2", "--workers",
+                           "1", "--records", str(tmp_path / "r.jsonl"), "--results", str(results),
+                           "--no-progress"])  # fmt: skip
+    assert seen["config"] == paths.MESH and seen["pairs"] == 3 and seen["seeds"] == [2]
+    saved = json.loads(results.read_text())
+    assert saved["mesh"]["f1"] == 72.0 == entry["f1"] and saved["mesh"]["config"] == "mesh"
+    assert saved["published_paper"] == {"paper_nce": [65.8, 43.2, 52.1]}
+    with pytest.raises(ValueError, match="--config"):
+        evaluate.main(["paths", "--config", "octree"])
