@@ -149,7 +149,6 @@ def evaluate_where(
     """Run the answer on every pair file not yet in ``records_path`` and append its record;
     returns all records of the file (earlier ones included). ``workers`` > 0: that many
     processes check and simulate while the networks run; 0: in this process."""
-    import jax.numpy as jnp
     from tqdm.auto import tqdm
 
     from omnihang_jax import dataset_bridge, stage3
@@ -201,7 +200,7 @@ def evaluate_where(
             padded = loaded + [loaded[0]] * (batch - len(chunk))  # one compiled shape
             clouds = stage3.stack_clouds([s for s, _ in padded])
             ids = [m["pair_index"] for _, m in padded]
-            out = where.answer(jax_tree(jnp.asarray, clouds), ids, seed)
+            out = where.answer(clouds, ids, seed)
             for b, (sample, meta) in enumerate(loaded):
                 pair = dict(object_points=np.asarray(sample.object_points),
                             object_normals=np.asarray(sample.object_normals),
@@ -236,12 +235,6 @@ def evaluate_where(
         if pool is not None:
             pool.__exit__(None, None, None)
     return read_records(records_path)
-
-
-def jax_tree(fn, tree):
-    import jax
-
-    return jax.tree.map(fn, tree)
 
 
 def _pair_index(path: Path) -> int:

@@ -354,3 +354,22 @@ def test_hang_refuses_an_unknown_checker(tmp_path):
     with pytest.raises(H.HangInputError, match="--checker"):
         H.hang(None, None, tmp_path / "out", H.HangConfig(checker="octree"), log=None)
     assert not (tmp_path / "out").exists()
+
+
+def test_held_out_demo_quotes_the_evaluated_rate(tmp_path):
+    """``hang --heldout`` quotes ``experiments.evaluate where``'s entry of its answer, else (the
+    default answer) the figure of record; nothing when neither is there."""
+    from omnihang_jax import hang_heldout
+
+    path = tmp_path / "hs.json"
+    path.write_text(json.dumps({"all_stages": {"mean": 86.5, "pairs": 1794, "seeds": [0, 1, 2],
+                                               "measured_at_commit": "e272f38"}}))  # fmt: skip
+    record = hang_heldout.expected_heldout(path)
+    assert record["all_stages"] == 86.5 and "e272f38" in record["source"]
+    assert hang_heldout.expected_heldout(path, where="paper") is None
+    entry = {"all_stages": {"mean": 88.0}, "pairs": 6345, "seeds": [0, 1, 2],
+             "command": "python -m experiments.evaluate where"}  # fmt: skip
+    path.write_text(json.dumps({"default": entry, "all_stages": {"mean": 86.5}}))
+    record = hang_heldout.expected_heldout(path)
+    assert record["all_stages"] == 88.0 and record["source"] == entry["command"]
+    assert hang_heldout.expected_heldout(tmp_path / "missing.json") is None
