@@ -6,11 +6,10 @@
 # benchmark the batched estimators, and bring back the small weights.
 #
 #   run(carry=[".whl_min", ".whl_train"], timeout_s=600,
-#       command="WHL=.whl_min bash scripts/device_collision.sh")
+#       command="bash scripts/device_collision.sh")
 #
-# (.whl_min / .whl_train as in scripts/device_train.sh: mujoco 4 + core + studio, websockets,
-# glfw, trimesh, manifold3d; jaxlie, jax_dataclasses, tyro. The image has jax (CUDA), flax,
-# optax, numpy, scipy, matplotlib, tqdm. OMPL is not needed here: planning runs on the CPU.)
+# (.whl_min / .whl_train as in docs/device.md. The image has jax (CUDA), flax, optax, numpy,
+# scipy, matplotlib, tqdm. OMPL is not needed here: planning runs on the CPU.)
 # Everything comes back in $OUT: device_collision.log (the metrics are printed there and on
 # stdout) and results.tgz (weights/{nce,hce_normals}/, hce_true_normals.json, metrics.json,
 # bench_paths_gpu.json, the logs). Unpack with `tar -xzf results.tgz`.
@@ -37,8 +36,7 @@ if [ $((DERIVE_S + NCE_S + NORMALS_S + 120)) -gt "$END_S" ]; then
 fi
 
 [ -n "${SKIP_INSTALL:-}" ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site \
-    ${WHL:=.whl}/mujoco-*.whl "$WHL"/mujoco_core-*.whl "$WHL"/mujoco_studio-*.whl "$WHL"/websockets-*.whl \
-    "$WHL"/glfw-*.whl "$WHL"/trimesh-*.whl "$WHL"/manifold3d-*.whl .whl_train/*.whl || exit 5
+    .whl_min/*.whl .whl_train/*.whl || exit 5
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 nvidia-smi -L 2>/dev/null | tee -a "$OUT/device_collision.log"
 log "installed; $(ls "$DATA/shards" | wc -l) shards in $DATA"

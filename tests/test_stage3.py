@@ -106,6 +106,7 @@ def test_state_contact_features_see_penetration():
     np.testing.assert_allclose(np.asarray(pts[:n]), np.asarray(clouds.object_points), atol=1e-6)
 
 
+@pytest.mark.slow  # a tiny Stages 1-3 compile; test_where runs the pipeline through where
 def test_value_pipeline_runs_in_one_jit():
     from omnihang_jax.stage1 import STAGE1_TINY, make_stage1
     from omnihang_jax.stage2 import STAGE2_TINY, make_stage2

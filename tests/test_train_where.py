@@ -348,6 +348,7 @@ def test_object_split_pack_and_validation_curve(tmp_path):
         assert json.load(f)["step"] == best["step"]
 
 
+@pytest.mark.slow  # the fine-tuning start (--init-from), an option of the trainer
 def test_init_from_exported_weights_starts_there(trained_dir, tmp_path):
     """--init-from: a stage without a checkpoint starts from the given weights (a tiny lr
     leaves them in place), and a mismatched preset is refused."""
