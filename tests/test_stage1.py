@@ -113,6 +113,7 @@ def test_propose_shapes_and_noise(tiny_net):
     np.testing.assert_allclose(full[:1, 2:3], single, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow  # the axis-angle head; the committed 6-D head learns in the test below
 def test_stage1_overfits_synthetic_pairs():
     """A TINY Stage-1 model fits 4 fixed pairs (up to 4 stable poses each): L_M falls >= 5x."""
     config = dataclasses.replace(
