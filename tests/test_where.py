@@ -21,6 +21,14 @@ PAPER = Path(__file__).resolve().parents[1] / "datasets" / "paper"
 pytestmark = pytest.mark.xdist_group("where")
 
 
+def random_params(init, seed: int):
+    """Parameters of ``init``'s shapes drawn at random, without running ``init`` (an eager
+    init of the networks costs seconds of op-by-op dispatch on the CPU)."""
+    rng = np.random.default_rng(seed)
+    shapes = jax.eval_shape(init, jax.random.key(0))
+    return jax.tree.map(lambda x: (0.1 * rng.standard_normal(x.shape)).astype(x.dtype), shapes)
+
+
 def save_tiny_stage12(folder: Path) -> None:
     """A Stage 1 + 2 folder of the tiny preset with random parameters, in the exported
     format ``predict.load_predictor`` reads (``train.export_weights``)."""
@@ -28,7 +36,7 @@ def save_tiny_stage12(folder: Path) -> None:
     for i, stage in enumerate(("1", "2b")):
         dst = Path(train._stage_dir(str(folder), stage))
         dst.mkdir(parents=True)
-        params = train.make_init_state(stage, cfg)(jax.random.key(i)).params
+        params = random_params(lambda k, s=stage: train.make_init_state(s, cfg)(k).params, i)
         (dst / train.WEIGHTS_FILE).write_bytes(flax.serialization.to_bytes(params))
         saved = dict(stage=stage, config=config_mod.config_to_dict(cfg), step=0)
         (dst / "config.json").write_text(json.dumps(saved))
@@ -40,7 +48,7 @@ def tiny(tmp_path_factory) -> where.WhereConfig:
     save_tiny_stage12(root / "stage12")
     for name, seed in (("value", 0), ("ranker", 1)):
         net = stage3.make_value(stage3.VALUE_TINY)
-        refine.save_value(root / name, stage3.VALUE_TINY, net.init(jax.random.key(seed)))
+        refine.save_value(root / name, stage3.VALUE_TINY, random_params(net.init, seed))
     pipe = dataclasses.replace(
         pipeline.ANSWER_PIPELINE, num_proposals=3, views=((0, 1), (1, 2)),
         cem=stage3.CEMConfig(population=8, iterations=2, elites=3),
