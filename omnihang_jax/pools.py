@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omnihang_jax import selection
+from omnihang_jax import refine, selection
 from omnihang_jax import where as where_mod
 
 __all__ = [
@@ -57,34 +57,16 @@ RULE = where_mod.DEFAULT.pipeline.select  # the answer rule the rankers rank for
 # per-candidate arrays of a shard ([pairs, C, ...]) and per-pair ones ([pairs])
 FIELDS = ("poses", "keys", "counts", "status", "stable", "start", "proposal")
 PAIR_FIELDS = ("pair_index", "pair_file", "category", "object", "support")
-_W: dict = {}
 
 
 def pair_files(data: str | os.PathLike, split: str, pairs: int | None = None) -> list[Path]:
-    """Derived pair files of the training split: ``split`` "train" (training objects) or
-    "validation" (the validation objects); ``pairs``: at most this many, round robin over the
-    object categories (a balanced prefix, as ``where_eval.pair_files``)."""
-    from omnihang_jax import data as data_mod
-    from omnihang_jax import dataset_bridge, where_eval
+    """Derived pair files of the training split: "train" (training objects) or "validation"
+    (the validation objects), round robin over the categories (``where_eval.pair_files``)."""
+    from omnihang_jax import where_eval
 
-    if split == "validation":
-        return where_eval.pair_files(data, "validation", pairs)
-    if split != "train":
+    if split not in ("train", "validation"):
         raise ValueError(f"split must be 'train' or 'validation', got {split!r}")
-    _, derived = dataset_bridge.resolve_dataset_dir(data)
-    files = dataset_bridge.derived_files(derived, "train")
-    names = [data_mod.object_name_of(os.fspath(f)) for f in files]
-    fit, _ = data_mod.split_by_object(names, where_eval.VALIDATION_FRACTION)
-    by_cat: dict[str, list[Path]] = {}
-    for i in fit:
-        by_cat.setdefault(_category(files[i]), []).append(files[i])
-    groups = list(by_cat.values())
-    order = [g[i] for i in range(max(map(len, groups), default=0)) for g in groups if i < len(g)]
-    return order if pairs is None else order[:pairs]
-
-
-def _category(path: Path) -> str:
-    return path.name.split("__")[0].split("_", 1)[1].rsplit("_", 1)[0]
+    return where_eval.pair_files(data, split, pairs)
 
 
 def _pair_index(path: Path) -> int:
@@ -197,30 +179,9 @@ def rule_success(pools: dict, scores, rule: selection.SelectConfig = RULE) -> di
 # Building
 
 
-def _init(dataset_dir: str) -> None:
-    from omnihang_jax import dataset_bridge
-    from sim.library import build_library
-
-    config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(dataset_dir))
-    _W["library"] = build_library(config.library, progress=False)
-
-
 def simulate(job: tuple[str, str, np.ndarray]) -> np.ndarray:
-    """Worker: (object, support, poses [C, 7]) -> [C] int8 statuses on the true meshes (one
-    batched rollout; a non-finite pose diverges)."""
-    from omnihang_jax.evaluate import protocol_stability
-    from sim import kernels
-    from sim.scene import build_scene
-
-    obj, sup, poses = job
-    lib = _W["library"]
-    poses = np.asarray(poses, np.float64).reshape(-1, 7)
-    status = np.full(len(poses), kernels.DIVERGED, np.int8)
-    ok = np.isfinite(poses).all(1) & (np.linalg.norm(poses[:, 3:], axis=1) > 1e-6)
-    if ok.any():
-        scene = build_scene(lib.objects[obj], lib.supports[sup])
-        status[ok] = kernels.stability(scene, poses[ok], protocol_stability(), nthread=1).status
-    return status
+    """Worker: (object, support, poses [C, 7]) -> [C] int8 statuses on the true meshes."""
+    return refine.label_job(job)[0]
 
 
 @functools.lru_cache(maxsize=2)
@@ -266,20 +227,7 @@ def build_pools(
     where = where_mod.load_where(config)
     starts = list(config.pipeline.starts)
     count = _counter(RULE.depth, RULE.radius)
-    pool = None
-    if workers > 0:
-        from sim import workers as workers_mod
-
-        saved = os.environ.get("JAX_PLATFORMS")
-        os.environ["JAX_PLATFORMS"] = "cpu"  # the workers only simulate
-        try:
-            pool = workers_mod.spawn_pool(workers, _init, (os.fspath(dataset_dir),))
-        finally:
-            os.environ.pop("JAX_PLATFORMS", None) if saved is None else os.environ.update(
-                JAX_PLATFORMS=saved
-            )
-    else:
-        _init(os.fspath(dataset_dir))
+    pool = refine.library_pool(dataset_dir, workers)
     shard_no = max((int(s.stem.split("_")[1]) + 1 for s in _shards(out)), default=0)
     rows: list[dict] = []
     pending: list = []  # (row without status, future or status)

@@ -295,12 +295,43 @@ def _labeller_init(dataset_dir: str) -> None:
     from omnihang_jax import dataset_bridge
     from sim.library import build_library
 
+    if _WORKER.get("dataset_dir") == dataset_dir:  # built already in this process
+        return
     recipe = dataset_bridge.read_recipe(dataset_dir)
     config = dataset_bridge.dataset_config_from_recipe(recipe)
     _WORKER["library"] = build_library(config.library, progress=False)
+    _WORKER["dataset_dir"] = dataset_dir
 
 
-def _label_job(job: tuple[str, str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def worker_library():
+    """The asset library of the process (a worker of :func:`library_pool`, or this one)."""
+    return _WORKER["library"]
+
+
+def library_pool(dataset_dir: str | os.PathLike, workers: int):
+    """``workers`` > 0: a pool of spawned single-threaded processes that each hold the
+    dataset's asset library (:func:`worker_library`) and keep JAX off the GPU (they only
+    simulate); 0: None, the library loaded in this process instead."""
+    if workers <= 0:
+        _labeller_init(os.fspath(dataset_dir))
+        return None
+    from sim import workers as workers_mod
+
+    saved = os.environ.get("JAX_PLATFORMS")
+    os.environ["JAX_PLATFORMS"] = "cpu"
+    try:
+        return workers_mod.spawn_pool(workers, _labeller_init, (os.fspath(dataset_dir),))
+    finally:
+        if saved is None:
+            os.environ.pop("JAX_PLATFORMS", None)
+        else:
+            os.environ["JAX_PLATFORMS"] = saved
+
+
+def label_job(job: tuple[str, str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(object name, support name, poses [n, 7]) -> ([n] int8 status, [n] initial penetration m)
+    on the true meshes under the evaluation protocol, in one batched rollout; a non-finite pose
+    is DIVERGED. Runs in a :func:`library_pool` worker (or after ``library_pool(..., 0)``)."""
     from omnihang_jax.evaluate import protocol_stability
     from sim import kernels
     from sim.scene import build_scene
@@ -325,22 +356,7 @@ class Labeller:
     def __init__(self, dataset_dir: str | os.PathLike, workers: int = 0):
         self.dataset_dir = os.fspath(dataset_dir)
         self.workers = workers
-        self.pool = None
-        if workers > 0:
-            from sim import workers as workers_mod
-
-            # the workers only simulate: keep JAX (imported with the package) off the GPU
-            saved = os.environ.get("JAX_PLATFORMS")
-            os.environ["JAX_PLATFORMS"] = "cpu"
-            try:
-                self.pool = workers_mod.spawn_pool(workers, _labeller_init, (self.dataset_dir,))
-            finally:
-                if saved is None:
-                    os.environ.pop("JAX_PLATFORMS", None)
-                else:
-                    os.environ["JAX_PLATFORMS"] = saved
-        else:
-            _labeller_init(self.dataset_dir)
+        self.pool = library_pool(self.dataset_dir, workers)
 
     def __call__(
         self, jobs: Sequence[tuple[str, str, np.ndarray]], progress: bool = False
@@ -350,8 +366,8 @@ class Labeller:
         from tqdm.auto import tqdm
 
         if self.pool is None:
-            return [_label_job(j) for j in tqdm(jobs, desc="simulate", disable=not progress)]
-        return self.pool.map_async(_label_job, list(jobs), chunksize=4).get()
+            return [label_job(j) for j in tqdm(jobs, desc="simulate", disable=not progress)]
+        return self.pool.map_async(label_job, list(jobs), chunksize=4).get()
 
     def close(self) -> None:
         if self.pool is not None:

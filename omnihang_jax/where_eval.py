@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from omnihang_jax import where as where_mod
+from omnihang_jax.refine import label_job, library_pool
 
 __all__ = ["ANSWERS", "evaluate_where", "pair_files", "read_records", "summarise"]
 
@@ -44,59 +45,40 @@ ANSWERS = (
     "all_stages",
 )
 VALIDATION_FRACTION = 0.1  # the trainers' validation objects (data.validation_objects)
-_W: dict = {}
 
 
 def pair_files(data: str | os.PathLike, split: str, pairs: int | None = None) -> list[Path]:
-    """The derived pair files of ``split``: "test" (held-out objects and supports) or
-    "validation" (the training split's validation objects, never trained on). ``pairs``: at
-    most this many, taken round robin over the object categories (a balanced prefix)."""
+    """The derived pair files of ``split``: "test" (held-out objects and supports),
+    "validation" (the training split's validation objects, never trained on) or "train" (the
+    training split less those). ``pairs``: at most this many, taken round robin over the object
+    categories (a balanced prefix)."""
     from omnihang_jax import data as data_mod
     from omnihang_jax import dataset_bridge
 
+    if split not in ("test", "validation", "train"):
+        raise ValueError(f"split must be 'test', 'validation' or 'train', got {split!r}")
     _, derived = dataset_bridge.resolve_dataset_dir(data)
-    if split == "test":
-        files = dataset_bridge.derived_files(derived, "test")
-    elif split == "validation":
-        train = dataset_bridge.derived_files(derived, "train")
-        names = [data_mod.object_name_of(os.fspath(f)) for f in train]
-        _, val = data_mod.split_by_object(names, VALIDATION_FRACTION)
-        files = [train[i] for i in val]
-    else:
-        raise ValueError(f"split must be 'test' or 'validation', got {split!r}")
+    files = dataset_bridge.derived_files(derived, "test" if split == "test" else "train")
+    if split != "test":
+        names = [data_mod.object_name_of(os.fspath(f)) for f in files]
+        fit, val = data_mod.split_by_object(names, VALIDATION_FRACTION)
+        files = [files[i] for i in (val if split == "validation" else fit)]
     by_cat: dict[str, list[Path]] = {}
     for f in files:
         obj = f.name.split("__")[0].split("_", 1)[1]
         by_cat.setdefault(obj.rsplit("_", 1)[0], []).append(f)
-    order = [f for group in zip(*_padded(list(by_cat.values())), strict=True)
-             for f in group if f is not None]  # fmt: skip
+    groups = list(by_cat.values())
+    order = [g[i] for i in range(max(map(len, groups), default=0)) for g in groups if i < len(g)]
     return order if pairs is None else order[:pairs]
-
-
-def _padded(groups: list[list]) -> list[list]:
-    n = max((len(g) for g in groups), default=0)
-    return [g + [None] * (n - len(g)) for g in groups]
-
-
-def _init(dataset_dir: str) -> None:
-    from omnihang_jax import dataset_bridge
-    from sim.library import build_library
-
-    if _W.get("dataset_dir") == dataset_dir:  # built already in this process
-        return
-    config = dataset_bridge.dataset_config_from_recipe(dataset_bridge.read_recipe(dataset_dir))
-    _W["library"] = build_library(config.library, progress=False)
-    _W["dataset_dir"] = dataset_dir
 
 
 def judge_pair(job: dict) -> dict:
     """Worker: the observed-cloud check of one pair, then its answers simulated on the true
     meshes. ``job``: object, support, clouds, ranked [C, 7], answers {name: [7]}, check (reach)."""
-    from omnihang_jax.evaluate import protocol_stability
+    from omnihang_jax.refine import worker_library
     from sim import kernels, observed
-    from sim.scene import build_scene
 
-    lib = _W["library"]
+    lib = worker_library()
     support = lib.supports[job["support"]]
     pick, tried, note = 0, 0, None
     if job["check"] > 0:
@@ -111,12 +93,7 @@ def judge_pair(job: dict) -> dict:
     answers["all_stages"] = job["ranked"][pick]
     names = list(answers)
     poses = np.stack([np.asarray(answers[n], np.float64) for n in names])
-    status = np.full(len(poses), kernels.DIVERGED, np.int8)  # a non-finite pose fails
-    ok = np.isfinite(poses).all(1) & (np.linalg.norm(poses[:, 3:], axis=1) > 1e-6)
-    if ok.any():
-        scene = build_scene(lib.objects[job["object"]], support)
-        res = kernels.stability(scene, poses[ok], protocol_stability(), nthread=1)
-        status[ok] = res.status
+    status, _ = label_job((job["object"], job["support"], poses))
     return dict(
         check_pick=int(pick), check_tried=tried, check_note=note,
         status={n: kernels.STATUS_NAMES[int(s)] for n, s in zip(names, status, strict=True)},
@@ -166,20 +143,7 @@ def evaluate_where(
         return read_records(records_path)
     where = where_mod.load_where(config)
     starts = config.pipeline.starts
-    pool = None
-    if workers > 0:
-        from sim import workers as workers_mod
-
-        saved = os.environ.get("JAX_PLATFORMS")
-        os.environ["JAX_PLATFORMS"] = "cpu"  # the workers only simulate
-        try:
-            pool = workers_mod.spawn_pool(workers, _init, (os.fspath(dataset_dir),))
-        finally:
-            os.environ.pop("JAX_PLATFORMS", None) if saved is None else os.environ.update(
-                JAX_PLATFORMS=saved
-            )
-    else:
-        _init(os.fspath(dataset_dir))
+    pool = library_pool(dataset_dir, workers)
     pending: list = []
     bar = tqdm(total=len(todo), desc=f"where ({len(done)} done)", disable=not progress)
 

@@ -188,7 +188,7 @@ def test_build_pools_labels_every_candidate_and_resumes(tmp_path, monkeypatch):
         )  # fmt: skip
 
     monkeypatch.setattr(where, "load_where", lambda config: where.Where(config, answer, None, None))
-    monkeypatch.setattr(pools, "_init", lambda dataset_dir: None)
+    monkeypatch.setattr(refine, "_labeller_init", lambda dataset_dir: None)
     monkeypatch.setattr(pools, "simulate", lambda job: np.where(job[2][:, 2] < 0.0, 0, 1))
     files = sorted((ds / "derived" / "train").glob("*.npz"))
     first = pools.build_pools(files[:3], tmp_path / "pools", batch=2, shard_pairs=2,
