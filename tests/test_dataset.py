@@ -325,6 +325,7 @@ def test_sigterm_to_the_process_group_does_not_hang_the_worker_pool(tmp_path):
     assert seconds < 20
 
 
+@pytest.mark.slow  # ~20 s on 2 cores: a real generation run killed mid-shard
 def test_sigterm_mid_run_keeps_finished_shards_and_logs_the_run(tmp_path):
     """Kill `generate_dataset` (process group, SIGTERM) once its first shard is written:
     it exits 130 at once, the run is logged as interrupted with the shards it finished, and

@@ -314,6 +314,7 @@ def check_page(html: Path, screenshot: Path, shoot: bool = True) -> dict:
     )
 
 
+@pytest.mark.slow  # ~15 s on 2 cores: a headless browser renders the viewer page
 @pytest.mark.skipif(
     chromium() is None,
     reason="chromium is not installed and scripts/setup.sh could not install it "

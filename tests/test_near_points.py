@@ -59,6 +59,7 @@ def test_near_points_are_the_nearest_of_the_pool():
     assert stage3.near_points(plain, jnp.asarray(pose), stage3.VALUE_TINY) is plain
 
 
+@pytest.mark.slow  # ~22 s on 2 cores: compiles and trains a near-point ranker
 def test_a_near_point_value_network_scores_and_trains_from_v(tmp_path):
     """The same encoder and head: V's weights load into the near-point network, which scores
     a pair's candidates (finite, and different from V's: it sees other points)."""

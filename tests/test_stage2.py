@@ -223,6 +223,7 @@ def test_stage2b_overfits_correspondences():
     assert after["top1_precision"] == 1.0
 
 
+@pytest.mark.slow  # ~15 s on 2 cores: the small preset's train step (tiny ones train above)
 def test_small_preset_trains_a_step_with_pair_offsets():
     """SMALL (real-object radii, pair offsets in 2b) builds, takes a 2b step, gives finite
     losses, and its correspondence logits depend on the candidates' positions."""
