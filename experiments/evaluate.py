@@ -3,6 +3,7 @@
     python -m experiments.evaluate where                    # default answer, all held-out pairs, seeds 0 1 2
     python -m experiments.evaluate where --config paper     # the paper's pipeline
     python -m experiments.evaluate where --split validation --pairs 345 --seed 0
+    python -m experiments.evaluate where --frame any        # each object in a random frame
     python -m experiments.evaluate paths                    # default planner, 300 held-out pairs
     python -m experiments.evaluate paths --config paper_nce
 
@@ -52,9 +53,10 @@ def merge_results(path: str | os.PathLike, key: str, entry: dict) -> dict:
     return data
 
 
-def promote(path: str | os.PathLike, entry: dict) -> None:
+def promote(path: str | os.PathLike, entry: dict, suffix: str = "") -> None:
     """The default answer on every held-out pair becomes the figures of record: the top-level
-    ``stage1`` (with ``network_first_pose``), ``stage1_2``, ``stage1_3`` and ``all_stages``."""
+    ``stage1`` (with ``network_first_pose``), ``stage1_2``, ``stage1_3`` and ``all_stages``
+    (``suffix`` "_any_frame": ``stage1_any_frame`` ... of the any-frame protocol)."""
     for name in ("stage1", "stage1_2", "stage1_3", "all_stages"):
         if name not in entry:
             continue
@@ -64,7 +66,7 @@ def promote(path: str | os.PathLike, entry: dict) -> None:
             figure["network_first_pose"] = entry["stage1_network"]["mean"]
         if name == "all_stages" and "all_stages_unchecked" in entry:
             figure["unchecked"] = entry["all_stages_unchecked"]["mean"]
-        merge_results(path, name, figure)
+        merge_results(path, name + suffix, figure)
 
 
 def run_where(args) -> dict:
@@ -72,19 +74,19 @@ def run_where(args) -> dict:
 
     config = where.CONFIGS[args.config]
     files = where_eval.pair_files(args.data, args.split, args.pairs)
-    records = Path(args.records or f"out/evaluate/where_{args.config}_{args.split}.jsonl")
+    records = Path(args.records or f"out/evaluate/where_{_key(args)}_{args.split}.jsonl")
     t0 = time.time()
     rows = []
     for seed in args.seed:
         rows = where_eval.evaluate_where(
             config, files, records, seed=seed, batch=args.batch, workers=args.workers,
-            progress=not args.no_progress,
+            progress=not args.no_progress, frame=args.frame,
         )  # fmt: skip
     wanted = {int(where_eval._pair_index(f)) for f in files}
     rows = [r for r in rows if r["pair_index"] in wanted and r["seed"] in args.seed]
     summary = where_eval.summarise(rows)
     entry = dict(
-        config=args.config, split=args.split, seeds=list(args.seed),
+        config=args.config, split=args.split, frame=args.frame, seeds=list(args.seed),
         pairs=len(files), command=_command(), date=datetime.date.today().isoformat(),
         versions=_versions(), timing=where_eval.timing_note(t0, len(files) * len(args.seed)),
         **summary,
@@ -107,6 +109,11 @@ def run_paths(args) -> dict:
         date=datetime.date.today().isoformat(), versions=_versions(),
         wall_s=round(time.time() - t0, 1), **summary,
     )  # fmt: skip
+
+
+def _key(args) -> str:
+    """The results key: the config's name, + "_any_frame" under the any-frame protocol."""
+    return args.config + ("_any_frame" if getattr(args, "frame", "library") == "any" else "")
 
 
 def _command() -> str:
@@ -135,6 +142,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--results", default=None,
                         help="summary file (default results/hanging_success.json or "
                         "results/paths.json for the test split; none for validation)")  # fmt: skip
+    parser.add_argument("--frame", choices=["library", "any"], default="library",
+                        help="where: 'any' hands each pair's object over in a random frame "
+                        "(any rotation and shift) and turns free-standing supports about z; "
+                        "the answers are turned back and simulated on the true meshes")  # fmt: skip
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     if args.figure == "where":
@@ -157,9 +168,9 @@ def main(argv=None) -> dict:
     entry = run_where(args) if args.figure == "where" else run_paths(args)
     results = args.results or (RESULTS[args.figure] if args.split == "test" else None)
     if results:
-        merge_results(results, args.config, entry)
+        merge_results(results, _key(args) if args.figure == "where" else args.config, entry)
         if args.figure == "where" and args.config == "default" and args.pairs is None:
-            promote(results, entry)
+            promote(results, entry, "_any_frame" if args.frame == "any" else "")
     print(json.dumps(entry, indent=1))
     return entry
 

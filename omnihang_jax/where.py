@@ -31,9 +31,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from omnihang_jax import frame as frame_mod
 from omnihang_jax import pipeline, selection, stage3
 
 __all__ = [
+    "ANY_FRAME",
     "CONFIGS",
     "DEFAULT",
     "PAPER",
@@ -63,6 +65,10 @@ class WhereConfig:
     # on the partial clouds (60 = the default's whole pool, chosen on the validation objects);
     # 0: off, the rule's first candidate is the answer
     check: int = 60
+    # the object-frame network (omnihang_jax.frame): the object cloud is first turned into the
+    # frame its best-scored hypothesis gives and every pose is mapped back, so the answer does
+    # not depend on the frame the object comes in; None: the cloud is read as given
+    frame: str | None = None
 
     def __post_init__(self):
         if self.check < 0:
@@ -75,7 +81,11 @@ DEFAULT = WhereConfig()
 # The paper's pipeline: K = 5 proposals, CEM from the Stage-2 proposals on one view, the
 # highest final V is the answer, no check.
 PAPER = WhereConfig(rankers=(), pipeline=pipeline.PipelineConfig(), check=0)
-CONFIGS = {"default": DEFAULT, "paper": PAPER}
+# The default answer with the object-frame network in front (omnihang_jax.frame): for objects
+# handed over in any frame. Not yet the default: its networks behind the frame are those of the
+# library's frames, and the frame network is not yet exact (docs/where.md, "The object's frame").
+ANY_FRAME = dataclasses.replace(DEFAULT, frame="weights/frame")
+CONFIGS = {"default": DEFAULT, "paper": PAPER, "any_frame": ANY_FRAME}
 
 
 class WhereOutput(NamedTuple):
@@ -121,7 +131,13 @@ def _load(config: WhereConfig, overrides) -> Where:
 
     from omnihang_jax import predict, refine
 
-    for folder in (config.stage12, config.value, *config.rankers):
+    folders = (
+        config.stage12,
+        config.value,
+        *config.rankers,
+        *([config.frame] if config.frame else []),
+    )
+    for folder in folders:
         if not os.path.exists(folder):
             raise FileNotFoundError(
                 f"{folder} not found: the where-to-hang weights are looked up from the checkout's "
@@ -138,12 +154,21 @@ def _load(config: WhereConfig, overrides) -> Where:
     params = {"stage1": stage1_params, "stage2": nets.stage2_params, "value": value_params}
     if rank_params:
         params["rank_values"] = rank_params
+    to_frame = None
+    if config.frame:
+        frame_config, params["frame"] = frame_mod.load_frame(config.frame)
+        to_frame = frame_mod.make_canonicaliser(frame_config)
 
     def one(params, key, clouds):  # one pair, its own key: a batch of one inside
+        if to_frame is not None:
+            clouds, back = to_frame(params["frame"], clouds)
         out = hang(params, key, jax.tree.map(lambda x: x[None], clouds))
-        return jax.tree.map(lambda x: x[0], (out.stage1_poses, out.stage2_poses, out.ranked,
-                                             out.ranked_keys, out.ranked_start,
-                                             out.ranked_proposal))  # fmt: skip
+        out = jax.tree.map(lambda x: x[0], (out.stage1_poses, out.stage2_poses, out.ranked,
+                                            out.ranked_keys, out.ranked_start,
+                                            out.ranked_proposal))  # fmt: skip
+        if to_frame is not None:
+            out = (back(out[0]), back(out[1]), back(out[2]), *out[3:])
+        return out
 
     batched = jax.jit(jax.vmap(one, in_axes=(None, 0, 0)))
     starts = np.array(pipe.starts)

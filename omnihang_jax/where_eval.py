@@ -23,6 +23,7 @@ a killed run resumes where it stopped.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -45,6 +46,77 @@ ANSWERS = (
     "all_stages",
 )
 VALIDATION_FRACTION = 0.1  # the trainers' validation objects (data.validation_objects)
+FRAMES = ("library", "any")
+CLOUD_KEYS = ("object_points", "object_normals", "support_points", "support_normals")
+ANY_FRAME_SHIFT = 0.1  # m: the object's origin anywhere in a 20-cm cube (any frame)
+
+
+def any_frame(seed: int, pair_index: int, free_standing: bool) -> dict:
+    """The any-frame protocol's turn of one pair, the same for every config: the object in a
+    uniform random SO(3) frame shifted up to ``ANY_FRAME_SHIFT`` per axis; a free-standing
+    support turned about z by a uniform angle (wall-mounted ones keep their wall at -y)."""
+    rng = np.random.default_rng([20261207, int(seed), int(pair_index)])
+    q = rng.normal(size=4)
+    yaw = float(rng.uniform(-np.pi, np.pi))
+    return dict(
+        object_rotation=_quat_matrix(q / np.linalg.norm(q)),
+        object_shift=rng.uniform(-ANY_FRAME_SHIFT, ANY_FRAME_SHIFT, 3),
+        support_yaw=yaw if free_standing else 0.0,
+    )
+
+
+def _quat_matrix(q) -> np.ndarray:
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
+def _yaw_matrix(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def turn_clouds(clouds: dict, turn: dict) -> dict:
+    """The pair's clouds as handed over in the turned frames."""
+    r, s, rz = turn["object_rotation"], turn["object_shift"], _yaw_matrix(turn["support_yaw"])
+    f32 = np.float32
+    return dict(
+        object_points=(np.asarray(clouds["object_points"]) @ r.T + s).astype(f32),
+        object_normals=(np.asarray(clouds["object_normals"]) @ r.T).astype(f32),
+        support_points=(np.asarray(clouds["support_points"]) @ rz.T).astype(f32),
+        support_normals=(np.asarray(clouds["support_normals"]) @ rz.T).astype(f32),
+    )
+
+
+def poses_to_library(poses, turn: dict) -> np.ndarray:
+    """Poses [..., 7] of the turned object in the turned support frame -> the same placements
+    as poses of the library-frame object in the library-frame support (what the true meshes
+    are simulated with): R = Rz^T R' R_o, t = Rz^T (R' s_o + t')."""
+    from scipy.spatial.transform import Rotation
+
+    poses = np.asarray(poses, np.float64)
+    flat = poses.reshape(-1, 7)
+    r_o, s_o = turn["object_rotation"], turn["object_shift"]
+    rz_t = _yaw_matrix(turn["support_yaw"]).T
+    rot = Rotation.from_quat(flat[:, [4, 5, 6, 3]]).as_matrix()  # wxyz -> scipy's xyzw
+    t = np.einsum("ij,nj->ni", rz_t, np.einsum("nij,j->ni", rot, s_o) + flat[:, :3])
+    xyzw = Rotation.from_matrix(rz_t[None] @ rot @ r_o[None]).as_quat()
+    out = np.concatenate([t, xyzw[:, [3, 0, 1, 2]]], axis=1)
+    return out.reshape(poses.shape)
+
+
+@functools.cache
+def free_standing(family: str) -> bool:
+    """Whether the support family stands on the floor (no wall): turned about z in any frame."""
+    from sim.assets import supports  # noqa: F401  (registers the families)
+    from sim.assets.base import SUPPORT_FAMILIES
+
+    if family not in SUPPORT_FAMILIES:
+        raise ValueError(f"unknown support family {family!r}: one of {sorted(SUPPORT_FAMILIES)}")
+    return not SUPPORT_FAMILIES[family](np.random.default_rng(0)).wall
 
 
 def pair_files(data: str | os.PathLike, split: str, pairs: int | None = None) -> list[Path]:
@@ -80,9 +152,10 @@ def judge_pair(job: dict) -> dict:
 
     lib = worker_library()
     support = lib.supports[job["support"]]
+    turn = job.get("turn")
     pick, tried, note = 0, 0, None
     if job["check"] > 0:
-        try:
+        try:  # floor and wall stay where they are: a turn about z keeps both
             pick, status = observed.first_staying(
                 job["clouds"], job["ranked"], support.floor_z, support.wall_y, job["check"]
             )
@@ -93,6 +166,8 @@ def judge_pair(job: dict) -> dict:
     answers["all_stages"] = job["ranked"][pick]
     names = list(answers)
     poses = np.stack([np.asarray(answers[n], np.float64) for n in names])
+    if turn is not None:  # the answers of the turned clouds, as placements of the true meshes
+        poses = poses_to_library(poses, turn)
     status, _ = label_job((job["object"], job["support"], poses))
     return dict(
         check_pick=int(pick), check_tried=tried, check_note=note,
@@ -122,14 +197,19 @@ def evaluate_where(
     workers: int = 0,
     progress: bool = True,
     dataset_dir: str | os.PathLike | None = None,
+    frame: str = "library",
 ) -> list[dict]:
     """Run the answer on every pair file not yet in ``records_path`` and append its record;
     returns all records of the file (earlier ones included). ``workers`` > 0: that many
-    processes check and simulate while the networks run; 0: in this process."""
+    processes check and simulate while the networks run; 0: in this process. ``frame``:
+    "library" (the clouds as derived) or "any" (:func:`any_frame`: each pair's clouds turned
+    before the answer, its answers turned back before the simulation)."""
     from tqdm.auto import tqdm
 
     from omnihang_jax import dataset_bridge, stage3
 
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
     files = [Path(f) for f in files]
     if not files:
         return read_records(records_path)
@@ -137,7 +217,12 @@ def evaluate_where(
         dataset_dir, _ = dataset_bridge.resolve_dataset_dir(files[0].parent.parent)
     records_path = Path(records_path)
     records_path.parent.mkdir(parents=True, exist_ok=True)
-    done = {int(r["pair_index"]) for r in read_records(records_path) if r.get("seed") == seed}
+    earlier = read_records(records_path)
+    other = {r.get("frame", "library") for r in earlier} - {frame}
+    if other:
+        raise ValueError(f"{records_path} holds records in the {sorted(other)} frame, not "
+                         f"{frame!r}: give another --records file")  # fmt: skip
+    done = {int(r["pair_index"]) for r in earlier if r.get("seed") == seed}
     todo = [f for f in files if _pair_index(f) not in done]
     if not todo:
         return read_records(records_path)
@@ -160,16 +245,28 @@ def evaluate_where(
     try:
         for i in range(0, len(todo), batch):
             chunk = todo[i : i + batch]
-            loaded = [dataset_bridge.load_pair_file(f) for f in chunk]
-            padded = loaded + [loaded[0]] * (batch - len(chunk))  # one compiled shape
-            clouds = stage3.stack_clouds([s for s, _ in padded])
-            ids = [m["pair_index"] for _, m in padded]
+            loaded, pairs, turns = [], [], []
+            for f in chunk:
+                sample, meta = dataset_bridge.load_pair_file(f)
+                pair = {k: np.asarray(getattr(sample, k)) for k in CLOUD_KEYS}
+                turn = None
+                if frame == "any":
+                    turn = any_frame(
+                        seed, meta["pair_index"], free_standing(meta["support_family"])
+                    )
+                    pair = turn_clouds(pair, turn)
+                loaded.append(meta)
+                pairs.append(pair)
+                turns.append(turn)
+            padded = pairs + [pairs[0]] * (batch - len(chunk))  # one compiled shape
+            clouds = stage3.PairClouds(
+                *(np.stack([p[k] for p in padded]).astype(np.float32) for k in CLOUD_KEYS)
+            )
+            ids = [m["pair_index"] for m in loaded] + [loaded[0]["pair_index"]] * (
+                batch - len(chunk)
+            )
             out = where.answer(clouds, ids, seed)
-            for b, (sample, meta) in enumerate(loaded):
-                pair = dict(object_points=np.asarray(sample.object_points),
-                            object_normals=np.asarray(sample.object_normals),
-                            support_points=np.asarray(sample.support_points),
-                            support_normals=np.asarray(sample.support_normals))  # fmt: skip
+            for b, (meta, pair, turn) in enumerate(zip(loaded, pairs, turns, strict=True)):
                 answers = {
                     "stage1_network": out.stage1[b, 0],
                     "stage1": where_mod.stage1_answer(
@@ -185,9 +282,10 @@ def evaluate_where(
                     answers["stage1_3"] = out.ranked[b][out.start[b] == "stage1"][0]
                 answers["all_stages_unchecked"] = out.ranked[b, 0]
                 job = dict(object=meta["object_name"], support=meta["support_name"], clouds=pair,
-                           ranked=out.ranked[b], answers=answers, check=config.check)  # fmt: skip
+                           ranked=out.ranked[b], answers=answers, check=config.check,
+                           turn=turn)  # fmt: skip
                 info = dict(
-                    pair_index=int(meta["pair_index"]), seed=int(seed),
+                    pair_index=int(meta["pair_index"]), seed=int(seed), frame=frame,
                     object=str(meta["object_name"]), support=str(meta["support_name"]),
                     category=str(meta["object_category"]), family=str(meta["support_family"]),
                 )  # fmt: skip

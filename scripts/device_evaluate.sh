@@ -14,7 +14,8 @@
 # where: derives the held-out pairs not yet on the machine (all of them, or the first PAIRS + 16
 #   round robin over the categories, so that `--pairs PAIRS` finds its whole sample), then runs
 #   every CONFIG (default "default"; "default paper" runs both) on PAIRS pairs (default: all
-#   derived), seeds SEEDS (default "0 1 2"), BATCH pairs per network call (default 64);
+#   derived), seeds SEEDS (default "0 1 2"), BATCH pairs per network call (default 4: the
+#   default answer needs ~2 GiB of GPU memory a pair; 16 runs out of an H100's 80 GB);
 #   DERIVE_S caps the derive (default: until 120 s are left).
 # paths: PATHS_CONFIG (default "default"), PATHS_PAIRS (default 300), PATHS_SEEDS (default 1),
 #   16 planning processes (needs .whl_plan).
@@ -93,7 +94,7 @@ where_step() {
     t=$(date +%s)
     TAIL=0 run_step derive "${DERIVE_S:-$(($(left) - 120))}" $PY -m experiments.derive_dataset --data "$DS" \
         --split test --workers "${DERIVE_WORKERS:-$CORES}" --no-progress \
-        ${PAIRS:+--limit $((PAIRS + 16))}
+        ${PAIRS:+--limit $((PAIRS + 16 > n ? PAIRS + 16 - n : 0))}
     # a derive cut short writes no derived.json, which evaluate reads: a no-op derive writes it
     [ -s "$DS/derived/derived.json" ] || $PY -m experiments.derive_dataset --data "$DS" --split test \
         --limit 0 --no-progress >>"$C/logs/derive.log" 2>&1
@@ -105,7 +106,7 @@ where_step() {
         t=$(date +%s)
         local before=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)
         run_step "where_$cfg" $(($(left) - 15)) $PY -m experiments.evaluate where \
-            --config "$cfg" --data "$DS" --seed ${SEEDS:-0 1 2} --batch "${BATCH:-64}" \
+            --config "$cfg" --data "$DS" --seed ${SEEDS:-0 1 2} --batch "${BATCH:-4}" \
             --workers "${EVAL_WORKERS:-$((CORES - 1))}" ${PAIRS:+--pairs $PAIRS} --no-progress \
             --records "$OUT/where_$cfg.jsonl" --results "$OUT/where_results.json"
         local after=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)

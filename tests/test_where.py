@@ -75,8 +75,10 @@ def test_named_configs_differ_where_the_paper_does():
     assert where.PAPER.pipeline == pipeline.PipelineConfig()  # K = 5, Stage-2 starts, highest V
     assert where.PAPER.rankers == () and where.PAPER.check == 0
     assert (where.PAPER.stage12, where.PAPER.value) == (where.DEFAULT.stage12, where.DEFAULT.value)
-    for folder in (where.DEFAULT.stage12, where.DEFAULT.value, *where.DEFAULT.rankers):
+    for folder in (where.DEFAULT.stage12, where.DEFAULT.value, *where.DEFAULT.rankers,
+                   where.ANY_FRAME.frame):  # fmt: skip
         assert Path(folder).exists(), folder  # the committed weights the configs name
+    assert where.DEFAULT.frame is None and where.ANY_FRAME.pipeline == where.DEFAULT.pipeline
     with pytest.raises(ValueError, match="check"):
         where.WhereConfig(check=-1)
 
@@ -213,3 +215,64 @@ def test_evaluate_where_end_to_end_on_two_held_out_pairs(tiny, tmp_path, monkeyp
     saved = json.loads(Path("results/hs.json").read_text())["tiny"]
     assert saved["all_stages"]["pairs"] == 2 and saved["seeds"] == [0]
     assert saved["all_stages"] == entry["all_stages"]
+
+
+@pytest.mark.skipif(not (PAPER / "shards").is_dir(), reason="paper dataset labels not present")
+def test_any_frame_evaluation_turns_the_clouds_and_the_answers_back(tiny, tmp_path, monkeypatch):
+    """``--frame any``: each pair's clouds reach the answer turned (object: a random rotation
+    and shift; free-standing supports: about z), the answers come back as placements of the true
+    meshes (every one simulated), the records say which frame, and a records file of the other
+    frame is refused. (Batch 2, as the end-to-end test above: the same compiled answer.)"""
+    from experiments import evaluate
+    from omnihang_jax import dataset_bridge
+
+    derived = tmp_path / "derived"
+    dataset_bridge.derive_dataset(PAPER, derived, splits=("test",), limit=2, progress=False,
+                                  workers=1)  # fmt: skip
+    files = where_eval.pair_files(derived, "test")
+    seen = []
+    judge = where_eval.judge_pair
+    monkeypatch.setattr(where_eval, "judge_pair", lambda job: seen.append(job) or judge(job))
+    records = tmp_path / "any.jsonl"
+    rows = where_eval.evaluate_where(tiny, files, records, seed=0, batch=2, progress=False,
+                                     dataset_dir=PAPER, frame="any")  # fmt: skip
+    assert len(rows) == 2 and {r["frame"] for r in rows} == {"any"}
+    for row, job, f in zip(rows, seen, files, strict=True):
+        assert set(row["status"]) == set(where_eval.ANSWERS)
+        sample, meta = dataset_bridge.load_pair_file(f)
+        turn = job["turn"]
+        assert (turn["support_yaw"] != 0) == where_eval.free_standing(meta["support_family"])
+        np.testing.assert_allclose(job["clouds"]["object_points"],
+                                   np.asarray(sample.object_points) @ turn["object_rotation"].T
+                                   + turn["object_shift"], atol=1e-5)  # fmt: skip
+        # the simulated pose of each answer is the turned answer mapped to the library frames
+        for name, pose in row["poses"].items():
+            if name != "all_stages":
+                expect = where_eval.poses_to_library(job["answers"][name][None], turn)[0]
+                np.testing.assert_allclose(pose, expect, atol=1e-5)
+    with pytest.raises(ValueError, match="frame"):
+        where_eval.evaluate_where(tiny, files, records, seed=1, progress=False,
+                                  dataset_dir=PAPER, frame="library")  # fmt: skip
+    monkeypatch.setitem(where.CONFIGS, "tiny", tiny)
+    monkeypatch.chdir(tmp_path)
+    entry = evaluate.main(["where", "--config", "tiny", "--frame", "any", "--data", str(derived),
+                           "--seed", "0", "--batch", "2", "--records", str(records),
+                           "--results", "hs.json", "--no-progress", "--workers", "0"])  # fmt: skip
+    assert json.loads(Path("hs.json").read_text())["tiny_any_frame"]["frame"] == "any"
+    assert entry["all_stages"]["pairs"] == 2
+
+
+@pytest.mark.slow  # a second compile of the tiny answer (~40 s on 2 cores)
+def test_the_answer_with_a_frame_network_places_the_cloud_as_given(tiny, tmp_path):
+    """``WhereConfig.frame``: the answer runs on the object cloud in the network's frame and
+    returns poses of the cloud as given (unit quaternions, every candidate)."""
+    from omnihang_jax import frame
+
+    net = frame.FrameNet(frame.FRAME_TINY)
+    n = frame.FRAME_TINY.num_points
+    params = random_params(lambda k: net.init(k, np.zeros((1, n, 3)), np.zeros((1, n, 3))), 5)
+    frame.save_frame(tmp_path / "frame", frame.FRAME_TINY, params)
+    w = where.load_where(dataclasses.replace(tiny, frame=str(tmp_path / "frame")))
+    out = w.answer(pairs(2), [10, 11], seed=0)
+    assert out.ranked.shape == (2, 12, 7) and np.isfinite(out.ranked).all()
+    np.testing.assert_allclose(np.linalg.norm(out.ranked[..., 3:], axis=-1), 1.0, atol=1e-5)
