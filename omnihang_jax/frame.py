@@ -111,12 +111,6 @@ def canonicalise(points, normals, rotation, centre):
     return q, jnp.einsum("ij,nj->ni", rotation, normals), mean[0]
 
 
-def _quat_from_matrix(r):
-    from jaxlie import SO3
-
-    return SO3.from_matrix(r).wxyz
-
-
 def pose_back(poses7, rotation, centre, mean):
     """Poses [..., 7] of the canonical cloud (q = G (p - m) + c_hat) as poses of the given cloud
     p: x = R_c q + t_c = (R_c G) p + t_c + R_c (c_hat - G m)."""

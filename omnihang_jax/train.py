@@ -33,7 +33,7 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
-from omnihang_jax import augment
+from omnihang_jax import augment, sharding
 from omnihang_jax import data as data_lib
 from omnihang_jax.config import config_from_dict, config_to_dict
 from omnihang_jax.data import HangSample
@@ -444,6 +444,9 @@ def train_stage(
     if manager.latest_step() is not None:
         state = _restore(manager, state, manager.latest_step())
     start = int(state.step)
+    # data parallel over every visible device (one device: unchanged)
+    mesh = sharding.data_mesh()
+    state = sharding.replicate(state, mesh)
 
     metrics_path = os.path.join(stage_dir, "metrics.jsonl")
     log_every, ckpt_every = config.train.log_every, config.train.checkpoint_every
@@ -465,6 +468,7 @@ def train_stage(
             batch = upcoming.result()
             if step + 1 < steps:
                 upcoming = prefetch.submit(load, step + 1)
+            batch = sharding.shard_batch(batch, mesh)
             state, metrics = train_step(state, batch, jax.random.fold_in(base_key, step))
             done = step + 1
             if t_first is None:

@@ -32,7 +32,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from omnihang_jax import frame as frame_mod
-from omnihang_jax import pipeline, selection, stage3
+from omnihang_jax import pipeline, selection, sharding, stage3
 
 __all__ = [
     "ANY_FRAME",
@@ -172,16 +172,29 @@ def _load(config: WhereConfig, overrides) -> Where:
 
     batched = jax.jit(jax.vmap(one, in_axes=(None, 0, 0)))
     starts = np.array(pipe.starts)
+    # data parallel over every visible device: parameters replicated, pairs split (one device:
+    # as they are)
+    mesh = sharding.data_mesh()
+    params = sharding.replicate(params, mesh)
 
     def answer(clouds: stage3.PairClouds, pair_ids, seed: int = 0) -> WhereOutput:
         """Stages 1-3 on B pairs: ``clouds`` [B, N, 3] each (object frame / support frame),
-        ``pair_ids`` [B] ints that, with ``seed``, fix each pair's random draws."""
+        ``pair_ids`` [B] ints that, with ``seed``, fix each pair's random draws. With several
+        devices the pairs are split over them (padded to a multiple of the device count)."""
         ids = np.asarray(pair_ids, np.int64).reshape(-1)
-        if len(ids) != np.shape(clouds.object_points)[0]:
-            raise ValueError(f"{len(ids)} pair ids for {np.shape(clouds.object_points)[0]} pairs")
+        n = len(ids)
+        if n != np.shape(clouds.object_points)[0]:
+            raise ValueError(f"{n} pair ids for {np.shape(clouds.object_points)[0]} pairs")
+        size = sharding.padded_size(n, mesh)
+        if size != n:  # copies of the first pair, dropped below
+            pad = np.zeros(size - n, np.int64)
+            ids = np.concatenate([ids, ids[pad]])
+            clouds = jax.tree.map(lambda x: np.concatenate([x, np.asarray(x)[pad]]), clouds)
         base = jax.random.key(int(seed))
         keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(jax.numpy.asarray(ids, np.uint32))
-        s1, s2, ranked, keys_, start, proposal = batched(params, keys, clouds)
+        keys, clouds = sharding.shard_batch((keys, clouds), mesh)
+        out = batched(params, keys, clouds)
+        s1, s2, ranked, keys_, start, proposal = (np.asarray(x)[:n] for x in out)
         return WhereOutput(
             _normalise(s1), _normalise(s2), _normalise(ranked), np.asarray(keys_, np.float64),
             starts[np.asarray(start)], np.asarray(proposal),

@@ -55,28 +55,22 @@ def any_frame(seed: int, pair_index: int, free_standing: bool) -> dict:
     """The any-frame protocol's turn of one pair, the same for every config: the object in a
     uniform random SO(3) frame shifted up to ``ANY_FRAME_SHIFT`` per axis; a free-standing
     support turned about z by a uniform angle (wall-mounted ones keep their wall at -y)."""
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng([20261207, int(seed), int(pair_index)])
     q = rng.normal(size=4)
     yaw = float(rng.uniform(-np.pi, np.pi))
     return dict(
-        object_rotation=_quat_matrix(q / np.linalg.norm(q)),
+        object_rotation=Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix(),  # q as wxyz: uniform
         object_shift=rng.uniform(-ANY_FRAME_SHIFT, ANY_FRAME_SHIFT, 3),
         support_yaw=yaw if free_standing else 0.0,
     )
 
 
-def _quat_matrix(q) -> np.ndarray:
-    w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])  # fmt: skip
-
-
 def _yaw_matrix(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("z", a).as_matrix()
 
 
 def turn_clouds(clouds: dict, turn: dict) -> dict:
