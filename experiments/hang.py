@@ -70,9 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="move each cloud's bounding-box centre to the origin",
     )
     p.add_argument(
-        "--where", choices=["default", "paper"], default=d.where,
+        "--where", choices=["default", "paper", "any_frame"], default=d.where,
         help="the where-to-hang answer (omnihang_jax.where): default (Stages 1-3, three views, "
-        "the rankers, the observed-cloud check) or paper (the paper's pipeline)",
+        "the rankers, the observed-cloud check), paper (the paper's pipeline) or any_frame "
+        "(default with the object-frame network in front)",
     )  # fmt: skip
     p.add_argument("--model", default=None, help="Stage 1 + 2 networks instead of the answer's")
     p.add_argument(

@@ -276,3 +276,10 @@ def test_the_answer_with_a_frame_network_places_the_cloud_as_given(tiny, tmp_pat
     out = w.answer(pairs(2), [10, 11], seed=0)
     assert out.ranked.shape == (2, 12, 7) and np.isfinite(out.ranked).all()
     np.testing.assert_allclose(np.linalg.norm(out.ranked[..., 3:], axis=-1), 1.0, atol=1e-5)
+
+
+def test_the_hang_command_offers_every_named_answer():
+    from experiments import hang as hang_cli
+
+    (action,) = [a for a in hang_cli.build_parser()._actions if a.dest == "where"]
+    assert sorted(action.choices) == sorted(where.CONFIGS)
