@@ -161,6 +161,10 @@ def main(argv=None) -> dict:
             raise ValueError(f"--config {args.config!r}: paths takes {sorted(paths.CONFIGS)}")
         args.seed = args.seed if args.seed is not None else [1]
         args.pairs = args.pairs if args.pairs is not None else 300
+    if args.figure == "paths" and args.frame != "library":
+        raise ValueError(
+            "--frame any is a protocol of `where` only (paths plan in the library's frames)"
+        )
     if args.pairs is not None and args.pairs < 1:
         raise ValueError(f"--pairs must be >= 1, got {args.pairs}")
     if args.workers is None:

@@ -43,21 +43,17 @@ KEEP_POINTS = 1024  # points kept per rendered cloud (the network reads 512 of t
 # Rendering (CPU workers holding the asset library)
 
 
-def _render_object(job: tuple[str, int, float, int]) -> tuple[str, np.ndarray, np.ndarray]:
-    """(object name, views, camera scale, seed) -> (name, points [V, KEEP, 3], normals)."""
-    import dataclasses as dc
-
+def _render_object(job: tuple) -> tuple[str, np.ndarray, np.ndarray]:
+    """(object name, views, camera config, seed) -> (name, points [V, KEEP, 3], normals)."""
     from omnihang_jax.refine import worker_library
     from sim import camera, library
     from sim.scene import build_scene
 
-    name, views, scale, seed = job
+    name, views, cam, seed = job
     lib = worker_library()
     obj = lib.objects[name]
     support = next(iter(lib.supports.values()))
     scene = build_scene(obj, support)
-    cam = camera.CameraConfig()
-    cam = dc.replace(cam, width=round(cam.width * scale), height=round(cam.height * scale))
     rng = np.random.default_rng([seed, library.stable_id(name)])
     radius = float(np.linalg.norm(obj.extents) / 2)
     pts, nrm = [], []
@@ -74,7 +70,7 @@ def _render_object(job: tuple[str, int, float, int]) -> tuple[str, np.ndarray, n
 
 
 def render(args) -> int:
-    from omnihang_jax import refine
+    from omnihang_jax import dataset_bridge, refine
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -86,7 +82,11 @@ def render(args) -> int:
     if out.exists():
         with np.load(out) as z:
             done = {n: (z["points"][i], z["normals"][i]) for i, n in enumerate(z["names"])}
-    todo = [(n, args.views, args.camera_scale, args.seed) for n in names if n not in done]
+    recipe = dataset_bridge.read_recipe(args.data)  # the dataset's camera, at --camera-scale
+    cam = dataset_bridge.scaled_config(
+        dataset_bridge.dataset_config_from_recipe(recipe), args.camera_scale
+    ).camera
+    todo = [(n, args.views, cam, args.seed) for n in names if n not in done]
     print(f"render: {len(done)} objects done, {len(todo)} to go ({args.views} views each)")
     pool = refine.library_pool(args.data, args.workers)
     t0 = time.time()
@@ -171,8 +171,6 @@ def rotation_error_deg(chosen_rot, true_rot):
 
 
 def train(args) -> int:
-    import flax
-
     cfg = frame.FRAME_TINY if args.tiny else frame.FrameConfig(hypotheses=args.hypotheses)
     tc = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, seed=args.seed,
                      eval_every=args.eval_every, jitter=args.jitter)  # fmt: skip
@@ -250,8 +248,8 @@ def train(args) -> int:
         if best_step < 0:
             raise ValueError(f"{folder}: no evaluated step to export")
         shutil.copytree(folder / "best", args.export, dirs_exist_ok=True)
+        shutil.copy(history, Path(args.export) / "history.jsonl")  # the validation curve
         print(f"exported the step-{best_step} network to {args.export}")
-    del flax
     return 0
 
 

@@ -26,7 +26,6 @@ best-scored hypothesis, runs Stages 1-3 on it, and maps every pose back with :fu
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from typing import NamedTuple
 
@@ -36,8 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from omnihang_jax import pointnet2
+from omnihang_jax.config import load_config, save_config
 from omnihang_jax.pointnet2 import PointNet2Config, PointNet2Encoder, SharedMLP
 from omnihang_jax.stage1 import rotation_from_6d
+from omnihang_jax.stage3 import _subsample_index
 
 __all__ = [
     "FrameConfig",
@@ -99,9 +100,7 @@ class FrameNet(nn.Module):
 
 def subsample(points: np.ndarray | jax.Array, n: int):
     """The evenly spaced subsample of [..., P, 3] (the pipeline's view (0, 1))."""
-    total = points.shape[-2]
-    idx = (jnp.arange(n) * total) // n
-    return jnp.take(points, idx, axis=-2)
+    return jnp.take(points, _subsample_index(points.shape[-2], n), axis=-2)
 
 
 def canonicalise(points, normals, rotation, centre):
@@ -205,33 +204,9 @@ def save_frame(folder: str | os.PathLike, config: FrameConfig, params, meta: dic
     from flax import serialization
 
     os.makedirs(folder, exist_ok=True)
-    body = {"role": "frame", "config": _config_json(config), **(meta or {})}
-    with open(os.path.join(folder, "config.json"), "w") as f:
-        json.dump(body, f, indent=2)
+    save_config(config, os.path.join(folder, "config.json"), role="frame", **(meta or {}))
     with open(os.path.join(folder, "params.msgpack"), "wb") as f:
         f.write(serialization.to_bytes(params))
-
-
-def _config_json(config: FrameConfig) -> dict:
-    return dataclasses.asdict(config)
-
-
-def _config_from_json(d: dict) -> FrameConfig:
-    enc = d["encoder"]
-    encoder = PointNet2Config(
-        sa_levels=tuple(
-            pointnet2.SALevel(**{**lv, "mlp": tuple(lv["mlp"])}) for lv in enc["sa_levels"]
-        ),
-        fp_mlps=tuple(tuple(m) for m in enc["fp_mlps"]),
-        num_points=enc["num_points"],
-    )
-    return FrameConfig(
-        encoder=encoder,
-        num_points=d["num_points"],
-        hypotheses=d["hypotheses"],
-        head=tuple(d["head"]),
-        offset_scale=d["offset_scale"],
-    )
 
 
 def load_frame(folder: str | os.PathLike) -> tuple[FrameConfig, dict]:
@@ -241,11 +216,10 @@ def load_frame(folder: str | os.PathLike) -> tuple[FrameConfig, dict]:
     path = os.path.join(folder, "config.json")
     if not os.path.exists(path):
         raise FileNotFoundError(f"{path} not found: not a frame-network weights folder")
-    with open(path) as f:
-        config = _config_from_json(json.load(f)["config"])
-    net = FrameNet(config)
+    config, _ = load_config(FrameConfig, path)
     n = config.num_points
-    template = net.init(jax.random.key(0), jnp.zeros((1, n, 3)), jnp.zeros((1, n, 3)))
+    template = jax.eval_shape(
+        FrameNet(config).init, jax.random.key(0), jnp.zeros((1, n, 3)), jnp.zeros((1, n, 3))
+    )
     with open(os.path.join(folder, "params.msgpack"), "rb") as f:
-        params = serialization.from_bytes(template, f.read())
-    return config, params
+        return config, serialization.from_bytes(template, f.read())

@@ -259,6 +259,8 @@ def test_any_frame_evaluation_turns_the_clouds_and_the_answers_back(tiny, tmp_pa
                            "--seed", "0", "--batch", "2", "--records", str(records),
                            "--results", "hs.json", "--no-progress", "--workers", "0"])  # fmt: skip
     assert json.loads(Path("hs.json").read_text())["tiny_any_frame"]["frame"] == "any"
+    with pytest.raises(ValueError, match="where"):
+        evaluate.main(["paths", "--frame", "any", "--data", str(derived)])
     assert entry["all_stages"]["pairs"] == 2
 
 
