@@ -16,7 +16,8 @@
 #   every CONFIG (default "default"; "default paper" runs both) on PAIRS pairs (default: all
 #   derived), seeds SEEDS (default "0 1 2"), BATCH pairs per network call (default 4: the
 #   default answer needs ~2 GiB of GPU memory a pair; 16 runs out of an H100's 80 GB);
-#   DERIVE_S caps the derive (default: until 120 s are left).
+#   DERIVE_S caps the derive (default: until 120 s are left); FRAME=any runs the any-frame
+#   protocol (records where_CONFIG_any_frame.jsonl, results key CONFIG_any_frame).
 # paths: PATHS_CONFIG (default "default"), PATHS_PAIRS (default 300), PATHS_SEEDS (default 1),
 #   16 planning processes (needs .whl_plan).
 # bench: bench_where over BENCH_CONFIGS (default,paper), BENCH_BATCHES (1,8,64,256), BENCH_REPEAT (10).
@@ -101,12 +102,14 @@ where_step() {
     local m=$(ls "$DS/derived/test" 2>/dev/null | wc -l)
     log "derive: $((m - n)) pairs in $(($(date +%s) - t)) s; $m held-out pairs on the machine"
     [ "$m" -gt 0 ] || return 1
-    for cfg in ${CONFIG:-default}; do
+    for c in ${CONFIG:-default}; do
+        # FRAME=any: the any-frame protocol (records where_CONFIG_any_frame.jsonl)
+        local cfg=$c${FRAME:+$([ "$FRAME" = any ] && echo _any_frame)}
         restore "where_$cfg.jsonl"
         t=$(date +%s)
         local before=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)
         run_step "where_$cfg" $(($(left) - 15)) $PY -m experiments.evaluate where \
-            --config "$cfg" --data "$DS" --seed ${SEEDS:-0 1 2} --batch "${BATCH:-4}" \
+            --config "$c" --frame "${FRAME:-library}" --data "$DS" --seed ${SEEDS:-0 1 2} --batch "${BATCH:-4}" \
             --workers "${EVAL_WORKERS:-$((CORES - 1))}" ${PAIRS:+--pairs $PAIRS} --no-progress \
             --records "$OUT/where_$cfg.jsonl" --results "$OUT/where_results.json"
         local after=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)
