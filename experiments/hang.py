@@ -120,8 +120,10 @@ def build_parser() -> argparse.ArgumentParser:
         "it finds no path), nce / hce (the paper's estimators alone) or mesh (the full meshes)",
     )  # fmt: skip
     p.add_argument(
-        "--coacd", choices=["default", "fast"], default="default",
-        help="convex decomposition settings for user meshes (fast: previews)",
+        "--coacd", choices=["user", "library", "fast"], default=d.coacd,
+        help="convex decomposition settings for user meshes: user (seconds; no manifold "
+        "remeshing), library (the asset library's: remeshes non-manifold files, minutes), "
+        "fast (previews)",
     )  # fmt: skip
     p.add_argument(
         "--cache", default=None,

@@ -63,6 +63,11 @@ class CoacdSettings:
     seed: int = 0  # CoACD's tree search is random; fixed for reproducible hulls
 
 
+# User meshes in the hang command: CoACD's search as above without the manifold remeshing, which
+# is most of the time on a non-manifold file (pybullet_data's open mug, handle along +y, on 2
+# cores: 8.9 s instead of 73-118 s; 16 hulls either way, no hull inside the handle's opening).
+USER = dataclasses.replace(CoacdSettings(), preprocess_mode="off")
+
 # Cheap settings for tests and previews: ~0.3 s on a 256-face torus instead of ~0.8 s.
 FAST = CoacdSettings(
     preprocess_mode="off", resolution=500, mcts_nodes=10, mcts_iterations=60, mcts_max_depth=2

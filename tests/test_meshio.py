@@ -204,6 +204,22 @@ def test_decomposition_is_cached(tmp_path, monkeypatch):
     )
 
 
+def test_user_settings_keep_a_ring_open_without_remeshing(tmp_path):
+    """The hang command's settings for user meshes (no manifold remeshing): the ring's hole stays
+    free of hulls while its tube is covered, as with the library's settings."""
+    from omnihang_jax.hang_inputs import coacd_settings
+
+    assert coacd_settings("user") == decompose.USER and decompose.USER.preprocess_mode == "off"
+    mesh, _ = load_user_mesh(_export(_torus(), tmp_path / "torus.obj"))
+    result = decompose.decompose(mesh, decompose.USER, tmp_path)
+    hulls = [h.to_trimesh() for h in result.hulls]
+    major = 0.5 * (mesh.bounds[1, 0] - mesh.bounds[0, 0]) - 0.5 * mesh.extents[2]
+    hole = np.array([[0.0, 0.0, 0.0], [0.3 * major, 0.0, 0.0], [0.0, -0.3 * major, 0.0]])
+    tube = np.array([[major, 0.0, 0.0], [0.0, major, 0.0], [-major, 0.0, 0.0]])
+    assert not any(h.contains(hole).any() for h in hulls)
+    assert all(any(h.contains(p[None])[0] for h in hulls) for p in tube)
+
+
 def test_corrupt_cache_is_reported_and_recomputed(tmp_path, caplog):
     mesh, _ = load_user_mesh(_export(_open_box(), tmp_path / "box.obj"))
     first = decompose.decompose(mesh, decompose.FAST, tmp_path)
