@@ -271,6 +271,8 @@ def _fix_winding(mesh: trimesh.Trimesh) -> int:
     for root in np.unique(labels, return_index=True)[1]:
         order, pred = breadth_first_order(graph, root, directed=False, return_predecessors=True)
         children = order[1:]
+        if len(children) == 0:  # a face with no neighbour: nothing to agree with
+            continue
         flips_edge = (np.asarray(graph[pred[children], children]).ravel() == 2).tolist()
         parents = pred[children].tolist()
         state = {int(root): False}

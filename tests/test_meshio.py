@@ -145,6 +145,21 @@ def test_repairs_winding_and_duplicates(tmp_path):
     assert mesh.volume == pytest.approx(1e-3, rel=1e-6)  # outward normals
 
 
+def test_winding_is_repaired_beside_a_face_with_no_neighbour(tmp_path):
+    """A lone triangle (its own component, nothing to agree with) beside a box with a face wound
+    the wrong way: the box is repaired and the lone face left as it is (public meshes have both)."""
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    faces = box.faces.copy()
+    faces[0] = faces[0][::-1]
+    lone = np.array([[0.2, 0.0, 0.0], [0.21, 0.0, 0.0], [0.2, 0.01, 0.0]])
+    vertices = np.concatenate([box.vertices, lone])
+    faces = np.concatenate([faces, [[8, 9, 10]]])
+    path = tmp_path / "box_and_lone_face.obj"
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
+    mesh, report = load_user_mesh(path)
+    assert report["winding_flipped"] > 0 and mesh.is_winding_consistent
+
+
 def test_open_mesh_is_repaired(tmp_path):
     path = tmp_path / "open_box.obj"
     _open_box().export(path)
