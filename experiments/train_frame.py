@@ -171,10 +171,7 @@ def rotation_error_deg(chosen_rot, true_rot):
 
 
 def train(args) -> int:
-    base = {"full": frame.FrameConfig(), "small": frame.FRAME_SMALL, "tiny": frame.FRAME_TINY}
-    cfg = base["tiny" if args.tiny else args.size]
-    if not args.tiny:
-        cfg = dataclasses.replace(cfg, hypotheses=args.hypotheses)
+    cfg = frame.FRAME_TINY if args.tiny else frame.FrameConfig(hypotheses=args.hypotheses)
     tc = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, seed=args.seed,
                      eval_every=args.eval_every, jitter=args.jitter)  # fmt: skip
     tp, tn, vp, vn, val_names = load_clouds(args.clouds)
@@ -277,12 +274,6 @@ def main(argv=None) -> int:
     t.add_argument("--hypotheses", type=int, default=frame.FrameConfig.hypotheses)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--tiny", action="store_true", help="the test-size network")
-    t.add_argument(
-        "--size",
-        choices=["full", "small"],
-        default="full",
-        help="full (the GPU's) or small (frame.FRAME_SMALL: trains on CPU cores)",
-    )
     t.add_argument(
         "--max-seconds",
         type=float,

@@ -34,14 +34,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from omnihang_jax import pointnet2, vn
+from omnihang_jax import pointnet2
 from omnihang_jax.config import load_config, save_config
-from omnihang_jax.pointnet2 import SharedMLP
+from omnihang_jax.pointnet2 import PointNet2Config, PointNet2Encoder, SharedMLP
 from omnihang_jax.stage1 import rotation_from_6d
 from omnihang_jax.stage3 import _subsample_index
 
 __all__ = [
-    "FRAME_SMALL",
     "FrameConfig",
     "FrameNet",
     "Frame",
@@ -59,24 +58,16 @@ __all__ = [
 
 @dataclasses.dataclass(frozen=True)
 class FrameConfig:
-    """The canonicaliser's architecture: a Vector Neuron network (``omnihang_jax.vn``)."""
+    """The canonicaliser's architecture."""
 
+    encoder: PointNet2Config = pointnet2.SMALL
     num_points: int = 512  # evenly spaced subsample of the observed cloud
-    neighbours: int = 16  # k of the first (edge) layer
-    point_channels: tuple[int, ...] = (64, 64, 128)  # vector channels per point
-    global_channels: tuple[int, ...] = (128,)  # vector channels after pooling
     hypotheses: int = 4  # M frames proposed per cloud
-    head: tuple[int, ...] = (128,)  # the score's MLP on invariant features
+    head: tuple[int, ...] = (256, 128)
+    offset_scale: float = 0.1  # m: c_hat = offset_scale * head output
 
 
-# a quarter of the compute: trains on 2 CPU cores (about 1 s a step of 16 clouds)
-FRAME_SMALL = FrameConfig(
-    num_points=256, neighbours=8, point_channels=(32, 32, 64), global_channels=(64,), head=(64,)
-)
-FRAME_TINY = FrameConfig(
-    num_points=64, neighbours=8, point_channels=(8, 8), global_channels=(8,), hypotheses=2,
-    head=(16,),
-)  # fmt: skip
+FRAME_TINY = FrameConfig(encoder=pointnet2.TINY, num_points=64, hypotheses=2, head=(32,))
 
 
 class Frame(NamedTuple):
@@ -89,10 +80,6 @@ class Frame(NamedTuple):
 
 
 class FrameNet(nn.Module):
-    """Equivariant by construction: for a cloud turned by R and shifted, every hypothesis' G
-    becomes G R^T and c_hat and the scores stay, so the canonical cloud is the same. Trained on
-    the library's frames alone, it finds them in any frame."""
-
     config: FrameConfig
 
     @nn.compact
@@ -100,26 +87,15 @@ class FrameNet(nn.Module):
         """points, normals [B, N, 3] in any frame (N = config.num_points)."""
         cfg = self.config
         centred = points - jnp.mean(points, axis=1, keepdims=True)
-        h = vn.VNLinearReLU(cfg.point_channels[0], name="edge")(
-            vn.edge_features(centred, cfg.neighbours)
-        )
-        h = jnp.concatenate([jnp.mean(h, axis=2), normals[:, :, None]], axis=2)  # [B, N, C+1, 3]
-        for i, c in enumerate(cfg.point_channels[1:]):
-            h = vn.VNLinearReLU(c, name=f"point_{i}")(h)
-        g = jnp.mean(h, axis=1, keepdims=True)
-        h = jnp.concatenate([h, jnp.broadcast_to(g, h.shape)], axis=2)
-        g = jnp.mean(vn.VNLinearReLU(cfg.point_channels[-1], name="fuse")(h), axis=1)
-        for i, c in enumerate(cfg.global_channels):
-            g = vn.VNLinearReLU(c, name=f"global_{i}")(g)
+        feature, _ = PointNet2Encoder(cfg.encoder, name="encoder")(centred, normals)
+        h = SharedMLP(cfg.head, name="head")(feature)
         m = cfg.hypotheses
-        vec = vn.VNLinear(3 * m, name="out")(g).reshape(points.shape[0], m, 3, 3)
-        # two equivariant vectors -> columns B (turns as R B); G = B^T turns as G R^T
-        basis = rotation_from_6d(jnp.concatenate([vec[:, :, 0], vec[:, :, 1]], axis=-1))
-        rotation = jnp.swapaxes(basis, -1, -2)
-        centre = jnp.einsum("bmij,bmj->bmi", rotation, vec[:, :, 2])  # invariant
-        inv = vn.VNInvariant(name="invariant")(g)
-        logits = nn.Dense(m, name="score")(SharedMLP(cfg.head, name="head")(inv))
-        return Frame(rotation, centre, logits)
+        out = nn.Dense(m * 10, name="out")(h).reshape(points.shape[0], m, 10)
+        # start near the identity in every hypothesis, each a little apart
+        eye6 = jnp.array([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+        rotation = rotation_from_6d(out[..., :6] + eye6)
+        centre = cfg.offset_scale * out[..., 6:9]
+        return Frame(rotation, centre, out[..., 9])
 
 
 def subsample(points: np.ndarray | jax.Array, n: int):

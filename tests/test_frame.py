@@ -64,26 +64,6 @@ def test_the_set_loss_is_zero_at_the_inverse_turn_and_the_winner_takes_it():
     assert float(m2["chamfer_chosen_mm"]) > 5.0 and float(m2["score_accuracy"]) == 0.0
 
 
-def test_the_frame_network_is_equivariant_untrained():
-    """Vector Neurons: for a turned and shifted cloud every hypothesis' G turns as G R^T and the
-    centre and scores stay, before any training, so the canonical cloud is the same."""
-    rng = np.random.default_rng(4)
-    cfg = frame.FRAME_TINY
-    pts = (rng.normal(size=(2, cfg.num_points, 3)) * [0.08, 0.03, 0.02]).astype(np.float32)
-    nrm = rng.normal(size=pts.shape).astype(np.float32)
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-    net = frame.FrameNet(cfg)
-    params = net.init(jax.random.key(1), jnp.asarray(pts), jnp.asarray(nrm))
-    rot = np.asarray(frame.random_rotations(jax.random.key(5), 1)[0])
-    a = net.apply(params, jnp.asarray(pts), jnp.asarray(nrm))
-    b = net.apply(params, jnp.asarray(pts @ rot.T + [0.3, -0.1, 0.2]), jnp.asarray(nrm @ rot.T))
-    np.testing.assert_allclose(np.asarray(b.rotation), np.asarray(a.rotation) @ rot.T, atol=1e-4)
-    np.testing.assert_allclose(np.asarray(b.centre), np.asarray(a.centre), atol=1e-5)
-    np.testing.assert_allclose(np.asarray(b.logits), np.asarray(a.logits), atol=1e-4)
-    # and not trivially: the hypotheses differ from one another and from the identity
-    assert np.abs(np.asarray(a.rotation)[0, 0] - np.eye(3)).max() > 0.1
-
-
 def test_a_tiny_frame_network_learns_to_undo_turns_about_z():
     """Two L-shaped clouds turned about z by any angle: after training, the chosen hypothesis
     brings them back far closer than the untrained network does."""
@@ -132,7 +112,7 @@ def test_a_tiny_frame_network_learns_to_undo_turns_about_z():
     for i in range(400):
         params, state, _ = step(params, state, jax.random.key(i))
     after = float(np.mean([chosen(params, jax.random.key(100 + i)) for i in range(4)]))
-    assert after < 0.7 * before, (before, after)  # measured: 21.6 -> 11.9 mm
+    assert after < 0.7 * before, (before, after)  # measured: 20.9 -> 12.7 mm
 
 
 def test_any_frame_turns_are_seeded_and_turn_only_free_standing_supports():
