@@ -6,7 +6,8 @@
 #
 #   run(carry=[".whl_min", ".whl_train"], command="bash scripts/device_frame.sh")
 #
-# FRAME_STEPS (default 12000), FRAME_BATCH (64), FRAME_VIEWS (32). Back in $OUT/frame:
+# FRAME_STEPS (default 12000), FRAME_BATCH (64), FRAME_VIEWS (32), FRAME_CAMERA (the camera's
+# resolution scale, 1.0). Back in $OUT/frame:
 # history.jsonl, run.json, best/ (config.json + params.msgpack: copy to weights/frame),
 # checkpoint.msgpack (to resume elsewhere) and frame.log.
 set -uo pipefail
@@ -21,7 +22,7 @@ mkdir -p "$C/run"
 cp datasets/paper/dataset_card.json "$C/ds/"
 [ -n "${FRAME_IN:-}" ] && [ ! -s "$C/run/checkpoint.msgpack" ] && cp -r "$FRAME_IN"/. "$C/run/"
 t=$(date +%s)
-$PY -m experiments.train_frame render --data "$C/ds" --views "${FRAME_VIEWS:-32}" --camera-scale 1.0 \
+$PY -m experiments.train_frame render --data "$C/ds" --views "${FRAME_VIEWS:-32}" --camera-scale "${FRAME_CAMERA:-1.0}" \
     --workers "${FRAME_WORKERS:-4}" --out "$C/clouds.npz" >"$C/logs/render.log" 2>&1
 log "render: rc $? after $(($(date +%s) - t)) s; $(tail -n 1 "$C/logs/render.log")"
 t=$(date +%s)

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Makes the working tree small enough to travel to the device machine (64 MiB with the carried
 # wheels): `out MODE` moves the tracked files that the device's MODE does not read to
-# /tmp/omnihang_lean (results/, docs/img/ and the other figure's weights), `back`
+# /tmp/omnihang_lean (results/, docs/img/, datasets/external/ and the other figure's weights), `back`
 # moves them back. Run `back` before anything stages or commits: while they are out, git sees
 # them as deleted.
 #
@@ -32,7 +32,7 @@ case ${1:-} in
         esac
         mkdir -p "$LEAN"
         # shellcheck disable=SC2086
-        git ls-files -z -- results docs/img $other | while IFS= read -r -d '' f; do
+        git ls-files -z -- results docs/img datasets/external $other | while IFS= read -r -d '' f; do
             [ -e "$f" ] || continue
             mkdir -p "$LEAN/$(dirname "$f")"
             mv "$f" "$LEAN/$f"
