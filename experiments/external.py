@@ -70,6 +70,7 @@ def read_objects(manifest: str | Path, names: list[str] | None) -> list[dict]:
 def judge(entry: dict, support: str, config, predictor, root: Path) -> dict:
     """One pair through the hang command; both answers judged on the meshes."""
     from omnihang_jax import hang as hang_mod
+    from omnihang_jax.refine import worker_library
     from sim import kernels
 
     t = time.perf_counter()
@@ -80,13 +81,14 @@ def judge(entry: dict, support: str, config, predictor, root: Path) -> dict:
     if res.status is None:
         return dict(row, error="not verified: " + res.steps.get("check", ""))
     stable = res.status == kernels.STABLE
-    from omnihang_jax.refine import worker_library
-
+    if not len(stable):
+        return dict(row, error="no candidates")
+    # the answer the command gives from clouds alone: the observed-cloud check's pick
     sup_asset = worker_library().supports[support]
     top = hang_mod.where_config(config).check
     pick, _, _ = hang_mod.observed_check(res.object, res.support, sup_asset, res.candidates.poses,
                                          top, None)  # fmt: skip
-    return dict(row, hanging=int(stable.sum()), meshes=bool(stable.any()),
+    return dict(row, hanging=int(stable.sum()), meshes=res.verdict == "stable",
                 clouds=bool(stable[pick]), clouds_pick=int(pick),
                 seconds=round(time.perf_counter() - t, 1))  # fmt: skip
 

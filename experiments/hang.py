@@ -43,6 +43,7 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 def build_parser() -> argparse.ArgumentParser:
     from omnihang_jax.hang import HangConfig
+    from sim.decompose import PRESETS
 
     d = HangConfig()
     p = argparse.ArgumentParser(
@@ -120,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
         "it finds no path), nce / hce (the paper's estimators alone) or mesh (the full meshes)",
     )  # fmt: skip
     p.add_argument(
-        "--coacd", choices=["user", "library", "fast"], default=d.coacd,
+        "--coacd", choices=sorted(PRESETS), default=d.coacd,
         help="convex decomposition settings for user meshes: user (seconds; no manifold "
         "remeshing), library (the asset library's: remeshes non-manifold files, minutes), "
         "fast (previews)",

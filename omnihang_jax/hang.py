@@ -63,7 +63,6 @@ import numpy as np
 
 from omnihang_jax.hang_inputs import (  # noqa: F401  (re-exported)
     CLOUD_FORMATS,
-    COACD_SETTINGS,
     DEFAULT_MODEL,
     DEFAULT_OBJECT,
     DEFAULT_SUPPORT,
@@ -420,10 +419,10 @@ def hang(
         raise HangInputError(
             f"--checker must be 'auto', 'nce', 'hce' or 'mesh', got {config.checker!r}"
         )
-    if config.coacd not in COACD_SETTINGS:
-        raise HangInputError(
-            f"--coacd must be one of {sorted(COACD_SETTINGS)}, got {config.coacd!r}"
-        )
+    from sim.decompose import PRESETS
+
+    if config.coacd not in PRESETS:
+        raise HangInputError(f"--coacd must be one of {sorted(PRESETS)}, got {config.coacd!r}")
     if config.up not in ("z", "y"):
         raise HangInputError(f"--up must be 'z' or 'y', got {config.up!r}")
     for name in ("scale", "object_scale", "support_scale"):

@@ -68,8 +68,8 @@ class HangConfig:
     up: str = "z"  # meshes: "y" rotates a y-up file (glTF, Blender exports) to z-up
     free_standing: bool = False  # a user support stands on the floor instead of a wall
     recenter: bool = False  # clouds: move each cloud's bounding-box centre to the origin
-    # CoACD settings of user meshes: "user" (sim.decompose.USER: no manifold remeshing, seconds),
-    # "library" (the asset library's, remeshing non-manifold files: minutes) or "fast" (previews)
+    # CoACD settings of user meshes (sim.decompose.PRESETS): "user" (no manifold remeshing,
+    # seconds), "library" (the asset library's, remeshing non-manifold files: minutes), "fast"
     coacd: str = "user"
     value: str | None = None  # "off": Stages 1-2 only, ranked by the observed-cloud clearance
     cache_dir: str | None = None  # CoACD cache; None: out/cache/coacd in the working directory
@@ -535,24 +535,12 @@ def load_body(
     return ("mesh", spec, read_mesh(spec, kind, config))
 
 
-COACD_SETTINGS = ("user", "library", "fast")  # HangConfig.coacd
-
-
-def coacd_settings(name: str):
-    """The ``sim.decompose.CoacdSettings`` of a ``HangConfig.coacd`` name."""
-    from sim import decompose
-
-    return {"user": decompose.USER, "library": decompose.CoacdSettings(), "fast": decompose.FAST}[
-        name
-    ]
-
-
 def decompose_mesh(spec: str, kind: str, config: HangConfig, report: dict):
     """The Asset of a checked mesh file: CoACD hulls (cached in :func:`cache_dir`)."""
     from sim import decompose
     from sim.meshio import MeshError
 
-    settings = coacd_settings(config.coacd)
+    settings = decompose.PRESETS[config.coacd]
     try:
         asset = decompose.asset_from_user_mesh(
             spec,

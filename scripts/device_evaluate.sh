@@ -104,7 +104,8 @@ where_step() {
     [ "$m" -gt 0 ] || return 1
     for c in ${CONFIG:-default}; do
         # FRAME=any: the any-frame protocol (records where_CONFIG_any_frame.jsonl)
-        local cfg=$c${FRAME:+$([ "$FRAME" = any ] && echo _any_frame)}
+        local cfg=$c
+        [ "${FRAME:-library}" = any ] && cfg=${c}_any_frame
         restore "where_$cfg.jsonl"
         t=$(date +%s)
         local before=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)

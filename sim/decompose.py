@@ -73,6 +73,9 @@ FAST = CoacdSettings(
     preprocess_mode="off", resolution=500, mcts_nodes=10, mcts_iterations=60, mcts_max_depth=2
 )
 
+# The settings by name (the hang command's --coacd): "library" is the asset library's.
+PRESETS = {"user": USER, "library": CoacdSettings(), "fast": FAST}
+
 
 class Decomposition(NamedTuple):
     """The convex parts of one mesh and a JSON-able record of how they were made."""

@@ -222,9 +222,7 @@ def test_decomposition_is_cached(tmp_path, monkeypatch):
 def test_user_settings_keep_a_ring_open_without_remeshing(tmp_path):
     """The hang command's settings for user meshes (no manifold remeshing): the ring's hole stays
     free of hulls while its tube is covered, as with the library's settings."""
-    from omnihang_jax.hang_inputs import coacd_settings
-
-    assert coacd_settings("user") == decompose.USER and decompose.USER.preprocess_mode == "off"
+    assert decompose.PRESETS["user"] == decompose.USER and decompose.USER.preprocess_mode == "off"
     mesh, _ = load_user_mesh(_export(_torus(), tmp_path / "torus.obj"))
     result = decompose.decompose(mesh, decompose.USER, tmp_path)
     hulls = [h.to_trimesh() for h in result.hulls]
