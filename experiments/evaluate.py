@@ -53,8 +53,19 @@ def merge_results(path: str | os.PathLike, key: str, entry: dict) -> dict:
     return data
 
 
+def promotes(args, entry: dict) -> bool:
+    """Whether a run becomes the figures of record: the default answer on the held-out split,
+    on every held-out pair or at least the record sample (``where_eval.RECORD_PAIRS`` pairs),
+    with three seeds or more."""
+    from omnihang_jax.where_eval import RECORD_PAIRS
+
+    return (args.figure == "where" and args.config == "default" and args.split == "test"
+            and (args.pairs is None or entry["pairs"] >= RECORD_PAIRS)
+            and len(args.seed) >= 3)  # fmt: skip
+
+
 def promote(path: str | os.PathLike, entry: dict, suffix: str = "") -> None:
-    """The default answer on every held-out pair becomes the figures of record: the top-level
+    """A run that :func:`promotes` becomes the figures of record: the top-level
     ``stage1`` (with ``network_first_pose``), ``stage1_2``, ``stage1_3`` and ``all_stages``
     (``suffix`` "_any_frame": ``stage1_any_frame`` ... of the any-frame protocol)."""
     for name in ("stage1", "stage1_2", "stage1_3", "all_stages"):
@@ -75,6 +86,7 @@ def run_where(args) -> dict:
     config = where.CONFIGS[args.config]
     files = where_eval.pair_files(args.data, args.split, args.pairs)
     records = Path(args.records or f"out/evaluate/where_{_key(args)}_{args.split}.jsonl")
+    before = len(where_eval.read_records(records))
     t0 = time.time()
     rows = []
     for seed in args.seed:
@@ -88,7 +100,8 @@ def run_where(args) -> dict:
     entry = dict(
         config=args.config, split=args.split, frame=args.frame, seeds=list(args.seed),
         pairs=len(files), command=_command(), date=datetime.date.today().isoformat(),
-        versions=_versions(), timing=where_eval.timing_note(t0, len(files) * len(args.seed)),
+        versions=_versions(),
+        timing=where_eval.timing_note(t0, len(where_eval.read_records(records)) - before),
         **summary,
     )  # fmt: skip
     return entry
@@ -173,7 +186,7 @@ def main(argv=None) -> dict:
     results = args.results or (RESULTS[args.figure] if args.split == "test" else None)
     if results:
         merge_results(results, _key(args) if args.figure == "where" else args.config, entry)
-        if args.figure == "where" and args.config == "default" and args.pairs is None:
+        if promotes(args, entry):
             promote(results, entry, "_any_frame" if args.frame == "any" else "")
     print(json.dumps(entry, indent=1))
     return entry

@@ -113,6 +113,11 @@ def free_standing(family: str) -> bool:
     return not SUPPORT_FAMILIES[family](np.random.default_rng(0)).wall
 
 
+# The figures of record's sample: the first 1,794 held-out pairs of :func:`pair_files`'s
+# category-balanced order (156-157 a category; the full held-out split has 6,345 pairs).
+RECORD_PAIRS = 1794
+
+
 def pair_files(data: str | os.PathLike, split: str, pairs: int | None = None) -> list[Path]:
     """The derived pair files of ``split``: "test" (held-out objects and supports),
     "validation" (the training split's validation objects, never trained on) or "train" (the

@@ -215,6 +215,25 @@ def test_evaluate_where_end_to_end_on_two_held_out_pairs(tiny, tmp_path, monkeyp
     saved = json.loads(Path("results/hs.json").read_text())["tiny"]
     assert saved["all_stages"]["pairs"] == 2 and saved["seeds"] == [0]
     assert saved["all_stages"] == entry["all_stages"]
+    assert entry["timing"]["pairs_per_s"] == 0  # every row resumed: none evaluated in this run
+
+
+def test_only_the_default_answer_on_the_record_sample_with_three_seeds_is_promoted():
+    """The top-level figures of record come from the default config on the held-out split, on
+    every pair or at least ``RECORD_PAIRS`` of them, with three seeds or more."""
+    from argparse import Namespace
+
+    from experiments.evaluate import promotes
+
+    full = dict(figure="where", config="default", split="test", pairs=None, seed=[0, 1, 2])
+    n = where_eval.RECORD_PAIRS
+    assert promotes(Namespace(**full), {"pairs": 6345})
+    assert promotes(Namespace(**{**full, "pairs": n}), {"pairs": n})
+    assert not promotes(Namespace(**{**full, "pairs": n}), {"pairs": n - 1})  # too few derived
+    assert not promotes(Namespace(**{**full, "pairs": 11}), {"pairs": 11})
+    assert not promotes(Namespace(**{**full, "seed": [0]}), {"pairs": n})
+    assert not promotes(Namespace(**{**full, "config": "paper"}), {"pairs": n})
+    assert not promotes(Namespace(**{**full, "split": "validation"}), {"pairs": n})
 
 
 @pytest.mark.skipif(not (PAPER / "shards").is_dir(), reason="paper dataset labels not present")
