@@ -60,6 +60,7 @@ def promotes(args, entry: dict) -> bool:
     from omnihang_jax.where_eval import RECORD_PAIRS
 
     return (args.figure == "where" and args.config == "default" and args.split == "test"
+            and not args.depth_noise and not args.dropout
             and (args.pairs is None or entry["pairs"] >= RECORD_PAIRS)
             and len(args.seed) >= 3)  # fmt: skip
 
@@ -93,12 +94,14 @@ def run_where(args) -> dict:
         rows = where_eval.evaluate_where(
             config, files, records, seed=seed, batch=args.batch, workers=args.workers,
             progress=not args.no_progress, frame=args.frame,
+            depth_noise=args.depth_noise / 1000, dropout=args.dropout,
         )  # fmt: skip
     wanted = {int(where_eval._pair_index(f)) for f in files}
     rows = [r for r in rows if r["pair_index"] in wanted and r["seed"] in args.seed]
     summary = where_eval.summarise(rows)
     entry = dict(
         config=args.config, split=args.split, frame=args.frame, seeds=list(args.seed),
+        depth_noise_mm=args.depth_noise, dropout=args.dropout,
         pairs=len(files), command=_command(), date=datetime.date.today().isoformat(),
         versions=_versions(),
         timing=where_eval.timing_note(t0, len(where_eval.read_records(records)) - before),
@@ -111,22 +114,29 @@ def run_paths(args) -> dict:
     from omnihang_jax import paths, paths_eval
 
     config = paths.CONFIGS[args.config]
-    records = Path(args.records or f"out/evaluate/paths_{args.config}_{args.split}.jsonl")
+    records = Path(args.records or f"out/evaluate/paths_{_key(args)}_{args.split}.jsonl")
     t0 = time.time()
     summary = paths_eval.evaluate_paths(
         config, data=args.data, split=args.split, pairs=args.pairs, seeds=list(args.seed),
         workers=args.workers, records_path=records, progress=not args.no_progress,
+        frame=args.frame,
     )  # fmt: skip
     return dict(
-        config=args.config, split=args.split, command=_command(),
+        config=args.config, split=args.split, frame=args.frame, command=_command(),
         date=datetime.date.today().isoformat(), versions=_versions(),
         wall_s=round(time.time() - t0, 1), **summary,
     )  # fmt: skip
 
 
 def _key(args) -> str:
-    """The results key: the config's name, + "_any_frame" under the any-frame protocol."""
-    return args.config + ("_any_frame" if getattr(args, "frame", "library") == "any" else "")
+    """The results key: the config's name, + "_any_frame" under the any-frame protocol,
+    + "_noise<mm>mm" / "_dropout<percent>" with degraded clouds."""
+    key = args.config + ("_any_frame" if getattr(args, "frame", "library") == "any" else "")
+    if getattr(args, "depth_noise", 0):
+        key += f"_noise{args.depth_noise:g}mm"
+    if getattr(args, "dropout", 0):
+        key += f"_dropout{100 * args.dropout:g}"
+    return key
 
 
 def _command() -> str:
@@ -156,9 +166,20 @@ def main(argv=None) -> dict:
                         help="summary file (default results/hanging_success.json or "
                         "results/paths.json for the test split; none for validation)")  # fmt: skip
     parser.add_argument("--frame", choices=["library", "any"], default="library",
-                        help="where: 'any' hands each pair's object over in a random frame "
-                        "(any rotation and shift) and turns free-standing supports about z; "
-                        "the answers are turned back and simulated on the true meshes")  # fmt: skip
+                        help="'any' hands each pair's object over in a random frame (any "
+                        "rotation and shift); where also turns free-standing supports about z, "
+                        "paths plan from the clouds alone; answers and paths are turned back "
+                        "and judged on the true meshes")  # fmt: skip
+    parser.add_argument("--depth-noise", type=float, default=0.0, metavar="MM",
+                        help="where: Gaussian noise (std, mm) along each camera ray, normals "
+                        "re-estimated from the noisy clouds")  # fmt: skip
+    parser.add_argument(
+        "--dropout",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
+        help="where: this share of each cloud's points lost at random",
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     if args.figure == "where":
@@ -174,10 +195,8 @@ def main(argv=None) -> dict:
             raise ValueError(f"--config {args.config!r}: paths takes {sorted(paths.CONFIGS)}")
         args.seed = args.seed if args.seed is not None else [1]
         args.pairs = args.pairs if args.pairs is not None else 300
-    if args.figure == "paths" and args.frame != "library":
-        raise ValueError(
-            "--frame any is a protocol of `where` only (paths plan in the library's frames)"
-        )
+    if args.figure == "paths" and (args.depth_noise or args.dropout):
+        raise ValueError("--depth-noise and --dropout are protocols of `where`")
     if args.pairs is not None and args.pairs < 1:
         raise ValueError(f"--pairs must be >= 1, got {args.pairs}")
     if args.workers is None:
@@ -185,7 +204,7 @@ def main(argv=None) -> dict:
     entry = run_where(args) if args.figure == "where" else run_paths(args)
     results = args.results or (RESULTS[args.figure] if args.split == "test" else None)
     if results:
-        merge_results(results, _key(args) if args.figure == "where" else args.config, entry)
+        merge_results(results, _key(args), entry)
         if promotes(args, entry):
             promote(results, entry, "_any_frame" if args.frame == "any" else "")
     print(json.dumps(entry, indent=1))

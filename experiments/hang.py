@@ -71,9 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="move each cloud's bounding-box centre to the origin",
     )
     p.add_argument(
-        "--where", choices=["default", "paper", "any_frame"], default=d.where,
+        "--where", choices=["default", "paper", "frames", "any_frame"], default=d.where,
         help="the where-to-hang answer (omnihang_jax.where): default (Stages 1-3, three views, "
-        "the rankers, the observed-cloud check), paper (the paper's pipeline) or any_frame "
+        "the rankers, the observed-cloud check), paper (the paper's pipeline), frames (default "
+        "with Stages 1-2 reading the object in 32 frames, V picking the starts) or any_frame "
         "(default with the object-frame network in front)",
     )  # fmt: skip
     p.add_argument("--model", default=None, help="Stage 1 + 2 networks instead of the answer's")

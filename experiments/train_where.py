@@ -135,6 +135,13 @@ def main(argv=None) -> dict:
         help="Stage 1: turn each training pair about the vertical by U(-RAD, RAD)",
     )
     parser.add_argument(
+        "--augment-object-turn",
+        action="store_true",
+        default=None,
+        help="Stages 1-2: each training object in a uniform random frame (SO(3)), its stable "
+        "poses the same placements (objects in any frame)",
+    )
+    parser.add_argument(
         "--val-fraction", type=float, default=None, help="fraction of objects held out (0.1)"
     )
     parser.add_argument("--eval-every", type=int, default=None, help="steps between val checks")
@@ -183,6 +190,7 @@ def main(argv=None) -> dict:
         ("checkpoint_every", args.checkpoint_every),
         ("augment_jitter", args.augment_jitter),
         ("augment_yaw", args.augment_yaw),
+        ("augment_object_turn", args.augment_object_turn),
     ):
         if value is not None:
             overrides[name] = value

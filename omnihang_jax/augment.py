@@ -8,6 +8,12 @@
   is stable for the turned support (exact, not an approximation); the object cloud is in the
   object's own frame and does not change.
 
+* ``turn_object``: the object handed over in a uniform random frame (SO(3)) about its origin:
+  object points and normals turn by R, and every stable pose describes the same placement of
+  the turned cloud (q -> q R^T, t unchanged). Exact: the support, gravity and the placements
+  stay; only the frame the object cloud is written in changes. For networks that must read an
+  object in any frame (docs/where.md, "Objects in any frame").
+
 Pure and jit-friendly: ``augment_pair(batch, key, jitter, yaw) -> batch`` on a batched
 ``data.HangSample`` (leading B axis; fields a packed Stage-1 set leaves off, e.g. support normals
 as [B, 1] zeros, pass through); with ``jitter = yaw = 0`` the batch is returned as is.
@@ -20,7 +26,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["yaw_matrix", "turn_poses", "augment_pair"]
+__all__ = ["yaw_matrix", "turn_poses", "random_rotations", "turn_object_frame", "augment_pair"]
 
 
 def yaw_matrix(angle: jax.Array) -> jax.Array:
@@ -44,9 +50,48 @@ def turn_poses(poses: jax.Array, angle: jax.Array) -> jax.Array:
     return jnp.concatenate([t, q], -1)
 
 
-def augment_pair(batch, key: jax.Array, jitter: float, yaw: float):
-    """A batched ``HangSample`` with jittered points and a random turn about z (module
-    docstring). ``jitter`` / ``yaw`` are static (Python floats)."""
+def random_rotations(key: jax.Array, n: int) -> jax.Array:
+    """[n, 3, 3] uniform random rotations (normalised Gaussian quaternions)."""
+    from omnihang_jax.collision import quaternion_matrix
+
+    return quaternion_matrix(jax.random.normal(key, (n, 4)))
+
+
+def _quaternion_of(m: jax.Array) -> jax.Array:
+    """[B, 3, 3] rotations -> [B, 4] unit quaternions wxyz (Shepperd's method, jit-friendly)."""
+    import jaxlie
+
+    return jax.vmap(lambda r: jaxlie.SO3.from_matrix(r).wxyz)(m)
+
+
+def turn_object_frame(poses: jax.Array, rot: jax.Array) -> jax.Array:
+    """Poses [B, D, 7] of the object -> the same placements of the object written in a frame
+    turned by ``rot`` [B, 3, 3] (points R p): rotation Q R^T, translation unchanged."""
+    from omnihang_jax.collision import quaternion_matrix
+
+    turned = jnp.einsum("bdij,bkj->bdik", quaternion_matrix(poses[..., 3:]), rot)  # Q R^T
+    b, d = poses.shape[:2]
+    wxyz = _quaternion_of(turned.reshape(b * d, 3, 3)).reshape(b, d, 4)
+    return jnp.concatenate([poses[..., :3], wxyz], -1)
+
+
+def augment_pair(batch, key: jax.Array, jitter: float, yaw: float, turn_object: bool = False):
+    """A batched ``HangSample`` with jittered points, a random turn about z and the object in
+    a random frame (module docstring). ``jitter`` / ``yaw`` / ``turn_object`` are static."""
+    if jitter <= 0 and yaw <= 0 and not turn_object:
+        return batch
+    if turn_object:
+        key, k_turn = jax.random.split(key)
+        rot = random_rotations(k_turn, batch.object_points.shape[0])
+        rot = rot.astype(batch.object_points.dtype)
+        normals = batch.object_normals
+        if normals.shape == batch.object_points.shape:
+            normals = jnp.einsum("bij,bnj->bni", rot, normals.astype(rot.dtype))
+        batch = batch._replace(
+            object_points=jnp.einsum("bij,bnj->bni", rot, batch.object_points),
+            object_normals=normals.astype(batch.object_normals.dtype),
+            stable_poses=turn_object_frame(batch.stable_poses, rot).astype(batch.stable_poses.dtype),
+        )  # fmt: skip
     if jitter <= 0 and yaw <= 0:
         return batch
     k_obj, k_sup, k_yaw = jax.random.split(key, 3)

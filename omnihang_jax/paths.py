@@ -45,6 +45,9 @@ __all__ = [
     "describe",
     "for_hang",
     "nce_clouds",
+    "principal_box",
+    "cloud_frame",
+    "move_origin",
 ]
 
 CHECKERS = ("hybrid", "nce", "hce", "mesh")
@@ -131,12 +134,49 @@ class Clouds(NamedTuple):
     normals: np.ndarray
 
 
+def principal_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centre [3], extents [3]) of a cloud's box along its principal axes, largest extent
+    first: both follow the cloud through any rotation and shift (the centre turns and moves
+    with it, the extents stay), unlike an axis-aligned box."""
+    pts = np.asarray(points, np.float64)
+    mean = pts.mean(0)
+    _, _, axes = np.linalg.svd(pts - mean, full_matrices=False)
+    proj = (pts - mean) @ axes.T
+    lo, hi = proj.min(0), proj.max(0)
+    return mean + 0.5 * (lo + hi) @ axes, hi - lo
+
+
+def move_origin(poses: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Poses [..., 7] of an object frame -> the same placements of the frame whose origin sits
+    at ``offset`` [3] in it (points ``p - offset``): t + R(q) offset, q unchanged."""
+    from scipy.spatial.transform import Rotation
+
+    poses = np.asarray(poses, np.float64)
+    flat = poses.reshape(-1, 7).copy()
+    flat[:, :3] += Rotation.from_quat(flat[:, [4, 5, 6, 3]]).apply(np.asarray(offset, float))
+    return flat.reshape(poses.shape)
+
+
 class _CloudGeometry(NamedTuple):
     """What the planner's start, bounds and metric read from a scene, taken from the clouds
     when there is no scene: the object's extents and the support's box."""
 
     obj: Any
     support_bounds: np.ndarray
+
+
+def cloud_frame(obj, sup, goal: np.ndarray):
+    """The planner's view of a pair known only from its clouds: (object Clouds centred on
+    :func:`principal_box`'s centre, the goal [7] of that centred frame, the centre [3],
+    the geometry that ``planner.start_pose``, ``default_bounds`` and ``object_radius`` read).
+    Nothing in it depends on the frame the object cloud came in: a turned and shifted cloud
+    gives the same start, bounds and metric for the same placement."""
+    centre, extents = principal_box(obj.points)
+    centred = Clouds(np.asarray(obj.points, np.float32) - centre.astype(np.float32),
+                     np.asarray(obj.normals, np.float32))  # fmt: skip
+    size = type("Extents", (), {"extents": extents})()
+    geometry = _CloudGeometry(size, np.stack([sup.points.min(0), sup.points.max(0)]))
+    return centred, move_origin(goal, centre), centre, geometry
 
 
 def nce_clouds(cfg, object_points: np.ndarray, support_points: np.ndarray):
@@ -405,11 +445,11 @@ class Planner:
             return None
         fallback = c.mesh_fallback if mesh_fallback is None else mesh_fallback
         goal = np.asarray(goal, float).reshape(7)
+        centre = None
         if scene is not None:
             geometry = scene
-        else:
-            extents = type("Extents", (), {"extents": np.ptp(obj.points, axis=0)})()
-            geometry = _CloudGeometry(extents, np.stack([sup.points.min(0), sup.points.max(0)]))
+        else:  # clouds only: plan the object's box centre, in whatever frame the cloud came
+            obj, goal, centre, geometry = cloud_frame(obj, sup, goal)
         start = planner.start_pose(geometry, goal)
         bounds = planner.default_bounds(geometry)
         radius = planner.object_radius(geometry)
@@ -455,6 +495,10 @@ class Planner:
         if path is None:
             return PathPlan(np.zeros((0, 7)), title, info)
         info["waypoints"] = len(path)
+        if centre is not None:  # back to the object frame as given
+            info["start_xyz_wxyz"] = [float(x) for x in move_origin(start, -centre)]
+            return PathPlan(move_origin(planner.interpolate_path(path, c.path_step, radius),
+                                        -centre), title, info)  # fmt: skip
         if scene is not None:
             free, deepest, n = planner.dense_check(
                 planner.MeshChecker(scene, self.limits.penetration_tolerance), path,

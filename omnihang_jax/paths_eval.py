@@ -44,6 +44,7 @@ __all__ = [
 ]
 
 RECORDS = "pairs.jsonl"
+FRAMES = ("library", "any")
 
 
 class PairSpec(NamedTuple):
@@ -136,13 +137,62 @@ def _clouds(cloud) -> Clouds:
     return Clouds(np.asarray(cloud.points, np.float32), np.asarray(cloud.normals, np.float32))
 
 
-def evaluate_pair(planner: Callable, data: str, spec: PairSpec, seed: int) -> dict:
+def turned_object(obj: Clouds, goal: np.ndarray, turn: dict) -> tuple[Clouds, np.ndarray]:
+    """The object cloud and the goal [7] with the object handed over in the turned frame of
+    ``turn`` (``where_eval.any_frame``; the support stays): points ``R p + s``; the goal the
+    same placement of that frame (``where_eval.poses_to_library`` undoes it)."""
+    from scipy.spatial.transform import Rotation
+
+    r, shift = turn["object_rotation"], turn["object_shift"]
+    rot = Rotation.from_quat(np.asarray(goal, float)[[4, 5, 6, 3]]).as_matrix() @ r.T
+    t = np.asarray(goal[:3], float) - rot @ shift
+    q = Rotation.from_matrix(rot).as_quat()[[3, 0, 1, 2]]
+    cloud = Clouds((obj.points @ r.T + shift).astype(np.float32),
+                   (obj.normals @ r.T).astype(np.float32))  # fmt: skip
+    return cloud, np.concatenate([t, q])
+
+
+def _plan_any_frame(planner: Callable, scene, obj: Clouds, sup: Clouds, spec: PairSpec,
+                    seed: int):  # fmt: skip
+    """The any-frame protocol: the planner gets the object cloud and the goal in a random frame
+    of the object (``where_eval.any_frame`` of the OMPL seed and the pair) and no meshes (it
+    cannot know the library's frame); the path it returns is mapped back and checked densely
+    on the meshes."""
+    from omnihang_jax import planner as planner_mod
+    from omnihang_jax import where_eval
+
+    turn = dict(where_eval.any_frame(seed, spec.pair_index, False), support_yaw=0.0)
+    cloud, goal = turned_object(obj, np.asarray(spec.goal, float), turn)
+    free_standing = where_eval.free_standing(spec.support_name.rsplit("_", 1)[0])
+    plan = planner(None, cloud, sup, goal, free_standing=free_standing, mesh_fallback=False)
+    info = dict(plan.info)
+    if len(plan.poses):
+        poses = where_eval.poses_to_library(plan.poses, turn)
+        free, deepest, n = planner_mod.dense_check(
+            planner_mod.MeshChecker(scene, planner.limits.penetration_tolerance), poses,
+            planner.limits.dense_resolution, planner_mod.object_radius(scene),
+        )  # fmt: skip
+        info.update(dense_check_collision_free=free, deepest_penetration_m=deepest,
+                    dense_states=n)  # fmt: skip
+        plan = plan._replace(poses=poses, info=info)
+    return plan
+
+
+def evaluate_pair(planner: Callable, data: str, spec: PairSpec, seed: int,
+                  frame: str = "library") -> dict:  # fmt: skip
     """Plan one pair with ``planner`` (a :class:`omnihang_jax.paths.Planner`) and judge the
-    path on the meshes; the pair's record."""
+    path on the meshes; the pair's record. ``frame``: "library" (the clouds as the dataset
+    renders them, the meshes' geometry for the start and bounds) or "any"
+    (:func:`_plan_any_frame`)."""
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
     t0 = time.perf_counter()
     scene, obj, sup = pair_scene(data, spec)
     goal = np.asarray(spec.goal, float)
-    plan = planner(scene, obj, sup, goal, mesh_fallback=False)
+    if frame == "any":
+        plan = _plan_any_frame(planner, scene, obj, sup, spec, seed)
+    else:
+        plan = planner(scene, obj, sup, goal, mesh_fallback=False)
     info = plan.info
     returned = len(plan.poses) > 0
     row = dict(
@@ -151,7 +201,7 @@ def evaluate_pair(planner: Callable, data: str, spec: PairSpec, seed: int) -> di
         goal=[round(x, 6) for x in spec.goal], status=info.get("status"),
         planning_s=round(float(info.get("planning_s", 0.0)), 3),
         states_checked=int(info.get("states_checked", 0)), returned=returned,
-        collision_free=bool(returned and info["dense_check_collision_free"]),
+        collision_free=bool(returned and info["dense_check_collision_free"]), frame=frame,
     )  # fmt: skip
     if returned:
         row |= dict(deepest_m=round(float(info["deepest_penetration_m"]), 5),
@@ -238,9 +288,9 @@ def _worker_init(config: PlannerConfig, seed: int) -> None:
     _WORKER["planner"] = paths.make_planner(config, seed=seed)
 
 
-def _worker_plan(job: tuple[str, PairSpec, int]) -> dict:
-    data, spec, seed = job
-    return evaluate_pair(_WORKER["planner"], data, spec, seed)
+def _worker_plan(job: tuple[str, PairSpec, int, str]) -> dict:
+    data, spec, seed, frame = job
+    return evaluate_pair(_WORKER["planner"], data, spec, seed, frame)
 
 
 @contextlib.contextmanager
@@ -284,6 +334,7 @@ def evaluate_paths(
     progress: Callable[[int, int], None] | bool = True,
     cpu_workers: bool = True,
     records_path: str | os.PathLike | None = None,
+    frame: str = "library",
 ) -> dict:
     """Plan ``pairs`` pairs of ``split`` with ``config`` under each OMPL seed of ``seeds``
     (module docstring) and return the summary (:func:`summarise`: ``precision``, ``recall``,
@@ -291,12 +342,18 @@ def evaluate_paths(
     seed, single-threaded, JAX on the CPU unless ``cpu_workers`` is False; 1: this process
     when OMPL here is unseeded or has the seed, else one worker. ``progress``: True (a tqdm
     bar), False, or ``progress(done, total)``. Records: ``out_dir/pairs.jsonl`` beside
-    ``out_dir/config.json``, or ``records_path`` beside ``<its stem>.config.json``; resumed."""
+    ``out_dir/config.json``, or ``records_path`` beside ``<its stem>.config.json``; resumed.
+    ``frame``: "library" or "any" (:func:`evaluate_pair`); one records file holds one frame."""
     from omnihang_jax import paths, planner
 
     seeds = [int(s) for s in seeds]
     if not seeds or any(s < 1 for s in seeds):
         raise ValueError(f"OMPL seeds must be >= 1, got {seeds}")
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
+    if frame == "any" and config.checker == "mesh":
+        raise ValueError("the mesh checker plans on the meshes in the library's frame: "
+                         "--frame any takes a planner that reads the clouds")  # fmt: skip
     if pairs < 1 or workers < 1:
         raise ValueError(f"pairs and workers must be >= 1, got {pairs}, {workers}")
     config = dataclasses.replace(config, mesh_fallback=False)  # judged on the meshes
@@ -310,10 +367,15 @@ def evaluate_paths(
     else:
         records = Path(records_path)
         config_path = records.with_name(records.name.split(".")[0] + ".config.json")
+    earlier = read_records(records)
+    other = {r.get("frame", "library") for r in earlier} - {frame}
+    if other:
+        raise ValueError(f"{records} holds records in the {sorted(other)} frame, not "
+                         f"{frame!r}: give other records")  # fmt: skip
     _check_config(config_path, config)
     specs = held_out_pairs(data, pairs, split)
     names = {s.name for s in specs}
-    done = {(r["pair"], int(r["seed"])) for r in read_records(records)}
+    done = {(r["pair"], int(r["seed"])) for r in earlier}
     todo = {s: [p for p in specs if (p.name, s) not in done] for s in seeds}
     total = sum(map(len, todo.values()))
     bar = None
@@ -336,7 +398,7 @@ def evaluate_paths(
     data = os.fspath(data)
     try:
         for seed in seeds:
-            jobs = [(data, spec, seed) for spec in todo[seed]]
+            jobs = [(data, spec, seed, frame) for spec in todo[seed]]
             if not jobs:
                 continue
             here = workers == 1 and planner._SEEDED in ([], [seed])
@@ -359,7 +421,7 @@ def evaluate_paths(
     rows = [r for r in read_records(records) if r["pair"] in names and int(r["seed"]) in seeds]
     summary = summarise(rows)
     summary["settings"] = dict(
-        config=dataclasses.asdict(config), data=data, split=split, pairs_asked=pairs,
+        config=dataclasses.asdict(config), data=data, split=split, frame=frame, pairs_asked=pairs,
         workers=workers, records=os.fspath(records), wall_s_this_run=round(time.time() - t0, 1),
     )  # fmt: skip
     return summary

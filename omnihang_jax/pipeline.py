@@ -69,6 +69,12 @@ class PipelineConfig:
     # slower (two views at batch 1: 82.0 s fused against 66.3 s on 2 cores; 119.0 against
     # 179.6 ms on one H100)
     fuse: bool | None = None
+    # ours, for objects in any frame: Stages 1-2 run on the object cloud turned into this many
+    # frames (:func:`frame_hypotheses`: a super-Fibonacci set of SO(3) turned by one random
+    # turn per pair), every proposal is turned back, and V (which reads the object posed in the
+    # support frame, so it does not depend on the object's frame) picks the K best Stage-1 and
+    # the K best Stage-2 proposals as CEM's starts. 0: Stages 1-2 read the cloud as given.
+    frames: int = 0
 
 
 # The default pipeline (``omnihang_jax.where.DEFAULT``): K = 10 proposals, CEM from both the
@@ -84,6 +90,108 @@ ANSWER_PIPELINE = PipelineConfig(
     rank_with_value=False,
     views=((0, 1), (1, 2), (3, 4)),
 )
+
+
+def super_fibonacci(n: int) -> np.ndarray:
+    """[n, 4] unit quaternions (wxyz) spread evenly over SO(3) (Alexa, "Super-Fibonacci
+    Spirals", CVPR 2022)."""
+    phi, psi = np.sqrt(2.0), 1.533751168755204288118041
+    s = np.arange(n) + 0.5
+    r, big = np.sqrt(s / n), np.sqrt(1.0 - s / n)
+    a, b = 2 * np.pi * s / phi, 2 * np.pi * s / psi
+    xyzw = np.stack([r * np.sin(a), r * np.cos(a), big * np.sin(b), big * np.cos(b)], axis=1)
+    return xyzw[:, [3, 0, 1, 2]]
+
+
+def _matrix(wxyz: jax.Array) -> jax.Array:
+    """[..., 4] quaternions (wxyz) -> [..., 3, 3] rotation matrices."""
+    from omnihang_jax.collision import quaternion_matrix
+
+    return quaternion_matrix(wxyz)
+
+
+def _quaternion(m: jax.Array) -> jax.Array:
+    """[..., 3, 3] rotation matrices -> [..., 4] unit quaternions (wxyz)."""
+    import jaxlie
+
+    flat = m.reshape(-1, 3, 3)
+    q = jax.vmap(lambda r: jaxlie.SO3.from_matrix(r).wxyz)(flat)
+    return q.reshape(m.shape[:-2] + (4,))
+
+
+def _unit(q: jax.Array) -> jax.Array:
+    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def frame_hypotheses(key: jax.Array, n: int) -> jax.Array:
+    """[n, 3, 3] the frames the object cloud is read in: ``super_fibonacci(n)`` turned by one
+    uniform random rotation (drawn from ``key``), so that no frame is favoured."""
+    turn = _matrix(_unit(jax.random.normal(key, (4,))))
+    return _matrix(jnp.asarray(super_fibonacci(n), jnp.float32)) @ turn
+
+
+def box_centre(points: jax.Array) -> jax.Array:
+    """[N, 3] -> [3] the centre of the cloud's box along its principal axes: it turns and moves
+    with the cloud (``omnihang_jax.paths.principal_box`` on the host)."""
+    mean = points.mean(0)
+    _, _, axes = jnp.linalg.svd(points - mean, full_matrices=False)
+    proj = (points - mean) @ axes.T
+    return mean + 0.5 * (proj.min(0) + proj.max(0)) @ axes
+
+
+def turn_back(poses: jax.Array, frames: jax.Array) -> jax.Array:
+    """Poses [M, B, K, 7] of the object read in ``frames`` [M, 3, 3] (points ``H p``) -> the
+    same placements of the object as given: rotation R H, translation unchanged."""
+    rot = _matrix(_unit(poses[..., 3:])) @ frames[:, None, None]
+    return jnp.concatenate([poses[..., :3], _quaternion(rot)], axis=-1)
+
+
+def move_origin(poses: jax.Array, offset: jax.Array) -> jax.Array:
+    """Poses [..., 7] -> the same placements of the frame whose origin sits at ``offset`` [3]
+    in the object frame: t + R offset (``omnihang_jax.paths.move_origin`` on the host)."""
+    rot = _matrix(_unit(poses[..., 3:]))
+    return jnp.concatenate([poses[..., :3] + rot @ offset, poses[..., 3:]], axis=-1)
+
+
+def make_frame_pool(predict: Callable, config: PipelineConfig) -> Callable:
+    """``pool(params, key, clouds [B, ...]) -> (stage1 [B, M*K, 7], stage2 [B, M*K, 7])``:
+    Stages 1-2 on ``config.frames`` (M) turned copies of the object cloud
+    (:func:`frame_hypotheses`), every proposal turned back to the cloud as given."""
+    m, k = config.frames, config.num_proposals
+
+    def pool(params, key, clouds: PairClouds):
+        kf, kp = jax.random.split(key)
+        b, n, _ = clouds.object_points.shape
+        frames = frame_hypotheses(kf, m)  # [M, 3, 3]
+        obj = jnp.einsum("mij,bnj->mbni", frames, clouds.object_points).reshape(m * b, n, 3)
+        rep = lambda x: jnp.broadcast_to(x[None], (m, *x.shape)).reshape(m * b, *x.shape[1:])  # noqa: E731
+        pred = predict(params["stage1"], params["stage2"], obj, rep(clouds.support_points), kp,
+                       k, support_normals=rep(clouds.support_normals))  # fmt: skip
+        back = [turn_back(x.reshape(m, b, k, 7), frames) for x in (pred.stage1_poses,
+                                                                   pred.stage2_poses)]  # fmt: skip
+        return tuple(jnp.moveaxis(x, 0, 1).reshape(b, m * k, 7) for x in back)
+
+    return pool
+
+
+def make_frame_starts(predict: Callable, value, config: PipelineConfig,
+                      value_config: ValueConfig) -> Callable:  # fmt: skip
+    """``starts(params, key, clouds [B, ...]) -> (stage1 [B, K, 7], stage2 [B, K, 7])``: of
+    each stage's pool (:func:`make_frame_pool`), the K proposals that V scores highest on the
+    first view."""
+    pool = make_frame_pool(predict, config)
+    view = tuple(int(x) for x in config.views[0])
+
+    def starts(params, key, clouds: PairClouds):
+        small = subset_clouds(clouds, value_config, *view)
+        picked = []
+        for poses in pool(params, key, clouds):
+            score = jax.vmap(value.score, in_axes=(None, 0, 0))(params["value"], small, poses)
+            top = jnp.argsort(-score, axis=1)[:, : config.num_proposals]
+            picked.append(jnp.take_along_axis(poses, top[:, :, None], axis=1))
+        return picked[0], picked[1]
+
+    return starts
 
 
 class HangOutput(NamedTuple):
@@ -208,6 +316,8 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
     )  # fmt: skip
     rule = config.select
     fuse = jax.default_backend() != "cpu" if config.fuse is None else config.fuse
+    frame_starts = (make_frame_starts(predict, make_value(value_config), config, value_config)
+                    if config.frames else None)  # fmt: skip
 
     def fused_views(params, k3, clouds, starts):
         """Every view's and start's CEM as one CEM over V * B rows of S * K starts (each
@@ -262,11 +372,15 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
 
     def hang(params, key, clouds: PairClouds) -> HangOutput:
         k1, k3 = jax.random.split(key)
-        pred = predict(
-            params["stage1"], params["stage2"], clouds.object_points, clouds.support_points,
-            k1, config.num_proposals, support_normals=clouds.support_normals,
-        )  # fmt: skip
-        starts = {"stage1": pred.stage1_poses, "stage2": pred.stage2_poses}
+        if frame_starts is not None:
+            stage1_poses, stage2_poses = frame_starts(params, k1, clouds)
+        else:
+            pred = predict(
+                params["stage1"], params["stage2"], clouds.object_points, clouds.support_points,
+                k1, config.num_proposals, support_normals=clouds.support_normals,
+            )  # fmt: skip
+            stage1_poses, stage2_poses = pred.stage1_poses, pred.stage2_poses
+        starts = {"stage1": stage1_poses, "stage2": stage2_poses}
         if fuse:
             refined, scores, initial = fused_views(params, k3, clouds, starts)
         else:
@@ -306,7 +420,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
         order = jnp.argsort(-keys, axis=1, stable=True)
         ranked = jnp.take_along_axis(cands, order[:, :, None], axis=1)
         return HangOutput(
-            pred.stage1_poses, pred.stage2_poses, refined, scores, initial, best, pose,
+            stage1_poses, stage2_poses, refined, scores, initial, best, pose,
             ranked, jnp.take_along_axis(keys, order, axis=1), jnp.asarray(start)[order],
             jnp.asarray(proposal)[order],
         )  # fmt: skip

@@ -104,6 +104,9 @@ class TrainConfig:
     # 0 = off: the step is then exactly the unaugmented one (same keys).
     augment_jitter: float = 0.0
     augment_yaw: float = 0.0
+    # every sample's object cloud in a uniform random frame (Stages 1 and 2), its stable poses
+    # the same placements of the turned cloud (``augment.turn_object_frame``)
+    augment_object_turn: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,11 +213,16 @@ def make_train_step(stage: str, config: NetworksConfig) -> Callable:
 
     cfg = config.train
     augmenting = stage == "1" and (cfg.augment_jitter > 0 or cfg.augment_yaw > 0)
+    turning = stage != "1" and cfg.augment_object_turn  # Stage 1 turns inside augment_pair
 
     def train_step(state: TrainState, batch: HangSample, key):
-        if augmenting:
+        if augmenting or (stage == "1" and cfg.augment_object_turn):
             key, k_aug = jax.random.split(key)
-            batch = augment.augment_pair(batch, k_aug, cfg.augment_jitter, cfg.augment_yaw)
+            batch = augment.augment_pair(batch, k_aug, cfg.augment_jitter, cfg.augment_yaw,
+                                         cfg.augment_object_turn)  # fmt: skip
+        elif turning:
+            key, k_aug = jax.random.split(key)
+            batch = augment.augment_pair(batch, k_aug, 0.0, 0.0, True)
         grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, batch, key)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)

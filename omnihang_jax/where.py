@@ -38,6 +38,7 @@ __all__ = [
     "ANY_FRAME",
     "CONFIGS",
     "DEFAULT",
+    "FRAMES",
     "PAPER",
     "Where",
     "WhereConfig",
@@ -85,7 +86,11 @@ PAPER = WhereConfig(rankers=(), pipeline=pipeline.PipelineConfig(), check=0)
 # handed over in any frame. Not yet the default: its networks behind the frame are those of the
 # library's frames, and the frame network is not yet exact (docs/where.md, "The object's frame").
 ANY_FRAME = dataclasses.replace(DEFAULT, frame="weights/frame")
-CONFIGS = {"default": DEFAULT, "paper": PAPER, "any_frame": ANY_FRAME}
+# The default answer for objects in any frame: Stages 1-2 read the object cloud in 32 frames
+# about its box centre and V picks CEM's starts among every frame's proposals
+# (pipeline.PipelineConfig.frames); the rest reads the object posed in the support frame.
+FRAMES = dataclasses.replace(DEFAULT, pipeline=dataclasses.replace(DEFAULT.pipeline, frames=32))
+CONFIGS = {"default": DEFAULT, "paper": PAPER, "any_frame": ANY_FRAME, "frames": FRAMES}
 
 
 class WhereOutput(NamedTuple):
@@ -162,10 +167,15 @@ def _load(config: WhereConfig, overrides) -> Where:
     def one(params, key, clouds):  # one pair, its own key: a batch of one inside
         if to_frame is not None:
             clouds, back = to_frame(params["frame"], clouds)
+        if pipe.frames:  # the object read about its own box centre, wherever its origin is
+            centre = pipeline.box_centre(clouds.object_points)
+            clouds = clouds._replace(object_points=clouds.object_points - centre)
         out = hang(params, key, jax.tree.map(lambda x: x[None], clouds))
         out = jax.tree.map(lambda x: x[0], (out.stage1_poses, out.stage2_poses, out.ranked,
                                             out.ranked_keys, out.ranked_start,
                                             out.ranked_proposal))  # fmt: skip
+        if pipe.frames:  # poses of the centred cloud -> of the cloud as given
+            out = tuple(pipeline.move_origin(x, -centre) for x in out[:3]) + out[3:]
         if to_frame is not None:
             out = (back(out[0]), back(out[1]), back(out[2]), *out[3:])
         return out

@@ -49,6 +49,7 @@ VALIDATION_FRACTION = 0.1  # the trainers' validation objects (data.validation_o
 FRAMES = ("library", "any")
 CLOUD_KEYS = ("object_points", "object_normals", "support_points", "support_normals")
 ANY_FRAME_SHIFT = 0.1  # m: the object's origin anywhere in a 20-cm cube (any frame)
+NOISE_SEED = 20261208  # the degraded clouds' draws: fold in the seed and the pair
 
 
 def any_frame(seed: int, pair_index: int, free_standing: bool) -> dict:
@@ -65,6 +66,59 @@ def any_frame(seed: int, pair_index: int, free_standing: bool) -> dict:
         object_shift=rng.uniform(-ANY_FRAME_SHIFT, ANY_FRAME_SHIFT, 3),
         support_yaw=yaw if free_standing else 0.0,
     )
+
+
+NORMAL_NEIGHBOURS = 16  # points per normal re-estimated from a noisy cloud
+
+
+@functools.cache
+def pair_eyes(dataset_dir: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """{pair index: (object camera, support camera)} of a dataset: where each pair's clouds
+    were seen from (object frame / support frame), the rays that depth noise runs along."""
+    from sim import dataset
+
+    return {int(r["pair_index"]): (np.asarray(r["object_eye"], float),
+                                   np.asarray(r["support_eye"], float))
+            for r in dataset.load_records(dataset_dir)}  # fmt: skip
+
+
+def _oriented_normals(points: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    """[N, 3] unit normals by PCA over each point's nearest neighbours, turned towards the
+    camera (as a depth camera's normals are)."""
+    from scipy.spatial import cKDTree
+
+    _, idx = cKDTree(points).query(points, k=min(NORMAL_NEIGHBOURS, len(points)))
+    nb = points[idx] - points[idx].mean(1, keepdims=True)
+    normals = np.linalg.svd(nb, full_matrices=False)[2][:, -1, :]
+    flip = np.einsum("ij,ij->i", normals, eye - points) < 0
+    normals[flip] *= -1
+    return normals
+
+
+def degrade_clouds(clouds: dict, eyes: tuple, depth_noise: float, dropout: float,
+                   rng: np.random.Generator) -> dict:  # fmt: skip
+    """The pair's clouds as a worse sensor gives them: Gaussian noise of ``depth_noise`` m
+    (standard deviation) along each point's camera ray, the normals then re-estimated from
+    the noisy points; a random ``dropout`` share of the points lost, the rest resampled to
+    the same count. Applied in the frames the clouds were seen in, before any turn."""
+    out = {}
+    for part, eye in zip(("object", "support"), eyes, strict=True):
+        pts = np.asarray(clouds[f"{part}_points"], np.float64)
+        nrm = np.asarray(clouds[f"{part}_normals"], np.float64)
+        n = len(pts)
+        if dropout > 0:
+            keep = rng.permutation(n)[: max(1, int(round(n * (1 - dropout))))]
+            idx = keep[rng.integers(0, len(keep), n)]
+            idx[: len(keep)] = keep  # every kept point once, the rest drawn again
+            pts, nrm = pts[idx], nrm[idx]
+        if depth_noise > 0:
+            ray = pts - eye
+            ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+            pts = pts + rng.normal(scale=depth_noise, size=(n, 1)) * ray
+            nrm = _oriented_normals(pts, eye)
+        out[f"{part}_points"] = pts.astype(np.float32)
+        out[f"{part}_normals"] = nrm.astype(np.float32)
+    return out
 
 
 def _yaw_matrix(a: float) -> np.ndarray:
@@ -197,12 +251,16 @@ def evaluate_where(
     progress: bool = True,
     dataset_dir: str | os.PathLike | None = None,
     frame: str = "library",
+    depth_noise: float = 0.0,
+    dropout: float = 0.0,
 ) -> list[dict]:
     """Run the answer on every pair file not yet in ``records_path`` and append its record;
     returns all records of the file (earlier ones included). ``workers`` > 0: that many
     processes check and simulate while the networks run; 0: in this process. ``frame``:
     "library" (the clouds as derived) or "any" (:func:`any_frame`: each pair's clouds turned
-    before the answer, its answers turned back before the simulation)."""
+    before the answer, its answers turned back before the simulation). ``depth_noise`` (m)
+    and ``dropout`` (share of points): the clouds degraded first (:func:`degrade_clouds`,
+    seeded by the seed and the pair); one records file holds one setting."""
     from tqdm.auto import tqdm
 
     from omnihang_jax import dataset_bridge, stage3
@@ -221,6 +279,15 @@ def evaluate_where(
     if other:
         raise ValueError(f"{records_path} holds records in the {sorted(other)} frame, not "
                          f"{frame!r}: give another --records file")  # fmt: skip
+    if not (0 <= depth_noise < 0.05 and 0 <= dropout < 1):
+        raise ValueError(f"depth noise must be in [0, 50 mm) and dropout in [0, 1), got "
+                         f"{depth_noise} m and {dropout}")  # fmt: skip
+    sensor = dict(depth_noise_m=float(depth_noise), dropout=float(dropout))
+    mixed = {(r.get("depth_noise_m", 0.0), r.get("dropout", 0.0)) for r in earlier}
+    mixed -= {(sensor["depth_noise_m"], sensor["dropout"])}
+    if mixed:
+        raise ValueError(f"{records_path} holds records of other clouds (depth noise m, "
+                         f"dropout: {sorted(mixed)}): give another --records file")  # fmt: skip
     done = {int(r["pair_index"]) for r in earlier if r.get("seed") == seed}
     todo = [f for f in files if _pair_index(f) not in done]
     if not todo:
@@ -248,6 +315,10 @@ def evaluate_where(
             for f in chunk:
                 sample, meta = dataset_bridge.load_pair_file(f)
                 pair = {k: np.asarray(getattr(sample, k)) for k in CLOUD_KEYS}
+                if depth_noise > 0 or dropout > 0:
+                    eyes = pair_eyes(os.fspath(dataset_dir))[int(meta["pair_index"])]
+                    rng = np.random.default_rng([NOISE_SEED, int(seed), int(meta["pair_index"])])
+                    pair = degrade_clouds(pair, eyes, depth_noise, dropout, rng)
                 turn = None
                 if frame == "any":
                     turn = any_frame(
@@ -284,7 +355,7 @@ def evaluate_where(
                            ranked=out.ranked[b], answers=answers, check=config.check,
                            turn=turn)  # fmt: skip
                 info = dict(
-                    pair_index=int(meta["pair_index"]), seed=int(seed), frame=frame,
+                    pair_index=int(meta["pair_index"]), seed=int(seed), frame=frame, **sensor,
                     object=str(meta["object_name"]), support=str(meta["support_name"]),
                     category=str(meta["object_category"]), family=str(meta["support_family"]),
                 )  # fmt: skip

@@ -17,9 +17,12 @@
 #   derived), seeds SEEDS (default "0 1 2"), BATCH pairs per network call (default 4: the
 #   default answer needs ~2 GiB of GPU memory a pair; 16 runs out of an H100's 80 GB);
 #   DERIVE_S caps the derive (default: until 120 s are left); FRAME=any runs the any-frame
-#   protocol (records where_CONFIG_any_frame.jsonl, results key CONFIG_any_frame).
+#   protocol (records where_CONFIG_any_frame.jsonl, results key CONFIG_any_frame); NOISE (mm)
+#   and DROPOUT (a share) degrade the clouds (--depth-noise, --dropout: records and key gain
+#   _noise<NOISE>mm / _dropout<percent>).
 # paths: PATHS_CONFIG (default "default"), PATHS_PAIRS (default 300), PATHS_SEEDS (default 1),
-#   16 planning processes (needs .whl_plan).
+#   16 planning processes (needs .whl_plan); FRAME=any plans each object in a random frame
+#   (records paths_CONFIG_any_frame.jsonl).
 # bench: bench_where over BENCH_CONFIGS (default,paper), BENCH_BATCHES (1,8,64,256), BENCH_REPEAT (10).
 # Each step stops itself before END_S (default 560 s) and leaves its records resumable: a warm
 # next call resumes from the machine's copy, a fresh one from RESUME=DIR (a carried folder
@@ -106,11 +109,14 @@ where_step() {
         # FRAME=any: the any-frame protocol (records where_CONFIG_any_frame.jsonl)
         local cfg=$c
         [ "${FRAME:-library}" = any ] && cfg=${c}_any_frame
+        [ -n "${NOISE:-}" ] && cfg=${cfg}_noise${NOISE}mm
+        [ -n "${DROPOUT:-}" ] && cfg=${cfg}_dropout$(awk "BEGIN {print 100 * $DROPOUT}")
         restore "where_$cfg.jsonl"
         t=$(date +%s)
         local before=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)
         run_step "where_$cfg" $(($(left) - 15)) $PY -m experiments.evaluate where \
             --config "$c" --frame "${FRAME:-library}" --data "$DS" --seed ${SEEDS:-0 1 2} --batch "${BATCH:-4}" \
+            --depth-noise "${NOISE:-0}" --dropout "${DROPOUT:-0}" \
             --workers "${EVAL_WORKERS:-$((CORES - 1))}" ${PAIRS:+--pairs $PAIRS} --no-progress \
             --records "$OUT/where_$cfg.jsonl" --results "$OUT/where_results.json"
         local after=$(cat "$OUT/where_$cfg.jsonl" 2>/dev/null | wc -l)
@@ -121,14 +127,16 @@ where_step() {
 }
 
 paths_step() {
-    local cfg=${PATHS_CONFIG:-default} t=$(date +%s)
+    local c=${PATHS_CONFIG:-default} cfg=${PATHS_CONFIG:-default} t=$(date +%s)
+    [ "${FRAME:-library}" = any ] && cfg=${cfg}_any_frame
     [ -n "${SKIP_INSTALL:-}" ] || [ -e /tmp/site/ompl ] || { log "paths: no ompl (carry .whl_plan)"; return 5; }
     restore "paths_$cfg.jsonl"
     [ -n "${RESUME:-}" ] && [ ! -s "$OUT/paths_$cfg.config.json" ] && [ -s "$RESUME/paths_$cfg.config.json" ] &&
         cp "$RESUME/paths_$cfg.config.json" "$OUT/"
     [ -s "$C/rec/paths_$cfg.config.json" ] && cp "$C/rec/paths_$cfg.config.json" "$OUT/"
     local before=$(cat "$OUT/paths_$cfg.jsonl" 2>/dev/null | wc -l)
-    run_step "paths_$cfg" $(($(left) - 15)) $PY -m experiments.evaluate paths --config "$cfg" \
+    run_step "paths_$cfg" $(($(left) - 15)) $PY -m experiments.evaluate paths --config "$c" \
+        --frame "${FRAME:-library}" \
         --data "$DS" --pairs "${PATHS_PAIRS:-300}" --seed ${PATHS_SEEDS:-1} \
         --workers "${PATHS_WORKERS:-$CORES}" --no-progress \
         --records "$OUT/paths_$cfg.jsonl" --results "$OUT/paths_results.json"

@@ -15,7 +15,9 @@
 # Environment knobs: DATA (default datasets/paper), PRESET (small), BATCH (32),
 # GEN_S (0: generate on all cores first, starting no shard after GEN_S s; the phase lasts
 # about GEN_S + one shard, ~3-4 min per 32-pair paper shard per core there), DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
-# GEN_ONLY=1: stop after the generation phase (a CPU-throughput call);
+# GEN_ONLY=1: stop after the generation phase (a CPU-throughput call); TRAIN_ARGS: more
+# experiments.train_where flags (e.g. "--augment-object-turn --init-from weights/stage12" for
+# Stages 1-2 that read objects in any frame);
 # SKIP_INSTALL=1 for a dry run here (with .venv/bin first on PATH).
 set -uo pipefail
 T0=$(date +%s)
@@ -75,6 +77,7 @@ setsid bash -c "$(declare -f gen); OUT=$OUT GEN_PART=$GEN_PART gen 12 $((END_S -
 # 3. train on the GPU
 python3 -m experiments.train_where --data /tmp/ds --out /tmp/run --preset "$PRESET" \
     --batch "$BATCH" --steps 1000000 --time-budget "1=$S1,2a=$S2A,2b=$S2B" --data-on-device --no-progress \
+    ${TRAIN_ARGS:-} \
     >"$OUT/train.log" 2>&1
 log "trained: $(tail -1 "$OUT/train.log")"
 

@@ -94,3 +94,39 @@ def test_turn_passes_fields_a_stage1_pack_leaves_off():
     out = augment.augment_pair(batch, jax.random.key(1), jitter=0.001, yaw=np.pi)
     np.testing.assert_array_equal(np.asarray(out.support_normals), batch.support_normals)
     assert not np.allclose(np.asarray(out.support_points)[..., :2], batch.support_points[..., :2])
+
+
+def test_object_turn_keeps_every_placement():
+    """``turn_object``: the object cloud (and normals) in a random frame, and each stable pose
+    of the turned cloud places every object point where the original pose placed it; the
+    support is untouched."""
+    batch = _batch()
+    normals = np.random.default_rng(2).normal(size=batch.object_points.shape)
+    batch = batch._replace(object_normals=normals.astype(np.float32))
+    out = augment.augment_pair(batch, jax.random.key(4), 0.0, 0.0, turn_object=True)
+    np.testing.assert_array_equal(np.asarray(out.support_points), batch.support_points)
+    before = _posed(batch.stable_poses, batch.object_points)
+    after = _posed(np.asarray(out.stable_poses), np.asarray(out.object_points))
+    np.testing.assert_allclose(after, before, atol=1e-5)
+    assert not np.allclose(np.asarray(out.object_points), batch.object_points, atol=1e-3)
+    # the normals turned as the points: the same rotation fits both
+    p0, p1 = batch.object_points[0], np.asarray(out.object_points)[0]
+    r, *_ = np.linalg.lstsq(p0, p1, rcond=None)
+    np.testing.assert_allclose(batch.object_normals[0] @ r, np.asarray(out.object_normals)[0],
+                               atol=1e-4)  # fmt: skip
+    q = np.asarray(out.stable_poses)[..., 3:]
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-5)
+
+
+@pytest.mark.slow  # compiles a tiny Stage-2 step twice
+def test_train_step_turns_the_object_for_stage2_when_asked():
+    config = train.WHERE_TINY
+    batch = jax.tree.map(jnp.asarray, _batch(b=2, n=config.num_object_points, m=64, d=4))
+    state = train.make_init_state("2a", config)(jax.random.key(0))
+    key = jax.random.key(3)
+    plain = jax.jit(train.make_train_step("2a", config))(state, batch, key)[1]["loss"]
+    turn_cfg = dataclasses.replace(
+        config, train=dataclasses.replace(config.train, augment_object_turn=True)
+    )
+    turned = jax.jit(train.make_train_step("2a", turn_cfg))(state, batch, key)[1]["loss"]
+    assert np.isfinite(float(turned)) and float(turned) != float(plain)

@@ -156,3 +156,61 @@ def test_evaluate_paths_command_writes_the_config_entry(tmp_path, monkeypatch):
     assert saved["published_paper"] == {"paper_nce": [65.8, 43.2, 52.1]}
     with pytest.raises(ValueError, match="--config"):
         evaluate.main(["paths", "--config", "octree"])
+    entry = evaluate.main(["paths", "--config", "mesh", "--frame", "any", "--pairs", "3",
+                           "--records", str(tmp_path / "any.jsonl"), "--results", str(results),
+                           "--no-progress"])  # fmt: skip
+    assert seen["frame"] == "any" and entry["frame"] == "any"
+    assert json.loads(results.read_text())["mesh_any_frame"]["f1"] == 72.0
+
+
+def _cloud(rng, n=600):
+    """An elongated, lopsided cloud (distinct principal axes), off its own origin."""
+    return rng.normal(size=(n, 3)) * [0.06, 0.03, 0.012] + [0.02, -0.01, 0.03]
+
+
+def test_the_planner_sees_the_same_pair_in_any_object_frame():
+    """From clouds alone the planner's start, bounds and metric come from the object's
+    principal box (``paths.cloud_frame``): the object handed over turned and shifted gives the
+    same start placement, bounds and rotation weight, and the goal of the turned frame is the
+    same placement as the library goal."""
+    from omnihang_jax import planner, where_eval
+
+    rng = np.random.default_rng(3)
+    pts = _cloud(rng)
+    obj = paths.Clouds(pts.astype(np.float32), np.tile([0.0, 0.0, 1.0], (len(pts), 1)))
+    sup = paths.Clouds(rng.uniform([-0.1, -0.05, 0.8], [0.1, 0.05, 1.2], (500, 3)), None)
+    goal = np.array([0.01, 0.12, 1.02, 0.9, 0.1, -0.3, 0.2])
+    goal[3:] /= np.linalg.norm(goal[3:])
+    views = []
+    for pair in range(3):
+        if pair == 0:
+            turn = dict(object_rotation=np.eye(3), object_shift=np.zeros(3), support_yaw=0.0)
+        else:
+            turn = dict(where_eval.any_frame(1, pair, False), support_yaw=0.0)
+        cloud, g = paths_eval.turned_object(obj, goal, turn)
+        np.testing.assert_allclose(where_eval.poses_to_library(g, turn), goal, atol=1e-9)
+        centred, gc, centre, geometry = paths.cloud_frame(cloud, sup, g)
+        start = planner.start_pose(geometry, gc)
+        # the start as a placement of the library-frame object
+        start_lib = where_eval.poses_to_library(paths.move_origin(start, -centre), turn)
+        views.append((start_lib, planner.default_bounds(geometry),
+                      planner.object_radius(geometry), centred.points))  # fmt: skip
+    for start, bounds, radius, _ in views[1:]:
+        np.testing.assert_allclose(start[:3], views[0][0][:3], atol=1e-6)
+        assert abs(abs(start[3:] @ views[0][0][3:]) - 1) < 1e-9
+        np.testing.assert_allclose(bounds, views[0][1], atol=1e-6)
+        assert radius == pytest.approx(views[0][2], abs=1e-6)
+    # the centred clouds differ by the turn alone
+    r = where_eval.any_frame(1, 1, False)["object_rotation"]
+    np.testing.assert_allclose(views[1][3], views[0][3] @ r.T, atol=1e-5)
+
+
+def test_the_any_frame_paths_protocol_refuses_what_it_cannot_judge(tmp_path):
+    """The mesh checker reads the meshes in the library's frame: no any-frame run; records of
+    one frame are not resumed in the other."""
+    with pytest.raises(ValueError, match="mesh checker"):
+        paths_eval.evaluate_paths(paths.MESH, tmp_path, frame="any")
+    (tmp_path / "pairs.jsonl").write_text(json.dumps(
+        {"pair": "a", "seed": 1, "frame": "any", "returned": False}) + "\n")  # fmt: skip
+    with pytest.raises(ValueError, match="frame"):
+        paths_eval.evaluate_paths(paths.MESH, tmp_path, frame="library")

@@ -225,7 +225,8 @@ def test_only_the_default_answer_on_the_record_sample_with_three_seeds_is_promot
 
     from experiments.evaluate import promotes
 
-    full = dict(figure="where", config="default", split="test", pairs=None, seed=[0, 1, 2])
+    full = dict(figure="where", config="default", split="test", pairs=None, seed=[0, 1, 2],
+                depth_noise=0.0, dropout=0.0)  # fmt: skip
     n = where_eval.RECORD_PAIRS
     assert promotes(Namespace(**full), {"pairs": 6345})
     assert promotes(Namespace(**{**full, "pairs": n}), {"pairs": n})
@@ -234,6 +235,39 @@ def test_only_the_default_answer_on_the_record_sample_with_three_seeds_is_promot
     assert not promotes(Namespace(**{**full, "seed": [0]}), {"pairs": n})
     assert not promotes(Namespace(**{**full, "config": "paper"}), {"pairs": n})
     assert not promotes(Namespace(**{**full, "split": "validation"}), {"pairs": n})
+    assert not promotes(Namespace(**{**full, "depth_noise": 1.0}), {"pairs": n})
+    assert not promotes(Namespace(**{**full, "dropout": 0.2}), {"pairs": n})
+
+
+def test_degraded_clouds_are_noisy_along_the_rays_and_thinned():
+    """``degrade_clouds``: depth noise moves each point along its camera ray by about the
+    asked standard deviation (normals re-estimated, unit, facing the camera); dropout keeps
+    the point count with a share of the points gone; nothing changes without either."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-0.05, 0.05, (2000, 2))
+    plane = np.c_[xy, np.zeros(len(xy))]  # a flat patch seen from above
+    up = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    clouds = dict(object_points=plane, object_normals=up, support_points=plane + [0, 0, 1.0],
+                  support_normals=up)  # fmt: skip
+    eyes = (np.array([0.0, 0.0, 0.5]), np.array([0.0, 0.0, 1.5]))
+    same = where_eval.degrade_clouds(clouds, eyes, 0.0, 0.0, np.random.default_rng(1))
+    for k in where_eval.CLOUD_KEYS:
+        np.testing.assert_allclose(same[k], clouds[k], atol=1e-7)
+    noisy = where_eval.degrade_clouds(clouds, eyes, 0.003, 0.0, np.random.default_rng(1))
+    moved = noisy["object_points"] - plane
+    ray = plane - eyes[0]
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    along = np.einsum("ij,ij->i", moved, ray)
+    assert 0.0027 < along.std() < 0.0033  # 3 mm along the rays
+    np.testing.assert_allclose(moved, along[:, None] * ray, atol=1e-6)  # and only along them
+    n = noisy["object_normals"]
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    assert (np.einsum("ij,ij->i", n, eyes[0] - noisy["object_points"]) > 0).all()  # to the eye
+    assert np.median(n[:, 2]) > 0.7  # mostly up, the patch's normal, at 3 mm of noise
+    thin = where_eval.degrade_clouds(clouds, eyes, 0.0, 0.2, np.random.default_rng(1))
+    assert thin["object_points"].shape == plane.shape
+    distinct = len(np.unique(thin["object_points"], axis=0))
+    assert distinct == 1600  # 20 % of the points gone, the rest drawn again
 
 
 @pytest.mark.skipif(not (PAPER / "shards").is_dir(), reason="paper dataset labels not present")
@@ -278,8 +312,18 @@ def test_any_frame_evaluation_turns_the_clouds_and_the_answers_back(tiny, tmp_pa
                            "--seed", "0", "--batch", "2", "--records", str(records),
                            "--results", "hs.json", "--no-progress", "--workers", "0"])  # fmt: skip
     assert json.loads(Path("hs.json").read_text())["tiny_any_frame"]["frame"] == "any"
-    with pytest.raises(ValueError, match="where"):
-        evaluate.main(["paths", "--frame", "any", "--data", str(derived)])
+    # degraded clouds: the records say how, and another setting is not resumed from them
+    clean = seen[0]["clouds"]["object_points"]
+    seen.clear()
+    noisy = where_eval.evaluate_where(tiny, files, tmp_path / "noisy.jsonl", seed=0, batch=2,
+                                      progress=False, dataset_dir=PAPER, frame="any",
+                                      depth_noise=0.001, dropout=0.2)  # fmt: skip
+    assert {(r["depth_noise_m"], r["dropout"]) for r in noisy} == {(0.001, 0.2)}
+    degraded = seen[0]["clouds"]["object_points"]  # the same turn, a worse sensor
+    assert degraded.shape == clean.shape and not np.allclose(degraded, clean, atol=1e-4)
+    with pytest.raises(ValueError, match="other clouds"):
+        where_eval.evaluate_where(tiny, files, tmp_path / "noisy.jsonl", seed=1, progress=False,
+                                  dataset_dir=PAPER, frame="any")  # fmt: skip
     assert entry["all_stages"]["pairs"] == 2
 
 
@@ -304,3 +348,22 @@ def test_the_hang_command_offers_every_named_answer():
 
     (action,) = [a for a in hang_cli.build_parser()._actions if a.dest == "where"]
     assert sorted(action.choices) == sorted(where.CONFIGS)
+
+
+@pytest.mark.slow  # a tiny answer with frame hypotheses compiled (~60 s on 2 cores)
+def test_the_frames_answer_does_not_depend_on_where_the_objects_origin_is(tiny):
+    """``PipelineConfig.frames``: the answer reads the object about its own box centre, so the
+    same cloud handed over shifted gives the same placements (every candidate places every
+    point in the same spot), and its poses are unit quaternions."""
+    cfg = dataclasses.replace(tiny, pipeline=dataclasses.replace(tiny.pipeline, frames=3))
+    w = where.load_where(cfg)
+    clouds = pairs(2)
+    shift = np.float32([0.07, -0.04, 0.09])
+    moved = clouds._replace(object_points=clouds.object_points + shift)
+    a, b = w.answer(clouds, [3, 4], seed=0), w.answer(moved, [3, 4], seed=0)
+    assert a.ranked.shape == (2, 12, 7)  # K starts a stage, as without frames
+    np.testing.assert_allclose(np.linalg.norm(a.ranked[..., 3:], axis=-1), 1.0, atol=1e-5)
+    # pose b of the shifted cloud == pose a of the cloud: t_b = t_a - R shift
+    from omnihang_jax import paths
+
+    np.testing.assert_allclose(paths.move_origin(b.ranked, shift), a.ranked, atol=2e-4)
