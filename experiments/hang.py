@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--where", choices=["default", "paper", "frames", "any_frame"], default=d.where,
         help="the where-to-hang answer (omnihang_jax.where): default (Stages 1-3, three views, "
         "the rankers, the observed-cloud check), paper (the paper's pipeline), frames (default "
-        "with Stages 1-2 reading the object in 32 frames, V picking the starts) or any_frame "
+        "with Stage 1 reading the object in 32 frames, V picking CEM's starts) or any_frame "
         "(default with the object-frame network in front)",
     )  # fmt: skip
     p.add_argument("--model", default=None, help="Stage 1 + 2 networks instead of the answer's")

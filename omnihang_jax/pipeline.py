@@ -69,11 +69,12 @@ class PipelineConfig:
     # slower (two views at batch 1: 82.0 s fused against 66.3 s on 2 cores; 119.0 against
     # 179.6 ms on one H100)
     fuse: bool | None = None
-    # ours, for objects in any frame: Stages 1-2 run on the object cloud turned into this many
+    # ours, for objects in any frame: Stage 1 runs on the object cloud turned into this many
     # frames (:func:`frame_hypotheses`: a super-Fibonacci set of SO(3) turned by one random
-    # turn per pair), every proposal is turned back, and V (which reads the object posed in the
-    # support frame, so it does not depend on the object's frame) picks the K best Stage-1 and
-    # the K best Stage-2 proposals as CEM's starts. 0: Stages 1-2 read the cloud as given.
+    # turn per pair), every proposal is turned back, V (which reads the object posed in the
+    # support frame, so it does not depend on the object's frame) picks the K best as the
+    # Stage-1 starts, and Stage 2 refines each in its own frame (:func:`make_frame_starts`).
+    # 0: Stages 1-2 read the cloud as given.
     frames: int = 0
 
 
@@ -140,9 +141,10 @@ def box_centre(points: jax.Array) -> jax.Array:
 
 
 def turn_back(poses: jax.Array, frames: jax.Array) -> jax.Array:
-    """Poses [M, B, K, 7] of the object read in ``frames`` [M, 3, 3] (points ``H p``) -> the
-    same placements of the object as given: rotation R H, translation unchanged."""
-    rot = _matrix(_unit(poses[..., 3:])) @ frames[:, None, None]
+    """Poses [..., 7] of the object read in ``frames`` [..., 3, 3] (points ``H p``; leading
+    axes broadcast) -> the same placements of the object as given: rotation R H, translation
+    unchanged."""
+    rot = _matrix(_unit(poses[..., 3:])) @ frames
     return jnp.concatenate([poses[..., :3], _quaternion(rot)], axis=-1)
 
 
@@ -153,43 +155,47 @@ def move_origin(poses: jax.Array, offset: jax.Array) -> jax.Array:
     return jnp.concatenate([poses[..., :3] + rot @ offset, poses[..., 3:]], axis=-1)
 
 
-def make_frame_pool(predict: Callable, config: PipelineConfig) -> Callable:
-    """``pool(params, key, clouds [B, ...]) -> (stage1 [B, M*K, 7], stage2 [B, M*K, 7])``:
-    Stages 1-2 on ``config.frames`` (M) turned copies of the object cloud
-    (:func:`frame_hypotheses`), every proposal turned back to the cloud as given."""
-    m, k = config.frames, config.num_proposals
+def make_frame_starts(stage1_config, stage2_config, value, config: PipelineConfig,
+                      value_config: ValueConfig) -> Callable:  # fmt: skip
+    """``starts(params, key, clouds [B, ...]) -> (stage1 [B, K, 7], stage2 [B, K, 7], pool
+    [B, M*K, 7])``: Stage 1 on ``config.frames`` (M) turned copies of the object cloud
+    (:func:`frame_hypotheses`), its M x K proposals turned back (the pool); the K that V scores
+    highest (on the first view) are the Stage-1 starts, and Stage 2 refines each in the frame it
+    came from (so Stage 2 runs K times a pair, as without frames)."""
+    from omnihang_jax.poses import pose6_to_pose7
+    from omnihang_jax.stage1 import make_stage1
+    from omnihang_jax.stage2 import make_stage2
 
-    def pool(params, key, clouds: PairClouds):
+    stage1, stage2 = make_stage1(stage1_config), make_stage2(stage2_config)
+    m, k = config.frames, config.num_proposals
+    view = tuple(int(x) for x in config.views[0])
+
+    def starts(params, key, clouds: PairClouds):
         kf, kp = jax.random.split(key)
         b, n, _ = clouds.object_points.shape
         frames = frame_hypotheses(kf, m)  # [M, 3, 3]
         obj = jnp.einsum("mij,bnj->mbni", frames, clouds.object_points).reshape(m * b, n, 3)
-        rep = lambda x: jnp.broadcast_to(x[None], (m, *x.shape)).reshape(m * b, *x.shape[1:])  # noqa: E731
-        pred = predict(params["stage1"], params["stage2"], obj, rep(clouds.support_points), kp,
-                       k, support_normals=rep(clouds.support_normals))  # fmt: skip
-        back = [turn_back(x.reshape(m, b, k, 7), frames) for x in (pred.stage1_poses,
-                                                                   pred.stage2_poses)]  # fmt: skip
-        return tuple(jnp.moveaxis(x, 0, 1).reshape(b, m * k, 7) for x in back)
-
-    return pool
-
-
-def make_frame_starts(predict: Callable, value, config: PipelineConfig,
-                      value_config: ValueConfig) -> Callable:  # fmt: skip
-    """``starts(params, key, clouds [B, ...]) -> (stage1 [B, K, 7], stage2 [B, K, 7])``: of
-    each stage's pool (:func:`make_frame_pool`), the K proposals that V scores highest on the
-    first view."""
-    pool = make_frame_pool(predict, config)
-    view = tuple(int(x) for x in config.views[0])
-
-    def starts(params, key, clouds: PairClouds):
+        sup = jnp.broadcast_to(clouds.support_points[None], (m, *clouds.support_points.shape))
+        pose6 = stage1.propose(params["stage1"], obj, sup.reshape(m * b, -1, 3), kp, k)
+        pose6 = jnp.moveaxis(pose6.reshape(m, b, k, 6), 0, 1).reshape(b, m * k, 6)
+        of = jnp.repeat(jnp.arange(m), k)  # the frame of each pool member
+        pool = turn_back(pose6_to_pose7(pose6), frames[of][None])  # [B, M*K, 7]
         small = subset_clouds(clouds, value_config, *view)
-        picked = []
-        for poses in pool(params, key, clouds):
-            score = jax.vmap(value.score, in_axes=(None, 0, 0))(params["value"], small, poses)
-            top = jnp.argsort(-score, axis=1)[:, : config.num_proposals]
-            picked.append(jnp.take_along_axis(poses, top[:, :, None], axis=1))
-        return picked[0], picked[1]
+        score = jax.vmap(value.score, in_axes=(None, 0, 0))(params["value"], small, pool)
+        top = jnp.argsort(-score, axis=1)[:, :k]  # [B, K]
+        first = jnp.take_along_axis(pool, top[:, :, None], axis=1)
+        # Stage 2 on each chosen proposal, in its own frame
+        h = frames[of[top]]  # [B, K, 3, 3]
+        seen = jnp.einsum("bkij,bnj->bkni", h, clouds.object_points).reshape(b * k, n, 3)
+
+        def tile(x):  # [B, ...] -> [B*K, ...]
+            return jnp.broadcast_to(x[:, None], (b, k, *x.shape[1:])).reshape(b * k, *x.shape[1:])
+
+        chosen = jnp.take_along_axis(pose6, top[:, :, None], axis=1).reshape(b * k, 6)
+        out = stage2.refine(params["stage2"], seen, tile(clouds.support_points), chosen,
+                            tile(clouds.support_normals))  # fmt: skip
+        second = turn_back(pose6_to_pose7(out.pose6).reshape(b, k, 7), h)
+        return first, second, pool
 
     return starts
 
@@ -316,8 +322,8 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
     )  # fmt: skip
     rule = config.select
     fuse = jax.default_backend() != "cpu" if config.fuse is None else config.fuse
-    frame_starts = (make_frame_starts(predict, make_value(value_config), config, value_config)
-                    if config.frames else None)  # fmt: skip
+    frame_starts = (make_frame_starts(stage1_config, stage2_config, make_value(value_config),
+                                      config, value_config) if config.frames else None)  # fmt: skip
 
     def fused_views(params, k3, clouds, starts):
         """Every view's and start's CEM as one CEM over V * B rows of S * K starts (each
@@ -373,7 +379,7 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
     def hang(params, key, clouds: PairClouds) -> HangOutput:
         k1, k3 = jax.random.split(key)
         if frame_starts is not None:
-            stage1_poses, stage2_poses = frame_starts(params, k1, clouds)
+            stage1_poses, stage2_poses, _ = frame_starts(params, k1, clouds)
         else:
             pred = predict(
                 params["stage1"], params["stage2"], clouds.object_points, clouds.support_points,

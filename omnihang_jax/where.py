@@ -86,9 +86,9 @@ PAPER = WhereConfig(rankers=(), pipeline=pipeline.PipelineConfig(), check=0)
 # handed over in any frame. Not yet the default: its networks behind the frame are those of the
 # library's frames, and the frame network is not yet exact (docs/where.md, "The object's frame").
 ANY_FRAME = dataclasses.replace(DEFAULT, frame="weights/frame")
-# The default answer for objects in any frame: Stages 1-2 read the object cloud in 32 frames
-# about its box centre and V picks CEM's starts among every frame's proposals
-# (pipeline.PipelineConfig.frames); the rest reads the object posed in the support frame.
+# The default answer for objects in any frame: Stage 1 reads the object cloud in 32 frames about
+# its box centre, V picks the K best of every frame's proposals and Stage 2 refines them, each in
+# its frame (pipeline.PipelineConfig.frames); the rest reads the object posed in the support frame.
 FRAMES = dataclasses.replace(DEFAULT, pipeline=dataclasses.replace(DEFAULT.pipeline, frames=32))
 CONFIGS = {"default": DEFAULT, "paper": PAPER, "any_frame": ANY_FRAME, "frames": FRAMES}
 

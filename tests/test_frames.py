@@ -13,7 +13,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from omnihang_jax import paths, pipeline, stage3
-from omnihang_jax.predict import make_predict
 from omnihang_jax.stage1 import STAGE1_TINY, make_stage1
 from omnihang_jax.stage2 import STAGE2_TINY, make_stage2
 
@@ -50,7 +49,7 @@ def test_a_pose_found_in_a_hypothesis_frame_turns_back_to_the_same_placement():
     frames = jnp.asarray(Rotation.random(3, random_state=2).as_matrix(), jnp.float32)
     q = Rotation.random(6, random_state=3).as_quat()[:, [3, 0, 1, 2]]
     poses = np.concatenate([rng.normal(size=(6, 3)) * 0.1, q], 1).reshape(3, 1, 2, 7)
-    back = np.asarray(pipeline.turn_back(jnp.asarray(poses, jnp.float32), frames))
+    back = np.asarray(pipeline.turn_back(jnp.asarray(poses, jnp.float32), frames[:, None, None]))
     for m in range(3):
         for j in range(2):
             p, b = poses[m, 0, j], back[m, 0, j]
@@ -76,8 +75,8 @@ def test_the_box_centre_moves_with_the_cloud():
 
 @pytest.mark.slow  # compiles tiny Stages 1-2 on 4 frames and V (~30 s on 2 cores)
 def test_v_picks_the_starts_among_every_frames_proposals():
-    """The starts are each stage's K best-scored proposals (by V on the first view) of the
-    pool of every frame's proposals."""
+    """The Stage-1 starts are the K proposals of the pool (every frame's, turned back) that V
+    scores highest on the first view; Stage 2 refines each of them (unit quaternions)."""
     cfg = dataclasses.replace(pipeline.PipelineConfig(num_proposals=2), frames=4)
     vcfg = stage3.VALUE_TINY
     params = {"stage1": make_stage1(STAGE1_TINY).init(jax.random.key(0)),
@@ -88,16 +87,15 @@ def test_v_picks_the_starts_among_every_frames_proposals():
     sup = rng.uniform(-0.05, 0.05, (2, 128, 3)).astype(np.float32)
     normals = np.broadcast_to(np.float32([0, 0, 1]), (2, 128, 3))
     clouds = stage3.PairClouds(obj, normals, sup, normals)
-    predict = make_predict(STAGE1_TINY, STAGE2_TINY)
     value = stage3.make_value(vcfg)
-    key = jax.random.key(5)
-    pool = jax.jit(pipeline.make_frame_pool(predict, cfg))(params, key, clouds)
-    starts = jax.jit(pipeline.make_frame_starts(predict, value, cfg, vcfg))(params, key, clouds)
+    fn = pipeline.make_frame_starts(STAGE1_TINY, STAGE2_TINY, value, cfg, vcfg)
+    first, second, pool = jax.jit(fn)(params, jax.random.key(5), clouds)
+    assert pool.shape == (2, 8, 7) and first.shape == second.shape == (2, 2, 7)
     small = stage3.subset_clouds(clouds, vcfg, 0, 1)
-    for poses, picked in zip(pool, starts, strict=True):
-        assert poses.shape == (2, 8, 7) and picked.shape == (2, 2, 7)
-        score = np.asarray(jax.vmap(value.score, in_axes=(None, 0, 0))(params["value"], small,
-                                                                        poses))  # fmt: skip
-        for b in range(2):
-            want = np.asarray(poses)[b][np.argsort(-score[b])[:2]]
-            np.testing.assert_allclose(np.asarray(picked)[b], want, atol=1e-6)
+    score = np.asarray(jax.vmap(value.score, in_axes=(None, 0, 0))(params["value"], small, pool))
+    for b in range(2):
+        want = np.asarray(pool)[b][np.argsort(-score[b])[:2]]
+        np.testing.assert_allclose(np.asarray(first)[b], want, atol=1e-6)
+    for poses in (pool, second):
+        np.testing.assert_allclose(np.linalg.norm(np.asarray(poses)[..., 3:], axis=-1), 1.0,
+                                   atol=1e-5)  # fmt: skip
