@@ -71,11 +71,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="move each cloud's bounding-box centre to the origin",
     )
     p.add_argument(
-        "--where", choices=["default", "paper", "frames", "any_frame"], default=d.where,
+        "--where", choices=["default", "paper", "frames"], default=d.where,
         help="the where-to-hang answer (omnihang_jax.where): default (Stages 1-3, three views, "
         "the rankers, the observed-cloud check), paper (the paper's pipeline), frames (default "
-        "with Stage 1 reading the object in 32 frames, V picking CEM's starts) or any_frame "
-        "(default with the object-frame network in front)",
+        "with Stage 1 reading the object in 32 frames, V picking CEM's starts: for objects in any "
+        "frame)",
     )  # fmt: skip
     p.add_argument("--model", default=None, help="Stage 1 + 2 networks instead of the answer's")
     p.add_argument(

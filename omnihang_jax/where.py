@@ -31,11 +31,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from omnihang_jax import frame as frame_mod
 from omnihang_jax import pipeline, selection, sharding, stage3
 
 __all__ = [
-    "ANY_FRAME",
     "CONFIGS",
     "DEFAULT",
     "FRAMES",
@@ -66,10 +64,6 @@ class WhereConfig:
     # on the partial clouds (60 = the default's whole pool, chosen on the validation objects);
     # 0: off, the rule's first candidate is the answer
     check: int = 60
-    # the object-frame network (omnihang_jax.frame): the object cloud is first turned into the
-    # frame its best-scored hypothesis gives and every pose is mapped back, so the answer does
-    # not depend on the frame the object comes in; None: the cloud is read as given
-    frame: str | None = None
 
     def __post_init__(self):
         if self.check < 0:
@@ -82,15 +76,11 @@ DEFAULT = WhereConfig()
 # The paper's pipeline: K = 5 proposals, CEM from the Stage-2 proposals on one view, the
 # highest final V is the answer, no check.
 PAPER = WhereConfig(rankers=(), pipeline=pipeline.PipelineConfig(), check=0)
-# The default answer with the object-frame network in front (omnihang_jax.frame): for objects
-# handed over in any frame. Not yet the default: its networks behind the frame are those of the
-# library's frames, and the frame network is not yet exact (docs/where.md, "The object's frame").
-ANY_FRAME = dataclasses.replace(DEFAULT, frame="weights/frame")
 # The default answer for objects in any frame: Stage 1 reads the object cloud in 32 frames about
 # its box centre, V picks the K best of every frame's proposals and Stage 2 refines them, each in
 # its frame (pipeline.PipelineConfig.frames); the rest reads the object posed in the support frame.
 FRAMES = dataclasses.replace(DEFAULT, pipeline=dataclasses.replace(DEFAULT.pipeline, frames=32))
-CONFIGS = {"default": DEFAULT, "paper": PAPER, "any_frame": ANY_FRAME, "frames": FRAMES}
+CONFIGS = {"default": DEFAULT, "paper": PAPER, "frames": FRAMES}
 
 
 class WhereOutput(NamedTuple):
@@ -140,7 +130,6 @@ def _load(config: WhereConfig, overrides) -> Where:
         config.stage12,
         config.value,
         *config.rankers,
-        *([config.frame] if config.frame else []),
     )
     for folder in folders:
         if not os.path.exists(folder):
@@ -159,14 +148,8 @@ def _load(config: WhereConfig, overrides) -> Where:
     params = {"stage1": stage1_params, "stage2": nets.stage2_params, "value": value_params}
     if rank_params:
         params["rank_values"] = rank_params
-    to_frame = None
-    if config.frame:
-        frame_config, params["frame"] = frame_mod.load_frame(config.frame)
-        to_frame = frame_mod.make_canonicaliser(frame_config)
 
     def one(params, key, clouds):  # one pair, its own key: a batch of one inside
-        if to_frame is not None:
-            clouds, back = to_frame(params["frame"], clouds)
         if pipe.frames:  # the object read about its own box centre, wherever its origin is
             centre = pipeline.box_centre(clouds.object_points)
             clouds = clouds._replace(object_points=clouds.object_points - centre)
@@ -176,8 +159,6 @@ def _load(config: WhereConfig, overrides) -> Where:
                                             out.ranked_proposal))  # fmt: skip
         if pipe.frames:  # poses of the centred cloud -> of the cloud as given
             out = tuple(pipeline.move_origin(x, -centre) for x in out[:3]) + out[3:]
-        if to_frame is not None:
-            out = (back(out[0]), back(out[1]), back(out[2]), *out[3:])
         return out
 
     batched = jax.jit(jax.vmap(one, in_axes=(None, 0, 0)))

@@ -5,7 +5,6 @@
 #   default any     the default answer with the object in a random frame (the baseline)
 #   frames any      where.FRAMES (32 frame hypotheses for Stages 1-2, V picks the starts)
 #   frames library  where.FRAMES on the clouds as derived (the canonical figure it would give)
-#   any_frame any   where.ANY_FRAME (the object-frame network in front)
 #
 #   bash scripts/device_lean.sh out where
 #   run(carry=[".whl_min", ".whl_train"], timeout_s=600, command="bash scripts/device_anyframe.sh")
@@ -13,11 +12,11 @@
 #
 # PAIRS (default 400), RUNS (default the four above, "CONFIG:FRAME" words), TOTAL_S (the call's
 # seconds, default 585). Back in $OUT: evaluate.log, where_results.json (keys default_any_frame,
-# frames_any_frame, frames, any_frame_any_frame) and the per-pair records.
+# frames_any_frame, frames) and the per-pair records.
 set -uo pipefail
 OUT=${OUT:-/tmp/out}
 PAIRS=${PAIRS:-400}
-RUNS=${RUNS:-default:any frames:any frames:library any_frame:any}
+RUNS=${RUNS:-default:any frames:any frames:library}
 t0=$(date +%s)
 set -- $RUNS
 n=$#

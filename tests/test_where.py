@@ -75,10 +75,10 @@ def test_named_configs_differ_where_the_paper_does():
     assert where.PAPER.pipeline == pipeline.PipelineConfig()  # K = 5, Stage-2 starts, highest V
     assert where.PAPER.rankers == () and where.PAPER.check == 0
     assert (where.PAPER.stage12, where.PAPER.value) == (where.DEFAULT.stage12, where.DEFAULT.value)
-    for folder in (where.DEFAULT.stage12, where.DEFAULT.value, *where.DEFAULT.rankers,
-                   where.ANY_FRAME.frame):  # fmt: skip
+    for folder in (where.DEFAULT.stage12, where.DEFAULT.value, *where.DEFAULT.rankers):
         assert Path(folder).exists(), folder  # the committed weights the configs name
-    assert where.DEFAULT.frame is None and where.ANY_FRAME.pipeline == where.DEFAULT.pipeline
+    assert where.DEFAULT.pipeline.frames == 0 and where.FRAMES.pipeline.frames == 32
+    assert dataclasses.replace(where.FRAMES.pipeline, frames=0) == where.DEFAULT.pipeline
     with pytest.raises(ValueError, match="check"):
         where.WhereConfig(check=-1)
 
@@ -325,22 +325,6 @@ def test_any_frame_evaluation_turns_the_clouds_and_the_answers_back(tiny, tmp_pa
         where_eval.evaluate_where(tiny, files, tmp_path / "noisy.jsonl", seed=1, progress=False,
                                   dataset_dir=PAPER, frame="any")  # fmt: skip
     assert entry["all_stages"]["pairs"] == 2
-
-
-@pytest.mark.slow  # a second compile of the tiny answer (~40 s on 2 cores)
-def test_the_answer_with_a_frame_network_places_the_cloud_as_given(tiny, tmp_path):
-    """``WhereConfig.frame``: the answer runs on the object cloud in the network's frame and
-    returns poses of the cloud as given (unit quaternions, every candidate)."""
-    from omnihang_jax import frame
-
-    net = frame.FrameNet(frame.FRAME_TINY)
-    n = frame.FRAME_TINY.num_points
-    params = random_params(lambda k: net.init(k, np.zeros((1, n, 3)), np.zeros((1, n, 3))), 5)
-    frame.save_frame(tmp_path / "frame", frame.FRAME_TINY, params)
-    w = where.load_where(dataclasses.replace(tiny, frame=str(tmp_path / "frame")))
-    out = w.answer(pairs(2), [10, 11], seed=0)
-    assert out.ranked.shape == (2, 12, 7) and np.isfinite(out.ranked).all()
-    np.testing.assert_allclose(np.linalg.norm(out.ranked[..., 3:], axis=-1), 1.0, atol=1e-5)
 
 
 def test_the_hang_command_offers_every_named_answer():
