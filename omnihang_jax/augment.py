@@ -26,6 +26,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from omnihang_jax.poses import quaternion_to_matrix, reframe
+
 __all__ = ["yaw_matrix", "turn_poses", "random_rotations", "turn_object_frame", "augment_pair"]
 
 
@@ -52,27 +54,13 @@ def turn_poses(poses: jax.Array, angle: jax.Array) -> jax.Array:
 
 def random_rotations(key: jax.Array, n: int) -> jax.Array:
     """[n, 3, 3] uniform random rotations (normalised Gaussian quaternions)."""
-    from omnihang_jax.collision import quaternion_matrix
-
-    return quaternion_matrix(jax.random.normal(key, (n, 4)))
-
-
-def _quaternion_of(m: jax.Array) -> jax.Array:
-    """[B, 3, 3] rotations -> [B, 4] unit quaternions wxyz (Shepperd's method, jit-friendly)."""
-    import jaxlie
-
-    return jax.vmap(lambda r: jaxlie.SO3.from_matrix(r).wxyz)(m)
+    return quaternion_to_matrix(jax.random.normal(key, (n, 4)))
 
 
 def turn_object_frame(poses: jax.Array, rot: jax.Array) -> jax.Array:
     """Poses [B, D, 7] of the object -> the same placements of the object written in a frame
     turned by ``rot`` [B, 3, 3] (points R p): rotation Q R^T, translation unchanged."""
-    from omnihang_jax.collision import quaternion_matrix
-
-    turned = jnp.einsum("bdij,bkj->bdik", quaternion_matrix(poses[..., 3:]), rot)  # Q R^T
-    b, d = poses.shape[:2]
-    wxyz = _quaternion_of(turned.reshape(b * d, 3, 3)).reshape(b, d, 4)
-    return jnp.concatenate([poses[..., :3], wxyz], -1)
+    return reframe(poses, jnp.swapaxes(rot, -1, -2)[:, None])
 
 
 def augment_pair(batch, key: jax.Array, jitter: float, yaw: float, turn_object: bool = False):

@@ -255,9 +255,10 @@ def _read_cloud(path: Path) -> np.ndarray:
     return arr.astype(np.float64)
 
 
-def _estimate_normals(points: np.ndarray) -> np.ndarray:
-    """[N, 3] unit normals by PCA over each point's nearest neighbours, turned away from
-    the cloud's centroid (a one-view cloud's visible side mostly faces outwards)."""
+def _estimate_normals(points: np.ndarray, eye: np.ndarray | None = None) -> np.ndarray:
+    """[N, 3] unit normals by PCA over each point's nearest neighbours, turned towards the
+    camera at ``eye`` when it is known (a depth camera's normals face it), else away from the
+    cloud's centroid (a one-view cloud's visible side mostly faces outwards)."""
     from scipy.spatial import cKDTree
 
     k = min(NORMAL_NEIGHBOURS, len(points))
@@ -265,8 +266,8 @@ def _estimate_normals(points: np.ndarray) -> np.ndarray:
     nb = points[idx] - points[idx].mean(1, keepdims=True)
     _, _, vt = np.linalg.svd(nb, full_matrices=False)
     normals = vt[:, -1, :]
-    flip = np.einsum("ij,ij->i", normals, points - points.mean(0)) < 0
-    normals[flip] *= -1
+    out = points - points.mean(0) if eye is None else np.asarray(eye) - points
+    normals[np.einsum("ij,ij->i", normals, out) < 0] *= -1
     return normals
 
 

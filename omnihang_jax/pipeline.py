@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from omnihang_jax import selection
+from omnihang_jax.poses import pose6_to_pose7, quaternion_to_matrix, reframe
 from omnihang_jax.stage3 import (
     CEMConfig,
     PairClouds,
@@ -104,31 +105,11 @@ def super_fibonacci(n: int) -> np.ndarray:
     return xyzw[:, [3, 0, 1, 2]]
 
 
-def _matrix(wxyz: jax.Array) -> jax.Array:
-    """[..., 4] quaternions (wxyz) -> [..., 3, 3] rotation matrices."""
-    from omnihang_jax.collision import quaternion_matrix
-
-    return quaternion_matrix(wxyz)
-
-
-def _quaternion(m: jax.Array) -> jax.Array:
-    """[..., 3, 3] rotation matrices -> [..., 4] unit quaternions (wxyz)."""
-    import jaxlie
-
-    flat = m.reshape(-1, 3, 3)
-    q = jax.vmap(lambda r: jaxlie.SO3.from_matrix(r).wxyz)(flat)
-    return q.reshape(m.shape[:-2] + (4,))
-
-
-def _unit(q: jax.Array) -> jax.Array:
-    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
-
-
 def frame_hypotheses(key: jax.Array, n: int) -> jax.Array:
     """[n, 3, 3] the frames the object cloud is read in: ``super_fibonacci(n)`` turned by one
     uniform random rotation (drawn from ``key``), so that no frame is favoured."""
-    turn = _matrix(_unit(jax.random.normal(key, (4,))))
-    return _matrix(jnp.asarray(super_fibonacci(n), jnp.float32)) @ turn
+    turn = quaternion_to_matrix(jax.random.normal(key, (4,)))
+    return quaternion_to_matrix(jnp.asarray(super_fibonacci(n), jnp.float32)) @ turn
 
 
 def box_centre(points: jax.Array) -> jax.Array:
@@ -140,29 +121,13 @@ def box_centre(points: jax.Array) -> jax.Array:
     return mean + 0.5 * (proj.min(0) + proj.max(0)) @ axes
 
 
-def turn_back(poses: jax.Array, frames: jax.Array) -> jax.Array:
-    """Poses [..., 7] of the object read in ``frames`` [..., 3, 3] (points ``H p``; leading
-    axes broadcast) -> the same placements of the object as given: rotation R H, translation
-    unchanged."""
-    rot = _matrix(_unit(poses[..., 3:])) @ frames
-    return jnp.concatenate([poses[..., :3], _quaternion(rot)], axis=-1)
-
-
-def move_origin(poses: jax.Array, offset: jax.Array) -> jax.Array:
-    """Poses [..., 7] -> the same placements of the frame whose origin sits at ``offset`` [3]
-    in the object frame: t + R offset (``omnihang_jax.paths.move_origin`` on the host)."""
-    rot = _matrix(_unit(poses[..., 3:]))
-    return jnp.concatenate([poses[..., :3] + rot @ offset, poses[..., 3:]], axis=-1)
-
-
 def make_frame_starts(stage1_config, stage2_config, value, config: PipelineConfig,
                       value_config: ValueConfig) -> Callable:  # fmt: skip
     """``starts(params, key, clouds [B, ...]) -> (stage1 [B, K, 7], stage2 [B, K, 7], pool
     [B, M*K, 7])``: Stage 1 on ``config.frames`` (M) turned copies of the object cloud
-    (:func:`frame_hypotheses`), its M x K proposals turned back (the pool); the K that V scores
+    (:func:`frame_hypotheses`), its M x K proposals turned back (``poses.reframe``: the pool); the K that V scores
     highest (on the first view) are the Stage-1 starts, and Stage 2 refines each in the frame it
     came from (so Stage 2 runs K times a pair, as without frames)."""
-    from omnihang_jax.poses import pose6_to_pose7
     from omnihang_jax.stage1 import make_stage1
     from omnihang_jax.stage2 import make_stage2
 
@@ -179,7 +144,7 @@ def make_frame_starts(stage1_config, stage2_config, value, config: PipelineConfi
         pose6 = stage1.propose(params["stage1"], obj, sup.reshape(m * b, -1, 3), kp, k)
         pose6 = jnp.moveaxis(pose6.reshape(m, b, k, 6), 0, 1).reshape(b, m * k, 6)
         of = jnp.repeat(jnp.arange(m), k)  # the frame of each pool member
-        pool = turn_back(pose6_to_pose7(pose6), frames[of][None])  # [B, M*K, 7]
+        pool = reframe(pose6_to_pose7(pose6), frames[of][None])  # [B, M*K, 7]
         small = subset_clouds(clouds, value_config, *view)
         score = jax.vmap(value.score, in_axes=(None, 0, 0))(params["value"], small, pool)
         top = jnp.argsort(-score, axis=1)[:, :k]  # [B, K]
@@ -194,7 +159,7 @@ def make_frame_starts(stage1_config, stage2_config, value, config: PipelineConfi
         chosen = jnp.take_along_axis(pose6, top[:, :, None], axis=1).reshape(b * k, 6)
         out = stage2.refine(params["stage2"], seen, tile(clouds.support_points), chosen,
                             tile(clouds.support_normals))  # fmt: skip
-        second = turn_back(pose6_to_pose7(out.pose6).reshape(b, k, 7), h)
+        second = reframe(pose6_to_pose7(out.pose6).reshape(b, k, 7), h)
         return first, second, pool
 
     return starts

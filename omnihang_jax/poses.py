@@ -22,6 +22,10 @@ __all__ = [
     "pose6_to_pose7",
     "rotation_matrix",
     "transform_points",
+    "quaternion_to_matrix",
+    "quaternion_from_matrix",
+    "reframe",
+    "move_origin",
 ]
 
 
@@ -53,3 +57,31 @@ def transform_points(pose6: jax.Array, points: jax.Array) -> jax.Array:
     """
     rot = rotation_matrix(pose6[..., 3:])
     return jnp.einsum("...ij,...nj->...ni", rot, points) + pose6[..., None, :3]
+
+
+def quaternion_to_matrix(wxyz: jax.Array) -> jax.Array:
+    """[..., 4] quaternions wxyz (normalised here) -> [..., 3, 3] rotation matrices."""
+    wxyz = wxyz / jnp.linalg.norm(wxyz, axis=-1, keepdims=True)
+    return jaxlie.SO3(wxyz=wxyz).as_matrix()
+
+
+def quaternion_from_matrix(m: jax.Array) -> jax.Array:
+    """[..., 3, 3] rotation matrices -> [..., 4] unit quaternions wxyz."""
+    flat = jax.vmap(lambda r: jaxlie.SO3.from_matrix(r).wxyz)(m.reshape(-1, 3, 3))
+    return flat.reshape(m.shape[:-2] + (4,))
+
+
+def reframe(pose7: jax.Array, frames: jax.Array) -> jax.Array:
+    """Poses [..., 7] of an object whose cloud was read in ``frames`` [..., 3, 3] (points
+    ``H p``; leading axes broadcast) -> the same placements of the object as written before:
+    rotation R H, translation unchanged."""
+    rot = quaternion_to_matrix(pose7[..., 3:]) @ frames
+    return jnp.concatenate([pose7[..., :3], quaternion_from_matrix(rot)], axis=-1)
+
+
+def move_origin(pose7: jax.Array, offset: jax.Array) -> jax.Array:
+    """Poses [..., 7] -> the same placements of the frame whose origin sits at ``offset`` [3]
+    in the object frame (points ``p - offset``): t + R offset, q unchanged
+    (``omnihang_jax.paths.move_origin`` on the host)."""
+    rot = quaternion_to_matrix(pose7[..., 3:])
+    return jnp.concatenate([pose7[..., :3] + rot @ offset, pose7[..., 3:]], axis=-1)

@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from omnihang_jax import pipeline, selection, sharding, stage3
+from omnihang_jax import pipeline, poses, selection, sharding, stage3
 
 __all__ = [
     "CONFIGS",
@@ -158,7 +158,7 @@ def _load(config: WhereConfig, overrides) -> Where:
                                             out.ranked_keys, out.ranked_start,
                                             out.ranked_proposal))  # fmt: skip
         if pipe.frames:  # poses of the centred cloud -> of the cloud as given
-            out = tuple(pipeline.move_origin(x, -centre) for x in out[:3]) + out[3:]
+            out = tuple(poses.move_origin(x, -centre) for x in out[:3]) + out[3:]
         return out
 
     batched = jax.jit(jax.vmap(one, in_axes=(None, 0, 0)))

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from omnihang_jax import where as where_mod
+from omnihang_jax.hang_inputs import _estimate_normals
 from omnihang_jax.refine import label_job, library_pool
 
 __all__ = ["ANSWERS", "evaluate_where", "pair_files", "read_records", "summarise"]
@@ -68,9 +69,6 @@ def any_frame(seed: int, pair_index: int, free_standing: bool) -> dict:
     )
 
 
-NORMAL_NEIGHBOURS = 16  # points per normal re-estimated from a noisy cloud
-
-
 @functools.cache
 def pair_eyes(dataset_dir: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """{pair index: (object camera, support camera)} of a dataset: where each pair's clouds
@@ -82,24 +80,12 @@ def pair_eyes(dataset_dir: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
             for r in dataset.load_records(dataset_dir)}  # fmt: skip
 
 
-def _oriented_normals(points: np.ndarray, eye: np.ndarray) -> np.ndarray:
-    """[N, 3] unit normals by PCA over each point's nearest neighbours, turned towards the
-    camera (as a depth camera's normals are)."""
-    from scipy.spatial import cKDTree
-
-    _, idx = cKDTree(points).query(points, k=min(NORMAL_NEIGHBOURS, len(points)))
-    nb = points[idx] - points[idx].mean(1, keepdims=True)
-    normals = np.linalg.svd(nb, full_matrices=False)[2][:, -1, :]
-    flip = np.einsum("ij,ij->i", normals, eye - points) < 0
-    normals[flip] *= -1
-    return normals
-
-
 def degrade_clouds(clouds: dict, eyes: tuple, depth_noise: float, dropout: float,
                    rng: np.random.Generator) -> dict:  # fmt: skip
     """The pair's clouds as a worse sensor gives them: Gaussian noise of ``depth_noise`` m
     (standard deviation) along each point's camera ray, the normals then re-estimated from
-    the noisy points; a random ``dropout`` share of the points lost, the rest resampled to
+    the noisy points (``hang_inputs._estimate_normals``, the estimate the ``hang`` command makes
+    for clouds without normals, turned towards the camera); a random ``dropout`` share of the points lost, the rest resampled to
     the same count. Applied in the frames the clouds were seen in, before any turn."""
     out = {}
     for part, eye in zip(("object", "support"), eyes, strict=True):
@@ -115,7 +101,7 @@ def degrade_clouds(clouds: dict, eyes: tuple, depth_noise: float, dropout: float
             ray = pts - eye
             ray /= np.linalg.norm(ray, axis=1, keepdims=True)
             pts = pts + rng.normal(scale=depth_noise, size=(n, 1)) * ray
-            nrm = _oriented_normals(pts, eye)
+            nrm = _estimate_normals(pts, eye)
         out[f"{part}_points"] = pts.astype(np.float32)
         out[f"{part}_normals"] = nrm.astype(np.float32)
     return out

@@ -74,17 +74,19 @@ def test_jitter_and_off():
     np.testing.assert_array_equal(np.asarray(out.stable_poses), batch.stable_poses)
 
 
-@pytest.mark.slow  # Stage-1 augmentation, an option off by default
-def test_train_step_augments_stage1_only_when_asked():
+@pytest.mark.slow  # augmentation options off by default; compiles a tiny step twice each
+@pytest.mark.parametrize("stage, options", [
+    ("1", dict(augment_jitter=0.003, augment_yaw=1.0)),
+    ("2a", dict(augment_object_turn=True)),
+])  # fmt: skip
+def test_train_step_augments_when_asked(stage, options):
     config = train.WHERE_TINY
     batch = jax.tree.map(jnp.asarray, _batch(b=2, n=config.num_object_points, m=64, d=4))
-    state = train.make_init_state("1", config)(jax.random.key(0))
+    state = train.make_init_state(stage, config)(jax.random.key(0))
     key = jax.random.key(3)
-    plain = jax.jit(train.make_train_step("1", config))(state, batch, key)[1]["loss"]
-    aug_cfg = dataclasses.replace(
-        config, train=dataclasses.replace(config.train, augment_jitter=0.003, augment_yaw=1.0)
-    )
-    aug = jax.jit(train.make_train_step("1", aug_cfg))(state, batch, key)[1]["loss"]
+    plain = jax.jit(train.make_train_step(stage, config))(state, batch, key)[1]["loss"]
+    aug_cfg = dataclasses.replace(config, train=dataclasses.replace(config.train, **options))
+    aug = jax.jit(train.make_train_step(stage, aug_cfg))(state, batch, key)[1]["loss"]
     assert np.isfinite(float(aug)) and float(aug) != float(plain)
 
 
@@ -116,17 +118,3 @@ def test_object_turn_keeps_every_placement():
                                atol=1e-4)  # fmt: skip
     q = np.asarray(out.stable_poses)[..., 3:]
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-5)
-
-
-@pytest.mark.slow  # compiles a tiny Stage-2 step twice
-def test_train_step_turns_the_object_for_stage2_when_asked():
-    config = train.WHERE_TINY
-    batch = jax.tree.map(jnp.asarray, _batch(b=2, n=config.num_object_points, m=64, d=4))
-    state = train.make_init_state("2a", config)(jax.random.key(0))
-    key = jax.random.key(3)
-    plain = jax.jit(train.make_train_step("2a", config))(state, batch, key)[1]["loss"]
-    turn_cfg = dataclasses.replace(
-        config, train=dataclasses.replace(config.train, augment_object_turn=True)
-    )
-    turned = jax.jit(train.make_train_step("2a", turn_cfg))(state, batch, key)[1]["loss"]
-    assert np.isfinite(float(turned)) and float(turned) != float(plain)

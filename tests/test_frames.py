@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from omnihang_jax import paths, pipeline, stage3
+from omnihang_jax import poses as P
 from omnihang_jax.stage1 import STAGE1_TINY, make_stage1
 from omnihang_jax.stage2 import STAGE2_TINY, make_stage2
 
@@ -43,13 +44,14 @@ def test_the_frame_hypotheses_cover_so3():
 
 def test_a_pose_found_in_a_hypothesis_frame_turns_back_to_the_same_placement():
     """A pose of the cloud read in frame H (points H p) and its turned-back pose place every
-    point in the same spot; ``move_origin`` (JAX) agrees with the planner's host version."""
+    point in the same spot (``poses.reframe``); ``poses.move_origin`` (JAX) agrees with the
+    planner's host version."""
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(50, 3)) * 0.03
     frames = jnp.asarray(Rotation.random(3, random_state=2).as_matrix(), jnp.float32)
     q = Rotation.random(6, random_state=3).as_quat()[:, [3, 0, 1, 2]]
     poses = np.concatenate([rng.normal(size=(6, 3)) * 0.1, q], 1).reshape(3, 1, 2, 7)
-    back = np.asarray(pipeline.turn_back(jnp.asarray(poses, jnp.float32), frames[:, None, None]))
+    back = np.asarray(P.reframe(jnp.asarray(poses, jnp.float32), frames[:, None, None]))
     for m in range(3):
         for j in range(2):
             p, b = poses[m, 0, j], back[m, 0, j]
@@ -59,7 +61,7 @@ def test_a_pose_found_in_a_hypothesis_frame_turns_back_to_the_same_placement():
             np.testing.assert_allclose(again, world, atol=1e-5)
     offset = np.array([0.01, -0.02, 0.03])
     host = paths.move_origin(poses.reshape(-1, 7), offset)
-    dev = np.asarray(pipeline.move_origin(jnp.asarray(poses.reshape(-1, 7)), jnp.asarray(offset)))
+    dev = np.asarray(P.move_origin(jnp.asarray(poses.reshape(-1, 7)), jnp.asarray(offset)))
     np.testing.assert_allclose(dev, host, atol=1e-6)
 
 
