@@ -43,6 +43,7 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 def build_parser() -> argparse.ArgumentParser:
     from omnihang_jax.hang import HangConfig
+    from omnihang_jax.where import CONFIGS as WHERE_CONFIGS
     from sim.decompose import PRESETS
 
     d = HangConfig()
@@ -71,11 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="move each cloud's bounding-box centre to the origin",
     )
     p.add_argument(
-        "--where", choices=["default", "paper", "frames"], default=d.where,
+        "--where", choices=list(WHERE_CONFIGS), default=d.where,
         help="the where-to-hang answer (omnihang_jax.where): default (Stages 1-3, three views, "
         "the rankers, the observed-cloud check), paper (the paper's pipeline), frames (default "
         "with Stage 1 reading the object in 32 frames, V picking CEM's starts: for objects in any "
-        "frame)",
+        "frame), frames_turned (frames with the Stage 1 trained for them)",
     )  # fmt: skip
     p.add_argument("--model", default=None, help="Stage 1 + 2 networks instead of the answer's")
     p.add_argument(

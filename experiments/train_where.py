@@ -136,10 +136,14 @@ def main(argv=None) -> dict:
     )
     parser.add_argument(
         "--augment-object-turn",
-        action="store_true",
+        type=int,
+        nargs="?",
+        const=1,
         default=None,
-        help="Stages 1-2: each training object in a uniform random frame (SO(3)), its stable "
-        "poses the same placements (objects in any frame)",
+        metavar="M",
+        help="Stages 1-2: each training object read about its box centre in the frame that the "
+        "nearest of M frame hypotheses leaves of a uniform random frame (where.FRAMES: 32; "
+        "no M: any frame), its stable poses the same placements",
     )
     parser.add_argument(
         "--val-fraction", type=float, default=None, help="fraction of objects held out (0.1)"

@@ -8,11 +8,13 @@
   is stable for the turned support (exact, not an approximation); the object cloud is in the
   object's own frame and does not change.
 
-* ``turn_object``: the object handed over in a uniform random frame (SO(3)) about its origin:
-  object points and normals turn by R, and every stable pose describes the same placement of
-  the turned cloud (q -> q R^T, t unchanged). Exact: the support, gravity and the placements
-  stay; only the frame the object cloud is written in changes. For networks that must read an
-  object in any frame (docs/where.md, "Objects in any frame").
+* ``turn_object`` (M, an int): the object read as ``where.FRAMES`` reads it: about its
+  principal-box centre (``poses.box_centre``), in the frame that the nearest of M frame
+  hypotheses (``poses.super_fibonacci(M)``) leaves of a uniform random frame (M = 1: the
+  uniform random frame itself). Object points become R (p - c), normals R n, and every stable
+  pose describes the same placement of the moved cloud (q -> q R^T, t -> t + R_q c). Exact:
+  the support, gravity and the placements stay; only the frame the object cloud is written in
+  changes. For networks that read objects in any frame (docs/where.md, "Objects in any frame").
 
 Pure and jit-friendly: ``augment_pair(batch, key, jitter, yaw) -> batch`` on a batched
 ``data.HangSample`` (leading B axis; fields a packed Stage-1 set leaves off, e.g. support normals
@@ -26,9 +28,16 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from omnihang_jax.poses import quaternion_to_matrix, reframe
+from omnihang_jax.poses import box_centre, quaternion_to_matrix, reframe, super_fibonacci
 
-__all__ = ["yaw_matrix", "turn_poses", "random_rotations", "turn_object_frame", "augment_pair"]
+__all__ = [
+    "yaw_matrix",
+    "turn_poses",
+    "random_rotations",
+    "residual_turns",
+    "turn_object_frame",
+    "augment_pair",
+]
 
 
 def yaw_matrix(angle: jax.Array) -> jax.Array:
@@ -57,29 +66,47 @@ def random_rotations(key: jax.Array, n: int) -> jax.Array:
     return quaternion_to_matrix(jax.random.normal(key, (n, 4)))
 
 
+def residual_turns(key: jax.Array, n: int, frames: int) -> jax.Array:
+    """[n, 3, 3] the turn of an object handed over in a uniform random frame A as the nearest of
+    ``frames`` hypotheses H_i (``super_fibonacci``) leaves it, H_i A with the largest trace:
+    what Stage 1 sees in its best frame under ``where.FRAMES``. ``frames`` = 1: A itself."""
+    a = random_rotations(key, n)
+    if frames <= 1:
+        return a
+    h = quaternion_to_matrix(jnp.asarray(super_fibonacci(frames), a.dtype))  # [M, 3, 3]
+    seen = jnp.einsum("mij,njk->nmik", h, a)  # [n, M, 3, 3]
+    best = jnp.argmax(jnp.trace(seen, axis1=-2, axis2=-1), axis=1)  # the smallest angle
+    return seen[jnp.arange(n), best]
+
+
 def turn_object_frame(poses: jax.Array, rot: jax.Array) -> jax.Array:
     """Poses [B, D, 7] of the object -> the same placements of the object written in a frame
     turned by ``rot`` [B, 3, 3] (points R p): rotation Q R^T, translation unchanged."""
     return reframe(poses, jnp.swapaxes(rot, -1, -2)[:, None])
 
 
-def augment_pair(batch, key: jax.Array, jitter: float, yaw: float, turn_object: bool = False):
-    """A batched ``HangSample`` with jittered points, a random turn about z and the object in
-    a random frame (module docstring). ``jitter`` / ``yaw`` / ``turn_object`` are static."""
+def augment_pair(batch, key: jax.Array, jitter: float, yaw: float, turn_object: int = 0):
+    """A batched ``HangSample`` with jittered points, a random turn about z and the object read
+    about its box centre in a turned frame (module docstring). ``jitter`` / ``yaw`` /
+    ``turn_object`` are static."""
     if jitter <= 0 and yaw <= 0 and not turn_object:
         return batch
     if turn_object:
         key, k_turn = jax.random.split(key)
-        rot = random_rotations(k_turn, batch.object_points.shape[0])
-        rot = rot.astype(batch.object_points.dtype)
+        pts = jnp.asarray(batch.object_points)
+        rot = residual_turns(k_turn, pts.shape[0], int(turn_object)).astype(pts.dtype)
+        centre = jax.vmap(box_centre)(pts.astype(jnp.float32)).astype(pts.dtype)  # [B, 3]
         normals = batch.object_normals
-        if normals.shape == batch.object_points.shape:
+        if normals.shape == pts.shape:
             normals = jnp.einsum("bij,bnj->bni", rot, normals.astype(rot.dtype))
+        poses = jnp.asarray(batch.stable_poses)
+        q_rot = quaternion_to_matrix(poses[..., 3:])  # [B, D, 3, 3]
+        moved = poses.at[..., :3].add(jnp.einsum("bdij,bj->bdi", q_rot, centre))
         batch = batch._replace(
-            object_points=jnp.einsum("bij,bnj->bni", rot, batch.object_points),
+            object_points=jnp.einsum("bij,bnj->bni", rot, pts - centre[:, None]),
             object_normals=normals.astype(batch.object_normals.dtype),
-            stable_poses=turn_object_frame(batch.stable_poses, rot).astype(batch.stable_poses.dtype),
-        )  # fmt: skip
+            stable_poses=turn_object_frame(moved, rot).astype(poses.dtype),
+        )
     if jitter <= 0 and yaw <= 0:
         return batch
     k_obj, k_sup, k_yaw = jax.random.split(key, 3)

@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from omnihang_jax import selection
-from omnihang_jax.poses import pose6_to_pose7, quaternion_to_matrix, reframe
+from omnihang_jax.poses import (box_centre, pose6_to_pose7, quaternion_to_matrix, reframe,
+                                super_fibonacci)
 from omnihang_jax.stage3 import (
     CEMConfig,
     PairClouds,
@@ -94,31 +95,11 @@ ANSWER_PIPELINE = PipelineConfig(
 )
 
 
-def super_fibonacci(n: int) -> np.ndarray:
-    """[n, 4] unit quaternions (wxyz) spread evenly over SO(3) (Alexa, "Super-Fibonacci
-    Spirals", CVPR 2022)."""
-    phi, psi = np.sqrt(2.0), 1.533751168755204288118041
-    s = np.arange(n) + 0.5
-    r, big = np.sqrt(s / n), np.sqrt(1.0 - s / n)
-    a, b = 2 * np.pi * s / phi, 2 * np.pi * s / psi
-    xyzw = np.stack([r * np.sin(a), r * np.cos(a), big * np.sin(b), big * np.cos(b)], axis=1)
-    return xyzw[:, [3, 0, 1, 2]]
-
-
 def frame_hypotheses(key: jax.Array, n: int) -> jax.Array:
     """[n, 3, 3] the frames the object cloud is read in: ``super_fibonacci(n)`` turned by one
     uniform random rotation (drawn from ``key``), so that no frame is favoured."""
     turn = quaternion_to_matrix(jax.random.normal(key, (4,)))
     return quaternion_to_matrix(jnp.asarray(super_fibonacci(n), jnp.float32)) @ turn
-
-
-def box_centre(points: jax.Array) -> jax.Array:
-    """[N, 3] -> [3] the centre of the cloud's box along its principal axes: it turns and moves
-    with the cloud (``omnihang_jax.paths.principal_box`` on the host)."""
-    mean = points.mean(0)
-    _, _, axes = jnp.linalg.svd(points - mean, full_matrices=False)
-    proj = (points - mean) @ axes.T
-    return mean + 0.5 * (proj.min(0) + proj.max(0)) @ axes
 
 
 def make_frame_starts(stage1_config, stage2_config, value, config: PipelineConfig,

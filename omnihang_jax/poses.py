@@ -16,6 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 
 __all__ = [
     "pose7_to_pose6",
@@ -26,6 +27,8 @@ __all__ = [
     "quaternion_from_matrix",
     "reframe",
     "move_origin",
+    "super_fibonacci",
+    "box_centre",
 ]
 
 
@@ -85,3 +88,23 @@ def move_origin(pose7: jax.Array, offset: jax.Array) -> jax.Array:
     (``omnihang_jax.paths.move_origin`` on the host)."""
     rot = quaternion_to_matrix(pose7[..., 3:])
     return jnp.concatenate([pose7[..., :3] + rot @ offset, pose7[..., 3:]], axis=-1)
+
+
+def super_fibonacci(n: int) -> np.ndarray:
+    """[n, 4] unit quaternions (wxyz) spread evenly over SO(3) (Alexa, "Super-Fibonacci
+    Spirals", CVPR 2022)."""
+    phi, psi = np.sqrt(2.0), 1.533751168755204288118041
+    s = np.arange(n) + 0.5
+    r, big = np.sqrt(s / n), np.sqrt(1.0 - s / n)
+    a, b = 2 * np.pi * s / phi, 2 * np.pi * s / psi
+    xyzw = np.stack([r * np.sin(a), r * np.cos(a), big * np.sin(b), big * np.cos(b)], axis=1)
+    return xyzw[:, [3, 0, 1, 2]]
+
+
+def box_centre(points: jax.Array) -> jax.Array:
+    """[N, 3] -> [3] the centre of the cloud's box along its principal axes: it turns and moves
+    with the cloud (``omnihang_jax.paths.principal_box`` on the host)."""
+    mean = points.mean(0)
+    _, _, axes = jnp.linalg.svd(points - mean, full_matrices=False)
+    proj = (points - mean) @ axes.T
+    return mean + 0.5 * (proj.min(0) + proj.max(0)) @ axes

@@ -162,16 +162,20 @@ class Predictor:
 
 
 def load_predictor(
-    folder: str | os.PathLike, seed: int = 0, stage2_overrides: dict | None = None
+    folder: str | os.PathLike,
+    seed: int = 0,
+    stage2_overrides: dict | None = None,
+    stage1_folder: str | os.PathLike | None = None,
 ) -> Predictor:
     """Rebuild the predictor from a training folder holding ``stage1/`` and ``stage2b/``
     (each with config.json + checkpoints/), as written by ``train.train_where``.
     ``stage2_overrides``: inference-only ``Stage2Config`` fields to replace, e.g.
-    ``{"clearance": 0.004}``."""
+    ``{"clearance": 0.004}``. ``stage1_folder``: read ``stage1/`` from there instead."""
     folder = os.fspath(folder)
     stages = {}
     for stage in ("stage1", "stage2b"):
-        path = os.path.join(folder, stage)
+        base = os.fspath(stage1_folder) if stage == "stage1" and stage1_folder else folder
+        path = os.path.join(base, stage)
         if not os.path.exists(os.path.join(path, "config.json")):
             raise FileNotFoundError(
                 f"{path}/config.json not found: train it first "

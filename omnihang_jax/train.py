@@ -104,9 +104,10 @@ class TrainConfig:
     # 0 = off: the step is then exactly the unaugmented one (same keys).
     augment_jitter: float = 0.0
     augment_yaw: float = 0.0
-    # every sample's object cloud in a uniform random frame (Stages 1 and 2), its stable poses
-    # the same placements of the turned cloud (``augment.turn_object_frame``)
-    augment_object_turn: bool = False
+    # Stages 1 and 2: every sample's object read about its box centre, in the frame that the
+    # nearest of M frame hypotheses leaves of a uniform random frame (``where.FRAMES`` reads
+    # objects so); 1 = a uniform random frame, 0 = off (``augment.augment_pair``)
+    augment_object_turn: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -233,10 +234,16 @@ def make_train_step(stage: str, config: NetworksConfig) -> Callable:
 
 
 def make_eval_step(stage: str, config: NetworksConfig) -> Callable:
-    """``eval_step(params, batch, key) -> metrics``: the stage's loss and metrics, no update."""
+    """``eval_step(params, batch, key) -> metrics``: the stage's loss and metrics, no update.
+    With ``augment_object_turn`` the objects are turned as in training (from ``key``: the
+    validator's keys are fixed), so validation measures the frames the network is made for."""
     loss_fn = make_loss_fn(stage, config)
+    turn = config.train.augment_object_turn
 
     def eval_step(params, batch: HangSample, key):
+        if turn:
+            key, k_aug = jax.random.split(key)
+            batch = augment.augment_pair(batch, k_aug, 0.0, 0.0, turn)
         return loss_fn(params, batch, key)[1]
 
     return eval_step

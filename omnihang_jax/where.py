@@ -52,6 +52,7 @@ class WhereConfig:
     """What the where-to-hang answer is made of. Paths are relative to the checkout."""
 
     stage12: str = "weights/stage12"  # Stage 1 + Stage 2 networks (predict.load_predictor)
+    stage1: str | None = None  # a folder whose stage1/ replaces stage12's Stage 1
     value: str = "weights/value"  # the value function V that CEM searches on
     # networks whose mean log V ranks CEM's candidates (() : V ranks, the paper's)
     rankers: tuple[str, ...] = (
@@ -80,7 +81,10 @@ PAPER = WhereConfig(rankers=(), pipeline=pipeline.PipelineConfig(), check=0)
 # its box centre, V picks the K best of every frame's proposals and Stage 2 refines them, each in
 # its frame (pipeline.PipelineConfig.frames); the rest reads the object posed in the support frame.
 FRAMES = dataclasses.replace(DEFAULT, pipeline=dataclasses.replace(DEFAULT.pipeline, frames=32))
-CONFIGS = {"default": DEFAULT, "paper": PAPER, "frames": FRAMES}
+# FRAMES with the Stage 1 trained for it (``train_where --augment-object-turn 32``): each object
+# read about its box centre in what the nearest of the 32 frames leaves of a random frame
+FRAMES_TURNED = dataclasses.replace(FRAMES, stage1="weights/stage1_frames")
+CONFIGS = {"default": DEFAULT, "paper": PAPER, "frames": FRAMES, "frames_turned": FRAMES_TURNED}
 
 
 class WhereOutput(NamedTuple):
@@ -128,6 +132,7 @@ def _load(config: WhereConfig, overrides) -> Where:
 
     folders = (
         config.stage12,
+        *([config.stage1] if config.stage1 else []),
         config.value,
         *config.rankers,
     )
@@ -137,7 +142,8 @@ def _load(config: WhereConfig, overrides) -> Where:
                 f"{folder} not found: the where-to-hang weights are looked up from the checkout's "
                 "root (run from there, or give WhereConfig absolute paths)"
             )
-    nets = predict.load_predictor(config.stage12, stage2_overrides=dict(overrides or ()))
+    nets = predict.load_predictor(config.stage12, stage2_overrides=dict(overrides or ()),
+                                  stage1_folder=config.stage1)  # fmt: skip
     value_config, value_params = refine.load_value(config.value)
     rank_configs, rank_params = predict.load_rank_values(config.rankers)
     pipe = dataclasses.replace(config.pipeline, rank_values=len(rank_params))
@@ -151,7 +157,7 @@ def _load(config: WhereConfig, overrides) -> Where:
 
     def one(params, key, clouds):  # one pair, its own key: a batch of one inside
         if pipe.frames:  # the object read about its own box centre, wherever its origin is
-            centre = pipeline.box_centre(clouds.object_points)
+            centre = poses.box_centre(clouds.object_points)
             clouds = clouds._replace(object_points=clouds.object_points - centre)
         out = hang(params, key, jax.tree.map(lambda x: x[None], clouds))
         out = jax.tree.map(lambda x: x[0], (out.stage1_poses, out.stage2_poses, out.ranked,

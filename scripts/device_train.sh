@@ -18,6 +18,10 @@
 # GEN_ONLY=1: stop after the generation phase (a CPU-throughput call); TRAIN_ARGS: more
 # experiments.train_where flags (e.g. "--augment-object-turn --init-from weights/stage12" for
 # Stages 1-2 that read objects in any frame);
+# DERIVE_ARGS: more experiments.derive_dataset flags (e.g. "--clouds-only --camera-scale 0.5":
+# Stage 1's training clouds, ~5x less CPU a pair; then STAGE=1); STAGE (train_where --stage,
+# default all); GEN_BG=0: no background shard generation while training. The exported weights
+# also stay on the machine in /tmp/export (a warm next call reads them there).
 # SKIP_INSTALL=1 for a dry run here (with .venv/bin first on PATH).
 set -uo pipefail
 T0=$(date +%s)
@@ -66,17 +70,19 @@ fi
 # 2. derive the training split (resumable; whatever is derived when the budget ends is used)
 mkdir -p /tmp/ds && cp -r /tmp/gen/recipe.json /tmp/gen/shards /tmp/ds/
 timeout -k 5 "$DERIVE_S" python3 -m experiments.derive_dataset --data /tmp/ds --split train \
-    --workers 0 --no-progress >"$OUT/derive.log" 2>&1
+    --workers 0 --no-progress ${DERIVE_ARGS:-} >"$OUT/derive.log" 2>&1
 pkill -f "derive_dataset --data /tmp/ds"
-log "derived $(ls /tmp/ds/derived/train 2>/dev/null | wc -l) training pairs"
+TRAIN_DATA=$(dirname "$(find /tmp/ds/derived -name '*.npz' | head -1)")
+log "derived $(ls "$TRAIN_DATA" 2>/dev/null | wc -l) training pairs in $TRAIN_DATA"
 
 # the CPU cores the trainer does not need generate more shards in the background; a shard
 # takes ~3 min per worker there, so none is started later than 200 s before the end
-setsid bash -c "$(declare -f gen); OUT=$OUT GEN_PART=$GEN_PART gen 12 $((END_S - 200 - $(date +%s) + T0))" &
+[ "${GEN_BG:-1}" = 0 ] ||
+    setsid bash -c "$(declare -f gen); OUT=$OUT GEN_PART=$GEN_PART gen 12 $((END_S - 200 - $(date +%s) + T0))" &
 
 # 3. train on the GPU
-python3 -m experiments.train_where --data /tmp/ds --out /tmp/run --preset "$PRESET" \
-    --batch "$BATCH" --steps 1000000 --time-budget "1=$S1,2a=$S2A,2b=$S2B" --data-on-device --no-progress \
+python3 -m experiments.train_where --data "$TRAIN_DATA" --out /tmp/run --preset "$PRESET" \
+    --stage "${STAGE:-all}" --batch "$BATCH" --steps "${STEPS:-1000000}" --time-budget "1=$S1,2a=$S2A,2b=$S2B" --data-on-device --no-progress \
     ${TRAIN_ARGS:-} \
     >"$OUT/train.log" 2>&1
 log "trained: $(tail -1 "$OUT/train.log")"
@@ -84,9 +90,10 @@ log "trained: $(tail -1 "$OUT/train.log")"
 # 4. export the weights, inference latency
 python3 -c "from omnihang_jax import train; train.export_weights('/tmp/run', '$OUT/weights')" \
     >>"$OUT/device_train.log" 2>&1
+rm -rf /tmp/export && cp -r "$OUT/weights" /tmp/export
 # the latency benchmark needs ~45 s; skip it when the call's end is nearer than that (a call
 # that runs past its limit loses its tarballs)
-if [ $((END_S - $(date +%s) + T0)) -gt 70 ]; then
+if [ -z "${NO_BENCH:-}" ] && [ $((END_S - $(date +%s) + T0)) -gt 70 ]; then
     timeout 60 python3 -m experiments.bench_where --model /tmp/run --out "$OUT/bench_where.json" \
         >>"$OUT/device_train.log" 2>&1
 else

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from omnihang_jax import augment, train
+from omnihang_jax import poses as P
 from omnihang_jax.data import HangSample
 
 
@@ -77,7 +78,7 @@ def test_jitter_and_off():
 @pytest.mark.slow  # augmentation options off by default; compiles a tiny step twice each
 @pytest.mark.parametrize("stage, options", [
     ("1", dict(augment_jitter=0.003, augment_yaw=1.0)),
-    ("2a", dict(augment_object_turn=True)),
+    ("2a", dict(augment_object_turn=32)),
 ])  # fmt: skip
 def test_train_step_augments_when_asked(stage, options):
     config = train.WHERE_TINY
@@ -98,23 +99,40 @@ def test_turn_passes_fields_a_stage1_pack_leaves_off():
     assert not np.allclose(np.asarray(out.support_points)[..., :2], batch.support_points[..., :2])
 
 
-def test_object_turn_keeps_every_placement():
-    """``turn_object``: the object cloud (and normals) in a random frame, and each stable pose
-    of the turned cloud places every object point where the original pose placed it; the
-    support is untouched."""
+@pytest.mark.parametrize("frames", [1, 32])
+def test_object_turn_keeps_every_placement(frames):
+    """``turn_object``: the object cloud (and normals) about its box centre in a turned frame,
+    and each stable pose of the moved cloud places every object point where the original pose
+    placed it; the support is untouched."""
     batch = _batch()
     normals = np.random.default_rng(2).normal(size=batch.object_points.shape)
     batch = batch._replace(object_normals=normals.astype(np.float32))
-    out = augment.augment_pair(batch, jax.random.key(4), 0.0, 0.0, turn_object=True)
+    out = augment.augment_pair(batch, jax.random.key(4), 0.0, 0.0, turn_object=frames)
     np.testing.assert_array_equal(np.asarray(out.support_points), batch.support_points)
     before = _posed(batch.stable_poses, batch.object_points)
     after = _posed(np.asarray(out.stable_poses), np.asarray(out.object_points))
     np.testing.assert_allclose(after, before, atol=1e-5)
     assert not np.allclose(np.asarray(out.object_points), batch.object_points, atol=1e-3)
-    # the normals turned as the points: the same rotation fits both
+    # the cloud is read about its box centre
+    centres = np.asarray(jax.vmap(P.box_centre)(jnp.asarray(out.object_points)))
+    np.testing.assert_allclose(centres, 0.0, atol=1e-5)
+    # the points turned as the normals: the rotation that fits the normals fits the points
+    n0, n1 = batch.object_normals[0], np.asarray(out.object_normals)[0]
+    r, *_ = np.linalg.lstsq(n0, n1, rcond=None)
     p0, p1 = batch.object_points[0], np.asarray(out.object_points)[0]
-    r, *_ = np.linalg.lstsq(p0, p1, rcond=None)
-    np.testing.assert_allclose(batch.object_normals[0] @ r, np.asarray(out.object_normals)[0],
-                               atol=1e-4)  # fmt: skip
+    np.testing.assert_allclose((p0 - p0.mean(0)) @ r, p1 - p1.mean(0), atol=1e-4)
     q = np.asarray(out.stable_poses)[..., 3:]
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-5)
+
+
+def test_residual_turns_stay_within_the_hypotheses_cover():
+    """M = 32: what the nearest frame hypothesis leaves of a uniform frame is at most the
+    cover's radius (about 73 degrees); M = 1: the uniform frame itself (angles up to 180)."""
+
+    def angles(frames):
+        r = np.asarray(augment.residual_turns(jax.random.key(0), 2000, frames))
+        return np.degrees(np.arccos(np.clip((np.trace(r, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+
+    near, anywhere = angles(32), angles(1)
+    assert near.max() < 75 and 30 < np.median(near) < 50
+    assert anywhere.max() > 150 and np.median(anywhere) > 100

@@ -26,7 +26,7 @@ def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def test_the_frame_hypotheses_cover_so3():
     """32 super-Fibonacci rotations: unit quaternions, no two within 40 degrees, and every
     rotation within 75 degrees of one of them (a random set of 32 leaves gaps over 90)."""
-    q = pipeline.super_fibonacci(32)
+    q = P.super_fibonacci(32)
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
     pair = _angles(q, q) + np.eye(32) * 10
     assert pair.min() > np.radians(40)
@@ -69,8 +69,8 @@ def test_the_box_centre_moves_with_the_cloud():
     rng = np.random.default_rng(1)
     pts = rng.normal(size=(400, 3)) * [0.05, 0.02, 0.01] + [0.03, 0.0, -0.02]
     r = Rotation.random(random_state=4).as_matrix()
-    c = np.asarray(pipeline.box_centre(jnp.asarray(pts)))
-    turned = np.asarray(pipeline.box_centre(jnp.asarray(pts @ r.T + [0.1, 0.2, -0.05])))
+    c = np.asarray(P.box_centre(jnp.asarray(pts)))
+    turned = np.asarray(P.box_centre(jnp.asarray(pts @ r.T + [0.1, 0.2, -0.05])))
     np.testing.assert_allclose(turned, r @ c + [0.1, 0.2, -0.05], atol=1e-6)
     np.testing.assert_allclose(c, paths.principal_box(pts)[0], atol=1e-6)
 
