@@ -18,8 +18,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from omnihang_jax import selection
-from omnihang_jax.poses import (box_centre, pose6_to_pose7, quaternion_to_matrix, reframe,
-                                super_fibonacci)
+from omnihang_jax.poses import (
+    pose6_to_pose7,
+    quaternion_to_matrix,
+    reframe,
+    super_fibonacci,
+)
 from omnihang_jax.stage3 import (
     CEMConfig,
     PairClouds,
