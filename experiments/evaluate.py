@@ -128,14 +128,19 @@ def run_paths(args) -> dict:
     )  # fmt: skip
 
 
-def _key(args) -> str:
+def _key(args, entry: dict | None = None) -> str:
     """The results key: the config's name, + "_any_frame" under the any-frame protocol,
-    + "_noise<mm>mm" / "_dropout<percent>" with degraded clouds."""
+    + "_noise<mm>mm" / "_dropout<percent>" with degraded clouds, + "_pairs<N>" for a `where` run
+    on fewer pairs than the record sample (so a short run never replaces a whole one)."""
+    from omnihang_jax.where_eval import RECORD_PAIRS
+
     key = args.config + ("_any_frame" if getattr(args, "frame", "library") == "any" else "")
     if getattr(args, "depth_noise", 0):
         key += f"_noise{args.depth_noise:g}mm"
     if getattr(args, "dropout", 0):
         key += f"_dropout{100 * args.dropout:g}"
+    if args.figure == "where" and entry is not None and entry["pairs"] < RECORD_PAIRS:
+        key += f"_pairs{entry['pairs']}"
     return key
 
 
@@ -204,7 +209,7 @@ def main(argv=None) -> dict:
     entry = run_where(args) if args.figure == "where" else run_paths(args)
     results = args.results or (RESULTS[args.figure] if args.split == "test" else None)
     if results:
-        merge_results(results, _key(args), entry)
+        merge_results(results, _key(args, entry), entry)
         if promotes(args, entry):
             promote(results, entry, "_any_frame" if args.frame == "any" else "")
     print(json.dumps(entry, indent=1))

@@ -75,8 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--where", choices=list(WHERE_CONFIGS), default=d.where,
         help="the where-to-hang answer (omnihang_jax.where): default (Stages 1-3, three views, "
         "the rankers, the observed-cloud check), paper (the paper's pipeline), frames (default "
-        "with Stage 1 reading the object in 32 frames, V picking CEM's starts: for objects in any "
-        "frame), frames_turned (frames with the Stage 1 trained for them)",
+        "with a Stage 1 trained for it reading the object in 32 frames, V picking CEM's starts: "
+        "for objects in any frame)",
     )  # fmt: skip
     p.add_argument("--model", default=None, help="Stage 1 + 2 networks instead of the answer's")
     p.add_argument(

@@ -105,6 +105,9 @@ def box_centre(points: jax.Array) -> jax.Array:
     """[N, 3] -> [3] the centre of the cloud's box along its principal axes: it turns and moves
     with the cloud (``omnihang_jax.paths.principal_box`` on the host)."""
     mean = points.mean(0)
-    _, _, axes = jnp.linalg.svd(points - mean, full_matrices=False)
-    proj = (points - mean) @ axes.T
-    return mean + 0.5 * (proj.min(0) + proj.max(0)) @ axes
+    centred = points - mean
+    # the principal axes from the 3 x 3 scatter (eigh): batched SVDs of [N, 3] clouds are slow
+    # on a GPU and the box's centre does not depend on the axes' order or signs
+    _, axes = jnp.linalg.eigh(centred.T @ centred)  # columns
+    proj = centred @ axes
+    return mean + 0.5 * (proj.min(0) + proj.max(0)) @ axes.T

@@ -77,14 +77,16 @@ DEFAULT = WhereConfig()
 # The paper's pipeline: K = 5 proposals, CEM from the Stage-2 proposals on one view, the
 # highest final V is the answer, no check.
 PAPER = WhereConfig(rankers=(), pipeline=pipeline.PipelineConfig(), check=0)
-# The default answer for objects in any frame: Stage 1 reads the object cloud in 32 frames about
-# its box centre, V picks the K best of every frame's proposals and Stage 2 refines them, each in
-# its frame (pipeline.PipelineConfig.frames); the rest reads the object posed in the support frame.
-FRAMES = dataclasses.replace(DEFAULT, pipeline=dataclasses.replace(DEFAULT.pipeline, frames=32))
-# FRAMES with the Stage 1 trained for it (``train_where --augment-object-turn 32``): each object
-# read about its box centre in what the nearest of the 32 frames leaves of a random frame
-FRAMES_TURNED = dataclasses.replace(FRAMES, stage1="weights/stage1_frames")
-CONFIGS = {"default": DEFAULT, "paper": PAPER, "frames": FRAMES, "frames_turned": FRAMES_TURNED}
+# The answer for objects in any frame: Stage 1 reads the object cloud about its box centre in 32
+# frames, V picks the K best of every frame's proposals and Stage 2 refines them, each in its
+# frame (pipeline.PipelineConfig.frames); the rest reads the object posed in the support frame.
+# Its Stage 1 is trained for that (weights/stage1_frames: `train_where --augment-object-turn 32`).
+FRAMES = dataclasses.replace(
+    DEFAULT,
+    stage1="weights/stage1_frames",
+    pipeline=dataclasses.replace(DEFAULT.pipeline, frames=32),
+)
+CONFIGS = {"default": DEFAULT, "paper": PAPER, "frames": FRAMES}
 
 
 class WhereOutput(NamedTuple):

@@ -5,7 +5,6 @@
 #   default any     the default answer with the object in a random frame (the baseline)
 #   frames any      where.FRAMES (32 frame hypotheses for Stages 1-2, V picks the starts)
 #   frames library  where.FRAMES on the clouds as derived (the canonical figure it would give)
-#   frames_turned any / library   where.FRAMES_TURNED (FRAMES with the Stage 1 trained for it)
 #
 #   bash scripts/device_lean.sh out where
 #   run(carry=[".whl_min", ".whl_train"], timeout_s=600, command="bash scripts/device_anyframe.sh")
@@ -19,7 +18,7 @@ OUT=${OUT:-/tmp/out}
 PAIRS=${PAIRS:-400}
 RUNS=${RUNS:-default:any frames:any frames:library}
 t0=$(date +%s)
-# where.FRAMES_TURNED's Stage 1 (weights/stage1_frames): the tree's, else what a warm machine's
+# where.FRAMES's Stage 1 (weights/stage1_frames): the tree's, else what a warm machine's
 # `STAGE=1 ... scripts/device_train.sh` call left in /tmp/export
 if [ ! -s weights/stage1_frames/stage1/params.msgpack ] && [ -s /tmp/export/stage1/params.msgpack ]; then
     mkdir -p weights/stage1_frames && cp -r /tmp/export/stage1 weights/stage1_frames/

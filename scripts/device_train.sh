@@ -100,7 +100,7 @@ else
     log "skipped bench_where: less than 70 s left before END_S"
 fi
 for s in stage1 stage2a stage2b; do
-    mkdir -p "$OUT/run/$s" && cp /tmp/run/$s/{config.json,metrics.jsonl,loss.png,throughput.json} \
+    mkdir -p "$OUT/run/$s" && cp /tmp/run/$s/{config.json,metrics.jsonl,val_metrics.jsonl,loss.png,throughput.json} \
         "$OUT/run/$s/" 2>/dev/null
 done
 

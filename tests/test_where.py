@@ -212,7 +212,8 @@ def test_evaluate_where_end_to_end_on_two_held_out_pairs(tiny, tmp_path, monkeyp
     entry = evaluate.main(["where", "--config", "tiny", "--data", str(derived), "--seed", "0",
                            "--records", str(records), "--results", "results/hs.json",
                            "--no-progress", "--workers", "0"])  # fmt: skip
-    saved = json.loads(Path("results/hs.json").read_text())["tiny"]
+    # two pairs, fewer than the record sample: a key of its own, never the config's whole run
+    saved = json.loads(Path("results/hs.json").read_text())["tiny_pairs2"]
     assert saved["all_stages"]["pairs"] == 2 and saved["seeds"] == [0]
     assert saved["all_stages"] == entry["all_stages"]
     assert entry["timing"]["pairs_per_s"] == 0  # every row resumed: none evaluated in this run
@@ -311,7 +312,7 @@ def test_any_frame_evaluation_turns_the_clouds_and_the_answers_back(tiny, tmp_pa
     entry = evaluate.main(["where", "--config", "tiny", "--frame", "any", "--data", str(derived),
                            "--seed", "0", "--batch", "2", "--records", str(records),
                            "--results", "hs.json", "--no-progress", "--workers", "0"])  # fmt: skip
-    assert json.loads(Path("hs.json").read_text())["tiny_any_frame"]["frame"] == "any"
+    assert json.loads(Path("hs.json").read_text())["tiny_any_frame_pairs2"]["frame"] == "any"
     # degraded clouds: the records say how, and another setting is not resumed from them
     clean = seen[0]["clouds"]["object_points"]
     seen.clear()
