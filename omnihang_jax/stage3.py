@@ -41,7 +41,7 @@ import jaxlie
 import numpy as np
 
 from omnihang_jax import pointnet2
-from omnihang_jax.pointnet2 import PointNet2Config, PointNet2Encoder, squared_distance
+from omnihang_jax.pointnet2 import PointNet2Config, PointNet2Encoder, first_argmin, squared_distance
 
 __all__ = [
     "ValueConfig",
@@ -260,8 +260,8 @@ def posed_state(
     feats = [flags]
     if config.contact_features:
         d2 = squared_distance(obj[:, None], sup[None])  # [N, M]
-        i = jnp.argmin(d2, axis=1)  # nearest support point of each object point
-        j = jnp.argmin(d2, axis=0)  # nearest object point of each support point
+        i = first_argmin(d2, axis=1)  # nearest support point of each object point
+        j = first_argmin(d2, axis=0)  # nearest object point of each support point
         off_o = obj - sup[i]
         off_s = sup - obj[j]
         signed = jnp.concatenate(

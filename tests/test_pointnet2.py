@@ -130,6 +130,22 @@ def test_ball_query_default_method_is_read_when_traced(clouds, monkeypatch):
         ball_query(clouds, centroids, 0.03, 8)
 
 
+@pytest.mark.parametrize("reductions", [True, False])
+def test_first_argmin_and_argmax_are_argmin_and_argmax(monkeypatch, reductions):
+    """Both ways (two plain reductions on the CPU, jnp.argmin elsewhere) give argmin's and
+    argmax's indices, the first of tied values included, along any axis."""
+    monkeypatch.setattr(pointnet2, "_by_min_reductions", lambda: reductions)
+    rng = np.random.default_rng(0)
+    x = rng.integers(0, 5, size=(4, 7, 9)).astype(np.float32)  # many ties
+    x[0, 0] = 2.0  # a whole row tied
+    for axis in (0, 1, -1):
+        got_min = np.asarray(jax.jit(lambda a: pointnet2.first_argmin(a, axis))(x))
+        got_max = np.asarray(jax.jit(lambda a: pointnet2.first_argmax(a, axis))(x))
+        np.testing.assert_array_equal(got_min, np.argmin(x, axis=axis))
+        np.testing.assert_array_equal(got_max, np.argmax(x, axis=axis))
+        assert got_min.dtype == np.int32 and got_max.dtype == np.int32
+
+
 def test_grouping_matches_numpy(clouds):
     rng = np.random.default_rng(3)
     features = rng.normal(size=(3, 200, 5)).astype(np.float32)
