@@ -16,7 +16,7 @@
 # GEN_S (0: generate on all cores first, starting no shard after GEN_S s; the phase lasts
 # about GEN_S + one shard, ~3-4 min per 32-pair paper shard per core there), DERIVE_S (170), S1 / S2A / S2B (stage budgets in s), GEN_PART (0/8), END_S (555);
 # GEN_ONLY=1: stop after the generation phase (a CPU-throughput call); TRAIN_ARGS: more
-# experiments.train_where flags (e.g. "--augment-object-turn --init-from weights/stage12" for
+# experiments.train_where flags (e.g. "--augment-object-turn 32 --init-from weights/stage12 --stage1 rotation=6d" for
 # Stages 1-2 that read objects in any frame);
 # DERIVE_ARGS: more experiments.derive_dataset flags (e.g. "--clouds-only --camera-scale 0.5":
 # Stage 1's training clouds, ~5x less CPU a pair; then STAGE=1); STAGE (train_where --stage,
