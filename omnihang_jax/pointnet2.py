@@ -23,7 +23,7 @@ take static sizes (``npoint``, ``nsample``) from the config.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import flax.linen as nn
 import jax
@@ -161,25 +161,26 @@ def _by_min_reductions() -> bool:
     return jax.default_backend() == "cpu"
 
 
+def _first_index(x: jax.Array, axis: int, extreme: Callable, arg: Callable) -> jax.Array:
+    """The first index along ``axis`` where ``x`` takes its ``extreme`` (jnp.min / jnp.max), as
+    int32: ``arg`` (jnp.argmin / jnp.argmax) off the CPU, two plain reductions on it."""
+    if not _by_min_reductions():
+        return arg(x, axis=axis).astype(jnp.int32)
+    axis = axis % x.ndim
+    hit = x == extreme(x, axis=axis, keepdims=True)
+    iota = jax.lax.broadcasted_iota(jnp.int32, x.shape, axis)
+    return jnp.min(jnp.where(hit, iota, x.shape[axis]), axis=axis)
+
+
 def first_argmin(x: jax.Array, axis: int = -1) -> jax.Array:
     """``jnp.argmin(x, axis)``, the first index of the minimum, as int32 (read at trace time:
     :func:`_by_min_reductions`). For finite ``x``."""
-    if not _by_min_reductions():
-        return jnp.argmin(x, axis=axis).astype(jnp.int32)
-    axis = axis % x.ndim
-    lowest = jnp.min(x, axis=axis, keepdims=True)
-    iota = jax.lax.broadcasted_iota(jnp.int32, x.shape, axis)
-    return jnp.min(jnp.where(x == lowest, iota, x.shape[axis]), axis=axis)
+    return _first_index(x, axis, jnp.min, jnp.argmin)
 
 
 def first_argmax(x: jax.Array, axis: int = -1) -> jax.Array:
-    """``jnp.argmax(x, axis)`` as int32, as :func:`first_argmin` finds the minimum."""
-    if not _by_min_reductions():
-        return jnp.argmax(x, axis=axis).astype(jnp.int32)
-    axis = axis % x.ndim
-    highest = jnp.max(x, axis=axis, keepdims=True)
-    iota = jax.lax.broadcasted_iota(jnp.int32, x.shape, axis)
-    return jnp.min(jnp.where(x == highest, iota, x.shape[axis]), axis=axis)
+    """``jnp.argmax(x, axis)``, the first index of the maximum, as int32."""
+    return _first_index(x, axis, jnp.max, jnp.argmax)
 
 
 def gather_points(values: jax.Array, idx: jax.Array) -> jax.Array:
