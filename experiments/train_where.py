@@ -173,6 +173,9 @@ def main(argv=None) -> dict:
         if unknown:
             parser.error(f"--time-budget: unknown stages {sorted(unknown)}; use {train.STAGES}")
 
+    if args.augment_object_turn is not None and args.augment_object_turn < 1:
+        parser.error(f"--augment-object-turn M needs M >= 1 frame hypotheses (1: any frame), "
+                     f"got {args.augment_object_turn}")  # fmt: skip
     config = train.PRESETS[args.preset]
     overrides = {}
     if args.batch is not None:

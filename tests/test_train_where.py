@@ -365,3 +365,13 @@ def test_init_from_exported_weights_starts_there(trained_dir, tmp_path):
     with pytest.raises(ValueError, match="network config differs"):
         small = argv[:3] + ["small"] + argv[4:]
         train_where.main(small + ["--out", str(tmp_path / "x"), "--init-from", str(tmp_path / "w")])
+
+
+def test_object_turn_needs_at_least_one_frame_hypothesis(tmp_path, capsys):
+    from experiments import train_where
+
+    with pytest.raises(SystemExit) as stop:
+        train_where.main(["--data", "synthetic", "--out", str(tmp_path / "run"),
+                          "--augment-object-turn", "0"])  # fmt: skip
+    assert stop.value.code == 2 and "M >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()  # nothing written
