@@ -154,7 +154,7 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("figure", choices=["where", "paths"])
     parser.add_argument("--config", default="default",
-                        help="where: default | paper; paths: default | paper_nce | paper_hce | mesh")  # fmt: skip
+                        help="where: default | paper | frames | canon; paths: default | paper_nce | paper_hce | mesh")  # fmt: skip
     parser.add_argument("--split", choices=["test", "validation"], default="test",
                         help="test: the held-out objects and supports (default)")  # fmt: skip
     parser.add_argument("--seed", type=int, nargs="+", default=None,

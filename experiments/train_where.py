@@ -31,6 +31,7 @@ STAGE_CHOICES = {
     "2b": ("2b",),
     "2": ("2a", "2b"),
     "all": train.STAGES,
+    "canon": ("canon",),  # the object-frame network (omnihang_jax.canon)
 }
 
 
@@ -169,9 +170,9 @@ def main(argv=None) -> dict:
             }
         except ValueError:
             parser.error(f"--time-budget must look like 1=300,2a=90, got {args.time_budget!r}")
-        unknown = set(budget) - set(train.STAGES)
+        unknown = set(budget) - set(train.ALL_STAGES)
         if unknown:
-            parser.error(f"--time-budget: unknown stages {sorted(unknown)}; use {train.STAGES}")
+            parser.error(f"--time-budget: unknown stages {sorted(unknown)}; use {train.ALL_STAGES}")
 
     if args.augment_object_turn is not None and args.augment_object_turn < 1:
         parser.error(f"--augment-object-turn M needs M >= 1 frame hypotheses (1: any frame), "

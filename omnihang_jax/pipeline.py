@@ -82,6 +82,10 @@ class PipelineConfig:
     # Stage-1 starts, and Stage 2 refines each in its own frame (:func:`make_frame_starts`).
     # 0: Stages 1-2 read the cloud as given.
     frames: int = 0
+    # ours, for objects in any frame: the object-frame network (``omnihang_jax.canon``,
+    # params["canon"]) gives H more hypotheses, each the transform that writes the object as
+    # the library does, read as ``frames``' are (before them). False: none.
+    canon: bool = False
 
 
 # The default pipeline (``omnihang_jax.where.DEFAULT``): K = 10 proposals, CEM from both the
@@ -107,44 +111,77 @@ def frame_hypotheses(key: jax.Array, n: int) -> jax.Array:
 
 
 def make_frame_starts(stage1_config, stage2_config, value, config: PipelineConfig,
-                      value_config: ValueConfig) -> Callable:  # fmt: skip
+                      value_config: ValueConfig, canon_config=None) -> Callable:  # fmt: skip
     """``starts(params, key, clouds [B, ...]) -> (stage1 [B, K, 7], stage2 [B, K, 7], pool
-    [B, M*K, 7])``: Stage 1 on ``config.frames`` (M) turned copies of the object cloud
-    (:func:`frame_hypotheses`), its M x K proposals turned back (``poses.reframe``: the pool); the K that V scores
-    highest (on the first view) are the Stage-1 starts, and Stage 2 refines each in the frame it
-    came from (so Stage 2 runs K times a pair, as without frames)."""
+    [B, M*K, 7])``: Stage 1 on M copies of the object cloud, each written in one frame
+    hypothesis (points ``H p + s``), its M x K proposals turned back (the pool); the K that V
+    scores highest (on the first view) are the Stage-1 starts, and Stage 2 refines each in the
+    frame it came from (so Stage 2 runs K times a pair, as without frames).
+
+    The hypotheses: with ``config.canon`` the object-frame network's H transforms
+    (``omnihang_jax.canon``, ``params["canon"]``; ``canon_config`` its CanonConfig), then
+    ``config.frames`` more from :func:`frame_hypotheses` (no shift)."""
     from omnihang_jax.stage1 import make_stage1
     from omnihang_jax.stage2 import make_stage2
 
     stage1, stage2 = make_stage1(stage1_config), make_stage2(stage2_config)
-    m, k = config.frames, config.num_proposals
+    k = config.num_proposals
     view = tuple(int(x) for x in config.views[0])
+    if config.canon and canon_config is None:
+        raise ValueError("PipelineConfig.canon needs the object-frame network's config")
+    canon = None
+    if config.canon:
+        from omnihang_jax.canon import make_canon
+
+        canon = make_canon(canon_config)
+
+    def hypotheses(params, key, points):  # -> [B, M, 3, 3], [B, M, 3]
+        b = points.shape[0]
+        rots, shifts = [], []
+        if canon is not None:
+            rot, shift, _ = canon.frames(params["canon"], points)
+            rots.append(rot.astype(points.dtype))
+            shifts.append(shift.astype(points.dtype))
+        if config.frames:
+            fib = jnp.broadcast_to(frame_hypotheses(key, config.frames), (b, config.frames, 3, 3))
+            rots.append(fib.astype(points.dtype))
+            shifts.append(jnp.zeros((b, config.frames, 3), points.dtype))
+        return jnp.concatenate(rots, 1), jnp.concatenate(shifts, 1)
+
+    def back(pose7, rot, shift):  # poses of the cloud H p + s -> of the cloud p
+        q = quaternion_to_matrix(pose7[..., 3:])
+        moved = pose7.at[..., :3].add(jnp.einsum("...ij,...j->...i", q, shift))
+        return reframe(moved, rot)
 
     def starts(params, key, clouds: PairClouds):
         kf, kp = jax.random.split(key)
         b, n, _ = clouds.object_points.shape
-        frames = frame_hypotheses(kf, m)  # [M, 3, 3]
-        obj = jnp.einsum("mij,bnj->mbni", frames, clouds.object_points).reshape(m * b, n, 3)
+        rot, shift = hypotheses(params, kf, clouds.object_points)  # [B, M, 3, 3], [B, M, 3]
+        m = rot.shape[1]
+        obj = jnp.einsum("bmij,bnj->mbni", rot, clouds.object_points) + jnp.moveaxis(
+            shift, 1, 0)[:, :, None]  # fmt: skip
         sup = jnp.broadcast_to(clouds.support_points[None], (m, *clouds.support_points.shape))
-        pose6 = stage1.propose(params["stage1"], obj, sup.reshape(m * b, -1, 3), kp, k)
+        pose6 = stage1.propose(params["stage1"], obj.reshape(m * b, n, 3),
+                               sup.reshape(m * b, -1, 3), kp, k)  # fmt: skip
         pose6 = jnp.moveaxis(pose6.reshape(m, b, k, 6), 0, 1).reshape(b, m * k, 6)
         of = jnp.repeat(jnp.arange(m), k)  # the frame of each pool member
-        pool = reframe(pose6_to_pose7(pose6), frames[of][None])  # [B, M*K, 7]
+        pool = back(pose6_to_pose7(pose6), rot[:, of], shift[:, of])  # [B, M*K, 7]
         small = subset_clouds(clouds, value_config, *view)
         score = jax.vmap(value.score, in_axes=(None, 0, 0))(params["value"], small, pool)
         top = jnp.argsort(-score, axis=1)[:, :k]  # [B, K]
         first = jnp.take_along_axis(pool, top[:, :, None], axis=1)
         # Stage 2 on each chosen proposal, in its own frame
-        h = frames[of[top]]  # [B, K, 3, 3]
-        seen = jnp.einsum("bkij,bnj->bkni", h, clouds.object_points).reshape(b * k, n, 3)
+        h = jnp.take_along_axis(rot, of[top][:, :, None, None], axis=1)  # [B, K, 3, 3]
+        hs = jnp.take_along_axis(shift, of[top][:, :, None], axis=1)  # [B, K, 3]
+        seen = jnp.einsum("bkij,bnj->bkni", h, clouds.object_points) + hs[:, :, None]
 
         def tile(x):  # [B, ...] -> [B*K, ...]
             return jnp.broadcast_to(x[:, None], (b, k, *x.shape[1:])).reshape(b * k, *x.shape[1:])
 
         chosen = jnp.take_along_axis(pose6, top[:, :, None], axis=1).reshape(b * k, 6)
-        out = stage2.refine(params["stage2"], seen, tile(clouds.support_points), chosen,
-                            tile(clouds.support_normals))  # fmt: skip
-        second = reframe(pose6_to_pose7(out.pose6).reshape(b, k, 7), h)
+        out = stage2.refine(params["stage2"], seen.reshape(b * k, n, 3), tile(clouds.support_points),
+                            chosen, tile(clouds.support_normals))  # fmt: skip
+        second = back(pose6_to_pose7(out.pose6).reshape(b, k, 7), h, hs)
         return first, second, pool
 
     return starts
@@ -245,7 +282,7 @@ def make_ensemble_score(
 
 def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
                        config: PipelineConfig = PipelineConfig(),
-                       rank_configs=None) -> Callable:  # fmt: skip
+                       rank_configs=None, canon_config=None) -> Callable:  # fmt: skip
     """``hang(params, key, clouds: PairClouds [B, ...]) -> HangOutput``; params =
     ``{"stage1", "stage2", "value"}`` (+ ``"rank_values"``). Pure and un-jitted:
     ``jax.jit(hang)`` runs Stages 1, 2 and CEM on V in one XLA program, batched over pairs.
@@ -272,8 +309,10 @@ def make_hang_pipeline(stage1_config, stage2_config, value_config: ValueConfig,
     )  # fmt: skip
     rule = config.select
     fuse = jax.default_backend() != "cpu" if config.fuse is None else config.fuse
-    frame_starts = (make_frame_starts(stage1_config, stage2_config, make_value(value_config),
-                                      config, value_config) if config.frames else None)  # fmt: skip
+    frame_starts = None
+    if config.frames or config.canon:
+        frame_starts = make_frame_starts(stage1_config, stage2_config, make_value(value_config),
+                                         config, value_config, canon_config)  # fmt: skip
 
     def fused_views(params, k3, clouds, starts):
         """Every view's and start's CEM as one CEM over V * B rows of S * K starts (each

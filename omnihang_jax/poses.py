@@ -101,6 +101,19 @@ def super_fibonacci(n: int) -> np.ndarray:
     return xyzw[:, [3, 0, 1, 2]]
 
 
+def principal_frame(points: jax.Array) -> jax.Array:
+    """[N, 3] -> [3, 3] the cloud's principal axes as columns, largest spread first, each of
+    the first two pointing where the cloud's third moment along it is positive, the third
+    their cross product: a frame that turns with the cloud (``P -> A P``) wherever the
+    spreads and the moments are distinct."""
+    centred = points - points.mean(0)
+    _, axes = jnp.linalg.eigh(centred.T @ centred)  # ascending
+    axes = axes[:, ::-1]
+    skew = jnp.sum((centred @ axes) ** 3, axis=0)
+    axes = axes * jnp.where(skew < 0, -1.0, 1.0).astype(axes.dtype)
+    return axes.at[:, 2].set(jnp.cross(axes[:, 0], axes[:, 1]))
+
+
 def box_centre(points: jax.Array) -> jax.Array:
     """[N, 3] -> [3] the centre of the cloud's box along its principal axes: it turns and moves
     with the cloud (``omnihang_jax.paths.principal_box`` on the host)."""

@@ -12,6 +12,7 @@ Folder layout written by ``train_where(out=...)``::
     out/stage1/{config.json, checkpoints/<step>/, metrics.jsonl, loss.png}
     out/stage2a/...
     out/stage2b/...     (initialised from stage2a's parameters)
+    out/stagecanon/...  (the object-frame network, ``omnihang_jax.canon``; --stage canon)
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import orbax.checkpoint as ocp
 
 from omnihang_jax import augment, sharding
 from omnihang_jax import data as data_lib
+from omnihang_jax.canon import CANON_SMALL, CANON_TINY, CanonConfig, make_canon
 from omnihang_jax.config import config_from_dict, config_to_dict
 from omnihang_jax.data import HangSample
 from omnihang_jax.stage1 import (
@@ -51,10 +53,11 @@ from omnihang_jax.stage2 import (
     Stage2Config,
     make_stage2,
 )
-from omnihang_jax.train_losses import STAGES, make_loss_fn
+from omnihang_jax.train_losses import ALL_STAGES, STAGES, make_loss_fn
 
 __all__ = [
     "STAGES",
+    "ALL_STAGES",
     "TrainConfig",
     "NetworksConfig",
     "WHERE_ORIGINAL",
@@ -117,6 +120,7 @@ class NetworksConfig:
     stage1: Stage1Config = STAGE1_ORIGINAL
     stage2: Stage2Config = STAGE2_ORIGINAL
     train: TrainConfig = TrainConfig()
+    canon: CanonConfig = CANON_SMALL  # the object-frame network (``omnihang_jax.canon``)
     preset: str = "original"
 
     @property
@@ -128,6 +132,7 @@ WHERE_ORIGINAL = NetworksConfig()
 WHERE_TINY = NetworksConfig(
     stage1=STAGE1_TINY,
     stage2=STAGE2_TINY,
+    canon=CANON_TINY,
     # constant lr, no clipping: the tests memorise a few pairs in a few hundred steps
     train=TrainConfig(
         batch_size=8,
@@ -166,7 +171,7 @@ class TrainState:
 def learning_rate_schedule(stage: str, config: NetworksConfig) -> optax.Schedule:
     """The stage's learning rate per step (``TrainConfig.schedule``, warm-up + cosine)."""
     cfg = config.train
-    lr = cfg.lr_stage1 if stage == "1" else cfg.lr_stage2
+    lr = cfg.lr_stage1 if stage in ("1", "canon") else cfg.lr_stage2
     if cfg.schedule == "constant":
         return optax.constant_schedule(lr)
     if cfg.schedule != "cosine":
@@ -194,7 +199,12 @@ def make_init_state(stage: str, config: NetworksConfig) -> Callable[..., TrainSt
     """``init(key, params=None) -> TrainState``; ``params`` overrides the random init (2b from
     2a)."""
     tx = make_optimizer(stage, config)
-    net_init = make_stage1(config.stage1).init if stage == "1" else make_stage2(config.stage2).init
+    if stage == "canon":
+        net_init = make_canon(config.canon).init
+    elif stage == "1":
+        net_init = make_stage1(config.stage1).init
+    else:
+        net_init = make_stage2(config.stage2).init
 
     def init(key, params=None) -> TrainState:
         params = net_init(key) if params is None else params
@@ -214,7 +224,8 @@ def make_train_step(stage: str, config: NetworksConfig) -> Callable:
 
     cfg = config.train
     augmenting = stage == "1" and (cfg.augment_jitter > 0 or cfg.augment_yaw > 0)
-    turning = stage != "1" and cfg.augment_object_turn  # Stage 1 turns inside augment_pair
+    # Stage 1 turns inside augment_pair; the object-frame network turns its clouds itself
+    turning = stage in ("2a", "2b") and cfg.augment_object_turn
 
     def train_step(state: TrainState, batch: HangSample, key):
         if augmenting or (stage == "1" and cfg.augment_object_turn):
@@ -238,7 +249,7 @@ def make_eval_step(stage: str, config: NetworksConfig) -> Callable:
     With ``augment_object_turn`` the objects are turned as in training (from ``key``: the
     validator's keys are fixed), so validation measures the frames the network is made for."""
     loss_fn = make_loss_fn(stage, config)
-    turn = config.train.augment_object_turn
+    turn = config.train.augment_object_turn if stage != "canon" else 0
 
     def eval_step(params, batch: HangSample, key):
         if turn:
@@ -273,7 +284,7 @@ def _write_config(stage_dir: str, stage: str, config: NetworksConfig) -> None:
     if os.path.exists(path):
         with open(path) as f:
             old = config_from_dict(NetworksConfig, json.load(f)["config"])
-        if (old.stage1, old.stage2) != (config.stage1, config.stage2):
+        if (old.stage1, old.stage2, old.canon) != (config.stage1, config.stage2, config.canon):
             raise ValueError(
                 f"{stage_dir} holds a model with a different architecture (preset "
                 f"{old.preset!r}); use another --out folder or the same preset"
@@ -331,11 +342,13 @@ WEIGHTS_FILE = "params.msgpack"
 
 def _network_fields(config: NetworksConfig, stage: str):
     """The parts of a config that shape a stage's parameters."""
+    if stage == "canon":
+        return config.canon
     return config.stage1 if stage == "1" else config.stage2.pointnet
 
 
 def export_weights(
-    run_dir: str, out_dir: str, stages: Sequence[str] = STAGES, which: str = "latest"
+    run_dir: str, out_dir: str, stages: Sequence[str] = ALL_STAGES, which: str = "latest"
 ) -> dict[str, int]:
     """Copy a training folder's parameters (no optimiser state, no checkpoint history)
     to ``out_dir/stage<name>/{config.json, params.msgpack}``: a few MB that
@@ -444,14 +457,14 @@ def train_stage(
     """
     from tqdm.auto import tqdm
 
-    if stage not in STAGES:
-        raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+    if stage not in ALL_STAGES:
+        raise ValueError(f"unknown stage {stage!r}; expected one of {ALL_STAGES}")
     steps = config.train.steps if steps is None else steps
     stage_dir = _stage_dir(workdir, stage)
     os.makedirs(stage_dir, exist_ok=True)
     _write_config(stage_dir, stage, config)
 
-    seed, stage_id = config.train.seed, STAGES.index(stage)
+    seed, stage_id = config.train.seed, ALL_STAGES.index(stage)
     init_key, base_key = jax.random.split(jax.random.fold_in(jax.random.key(seed), stage_id))
     init_state, train_step, eval_step = _jitted(stage, config)
     state = init_state(init_key, init_params)
@@ -650,10 +663,10 @@ def train_where(
     """
     if steps is not None:  # the schedule decays over the run's total steps
         config = dataclasses.replace(config, train=dataclasses.replace(config.train, steps=steps))
-    fields = STAGE1_FIELDS if tuple(stages) == ("1",) else None
+    fields = STAGE1_FIELDS if set(stages) <= {"1", "canon"} else None
     dataset, val_dataset = make_dataset(data, config, on_device=data_on_device, fields=fields)
     states = {}
-    for stage in STAGES:
+    for stage in ALL_STAGES:
         if stage not in stages:
             continue
         init_params = None

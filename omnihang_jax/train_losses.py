@@ -32,6 +32,9 @@ if TYPE_CHECKING:
     from omnihang_jax.train import NetworksConfig
 
 STAGES = ("1", "2a", "2b")
+# every trainable network: the three goal-pose stages and the object-frame network
+# (``omnihang_jax.canon``), which ``--stage all`` leaves out (``train_where --stage canon``)
+ALL_STAGES = (*STAGES, "canon")
 
 
 def _take_pose(x: jax.Array, d: jax.Array) -> jax.Array:
@@ -89,6 +92,11 @@ def make_loss_fn(stage: str, config: NetworksConfig) -> Callable:
       segmentation features are fine-tuned, ``Stage2Config.train_features_in_2b``).
     Metrics are scalars (means over the batch).
     """
+    if stage == "canon":
+        from omnihang_jax.canon import make_canon_loss
+
+        canon_loss = make_canon_loss(config.canon)
+        return lambda params, batch, key: canon_loss(params, batch.object_points, key)
     if stage == "1":
         cfg1 = config.stage1
         net1 = make_stage1(cfg1)
@@ -130,7 +138,7 @@ def make_loss_fn(stage: str, config: NetworksConfig) -> Callable:
         return stage1_loss
 
     if stage not in ("2a", "2b"):
-        raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+        raise ValueError(f"unknown stage {stage!r}; expected one of {ALL_STAGES}")
     cfg2 = config.stage2
     net2 = make_stage2(cfg2)
 

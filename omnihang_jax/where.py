@@ -34,6 +34,7 @@ import numpy as np
 from omnihang_jax import pipeline, poses, selection, sharding, stage3
 
 __all__ = [
+    "CANON",
     "CONFIGS",
     "DEFAULT",
     "FRAMES",
@@ -53,6 +54,9 @@ class WhereConfig:
 
     stage12: str = "weights/stage12"  # Stage 1 + Stage 2 networks (predict.load_predictor)
     stage1: str | None = None  # a folder whose stage1/ replaces stage12's Stage 1
+    # the object-frame network (a folder holding stagecanon/, ``omnihang_jax.canon``): with
+    # ``pipeline.canon`` Stages 1-2 read the object in its hypotheses of the library's frame
+    canon: str | None = None
     value: str = "weights/value"  # the value function V that CEM searches on
     # networks whose mean log V ranks CEM's candidates (() : V ranks, the paper's)
     rankers: tuple[str, ...] = (
@@ -71,6 +75,8 @@ class WhereConfig:
             raise ValueError(f"WhereConfig.check must be >= 0, got {self.check}")
         if self.pipeline.num_proposals < 1:
             raise ValueError("WhereConfig.pipeline.num_proposals must be >= 1")
+        if self.pipeline.canon and not self.canon:
+            raise ValueError("WhereConfig.pipeline.canon needs WhereConfig.canon (a weights folder)")
 
 
 DEFAULT = WhereConfig()
@@ -86,7 +92,15 @@ FRAMES = dataclasses.replace(
     stage1="weights/stage1_frames",
     pipeline=dataclasses.replace(DEFAULT.pipeline, frames=32),
 )
-CONFIGS = {"default": DEFAULT, "paper": PAPER, "frames": FRAMES}
+# The answer for objects in any frame with the object-frame network (``omnihang_jax.canon``):
+# Stages 1-2 (the default's, trained in the library's frame) read the object in each of the
+# network's H hypotheses of the library's frame, V picks the K best proposals as for FRAMES.
+CANON = dataclasses.replace(
+    DEFAULT,
+    canon="weights/canon",
+    pipeline=dataclasses.replace(DEFAULT.pipeline, canon=True),
+)
+CONFIGS = {"default": DEFAULT, "paper": PAPER, "frames": FRAMES, "canon": CANON}
 
 
 class WhereOutput(NamedTuple):
@@ -135,6 +149,7 @@ def _load(config: WhereConfig, overrides) -> Where:
     folders = (
         config.stage12,
         *([config.stage1] if config.stage1 else []),
+        *([config.canon] if config.canon else []),
         config.value,
         *config.rankers,
     )
@@ -150,22 +165,29 @@ def _load(config: WhereConfig, overrides) -> Where:
     rank_configs, rank_params = predict.load_rank_values(config.rankers)
     pipe = dataclasses.replace(config.pipeline, rank_values=len(rank_params))
     stage1_config, stage1_params = nets.stage1_spec
-    hang = pipeline.make_hang_pipeline(
-        stage1_config, nets.stage2_config, value_config, pipe, rank_configs or None
-    )
+    canon_config = None
     params = {"stage1": stage1_params, "stage2": nets.stage2_params, "value": value_params}
+    if pipe.canon:
+        from omnihang_jax import train
+
+        canon_nets, params["canon"], _ = train.restore_stage(os.path.join(config.canon, "stagecanon"))
+        canon_config = canon_nets.canon
+    hang = pipeline.make_hang_pipeline(
+        stage1_config, nets.stage2_config, value_config, pipe, rank_configs or None, canon_config
+    )
     if rank_params:
         params["rank_values"] = rank_params
 
     def one(params, key, clouds):  # one pair, its own key: a batch of one inside
-        if pipe.frames:  # the object read about its own box centre, wherever its origin is
+        framed = pipe.frames or pipe.canon
+        if framed:  # the object read about its own box centre, wherever its origin is
             centre = poses.box_centre(clouds.object_points)
             clouds = clouds._replace(object_points=clouds.object_points - centre)
         out = hang(params, key, jax.tree.map(lambda x: x[None], clouds))
         out = jax.tree.map(lambda x: x[0], (out.stage1_poses, out.stage2_poses, out.ranked,
                                             out.ranked_keys, out.ranked_start,
                                             out.ranked_proposal))  # fmt: skip
-        if pipe.frames:  # poses of the centred cloud -> of the cloud as given
+        if framed:  # poses of the centred cloud -> of the cloud as given
             out = tuple(poses.move_origin(x, -centre) for x in out[:3]) + out[3:]
         return out
 

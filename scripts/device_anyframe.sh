@@ -24,6 +24,11 @@ if [ ! -s weights/stage1_frames/stage1/params.msgpack ] && [ -s /tmp/export/stag
     mkdir -p weights/stage1_frames && cp -r /tmp/export/stage1 weights/stage1_frames/
     echo "weights/stage1_frames from /tmp/export (the training call on this machine)"
 fi
+# where.CANON's object-frame network (weights/canon) likewise
+if [ ! -s weights/canon/stagecanon/params.msgpack ] && [ -s /tmp/export/stagecanon/params.msgpack ]; then
+    mkdir -p weights/canon && cp -r /tmp/export/stagecanon weights/canon/
+    echo "weights/canon from /tmp/export (the training call on this machine)"
+fi
 set -- $RUNS
 n=$#
 for run in "$@"; do

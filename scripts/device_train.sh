@@ -20,7 +20,7 @@
 # Stages 1-2 that read objects in any frame);
 # DERIVE_ARGS: more experiments.derive_dataset flags (e.g. "--clouds-only --camera-scale 0.5":
 # Stage 1's training clouds, ~5x less CPU a pair; then STAGE=1); STAGE (train_where --stage,
-# default all); GEN_BG=0: no background shard generation while training. The exported weights
+# default all; "canon": the object-frame network, budget SCANON s, default 300); GEN_BG=0: no background shard generation while training. The exported weights
 # also stay on the machine in /tmp/export (a warm next call reads them there).
 # SKIP_INSTALL=1 for a dry run here (with .venv/bin first on PATH).
 set -uo pipefail
@@ -82,7 +82,7 @@ log "derived $(ls "$TRAIN_DATA" 2>/dev/null | wc -l) training pairs in $TRAIN_DA
 
 # 3. train on the GPU
 python3 -m experiments.train_where --data "$TRAIN_DATA" --out /tmp/run --preset "$PRESET" \
-    --stage "${STAGE:-all}" --batch "$BATCH" --steps "${STEPS:-1000000}" --time-budget "1=$S1,2a=$S2A,2b=$S2B" --data-on-device --no-progress \
+    --stage "${STAGE:-all}" --batch "$BATCH" --steps "${STEPS:-1000000}" --time-budget "1=$S1,2a=$S2A,2b=$S2B,canon=${SCANON:-300}" --data-on-device --no-progress \
     ${TRAIN_ARGS:-} \
     >"$OUT/train.log" 2>&1
 log "trained: $(tail -1 "$OUT/train.log")"
@@ -99,7 +99,8 @@ if [ -z "${NO_BENCH:-}" ] && [ $((END_S - $(date +%s) + T0)) -gt 70 ]; then
 else
     log "skipped bench_where: less than 70 s left before END_S"
 fi
-for s in stage1 stage2a stage2b; do
+for s in stage1 stage2a stage2b stagecanon; do
+    [ -d /tmp/run/$s ] || continue
     mkdir -p "$OUT/run/$s" && cp /tmp/run/$s/{config.json,metrics.jsonl,val_metrics.jsonl,loss.png,throughput.json} \
         "$OUT/run/$s/" 2>/dev/null
 done
