@@ -60,6 +60,14 @@ def main(argv=None) -> dict:
         help="with --clouds-only: render each pair from its k-th other candidate view "
         "(1..n_views-1) into DERIVED/<split>_clouds[_r..]_v<k>/: more views for training",
     )
+    parser.add_argument(
+        "--per-object",
+        type=int,
+        default=None,
+        metavar="N",
+        help="derive at most N pairs of every object (seeded; the object-frame network's "
+        "inputs: `--split train --clouds-only --camera-scale 0.5 --per-object 12`)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="disable progress bars")
     args = parser.parse_args(argv)
     pair_indices = None
@@ -68,6 +76,14 @@ def main(argv=None) -> dict:
         with opener(args.pairs_from, "rt") as f:  # an evaluation's records, gzipped or not
             pair_indices = {int(json.loads(line)["pair_index"]) for line in f if line.strip()}
     splits = ("train", "test") if args.split == "all" else (args.split,)
+    if args.per_object is not None:
+        if args.per_object < 1:
+            parser.error(f"--per-object N needs N >= 1, got {args.per_object}")
+        recipe = dataset_bridge.read_recipe(args.data)
+        chosen = set()
+        for split in splits:
+            chosen |= dataset_bridge.pairs_per_object(recipe["pairs"], split, args.per_object)
+        pair_indices = chosen if pair_indices is None else pair_indices & chosen
     summary = dataset_bridge.derive_dataset(
         args.data,
         args.out,

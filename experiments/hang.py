@@ -75,8 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--where", choices=list(WHERE_CONFIGS), default=d.where,
         help="the where-to-hang answer (omnihang_jax.where): default (Stages 1-3, three views, "
         "the rankers, the observed-cloud check), paper (the paper's pipeline), frames (default "
-        "with a Stage 1 trained for it reading the object in 32 frames, V picking CEM's starts: "
-        "for objects in any frame)",
+        "with a Stage 1 trained for it reading the object in 32 frames, V picking CEM's starts), "
+        "canon (default with Stages 1-2 reading the object in the object-frame network's "
+        "hypotheses of the library's frame, V picking CEM's starts)",
     )  # fmt: skip
     p.add_argument("--model", default=None, help="Stage 1 + 2 networks instead of the answer's")
     p.add_argument(

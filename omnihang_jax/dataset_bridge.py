@@ -171,6 +171,24 @@ def _derive_one(job: tuple[dict, str]) -> None:
     atomic.savez(path, **sample._asdict(), **meta)
 
 
+def pairs_per_object(pairs: list, split: str, n: int, seed: int = 0) -> set[int]:
+    """At most ``n`` pair indices of every object of ``split`` (drawn at random, seeded), from
+    the recipe's pair list [(object, support, split), ...]: a derive that covers every object
+    at a fraction of the pairs (inputs that read the object alone, e.g. the object-frame
+    network's)."""
+    import random
+
+    by_object: dict[str, list[int]] = {}
+    for index, (obj, _, s) in enumerate(pairs):
+        if s == split:
+            by_object.setdefault(obj, []).append(index)
+    rng = random.Random(seed)
+    chosen: set[int] = set()
+    for obj in sorted(by_object):
+        chosen.update(rng.sample(by_object[obj], min(n, len(by_object[obj]))))
+    return chosen
+
+
 def derive_dataset(
     dataset_dir: str | os.PathLike,
     out_dir: str | os.PathLike | None = None,

@@ -604,7 +604,8 @@ def make_dataset(
     ``"synthetic"`` -> an in-memory pool of ring-on-peg pairs (no validation set); a folder
     with ``pack.json`` (``data.pack_dataset``) -> :class:`data.PackedDataset` on the device
     (``fields``: only these on the device); else a dataset directory
-    (``data.load_hang_dataset``; ``on_device``: all pairs in device memory). Pairs whose
+    (``data.load_hang_dataset``; several, comma-separated, are read as one; ``on_device``:
+    all pairs in device memory). Pairs whose
     object is in the fixed validation subset of objects (``TrainConfig.val_fraction``) form
     the validation set, never trained on.
     """
@@ -630,7 +631,15 @@ def make_dataset(
             data_lib.PackedDataset(data, fit, fields),
             data_lib.PackedDataset(data, val, fields) if len(val) else None,
         )
-    full = data_lib.load_hang_dataset(data, split=split, cache=True)
+    # several folders, comma-separated (e.g. more views of the same pairs): one dataset, the
+    # validation objects held out of every folder
+    folders = [d for d in data.split(",") if d]
+    parts = [data_lib.load_hang_dataset(d, split=split, cache=True) for d in folders]
+    full = parts[0]
+    if len(parts) > 1:
+        full = data_lib.NpzDirectoryDataset([f for p in parts for f in p.files],
+                                            max_contacts=max(p.max_contacts for p in parts),
+                                            cache=True)  # fmt: skip
     fit, val = data_lib.split_by_object([data_lib.object_name_of(f) for f in full.files], fraction)
 
     def subset(idx):

@@ -119,3 +119,34 @@ def test_the_object_frame_network_learns_the_library_frame(tmp_path):
     after = loss_fn(state.params, pool, key)
     assert float(before["angle_deg"]) > 60 and float(after["angle_deg"]) < 20, (before, after)
     assert float(after["chamfer_mm"]) < 0.6 * float(before["chamfer_mm"]), (before, after)
+
+
+def test_pairs_per_object_covers_every_object_of_the_split_with_at_most_n():
+    from omnihang_jax.dataset_bridge import pairs_per_object
+
+    pairs = [[f"obj_{i % 5}", f"sup_{i}", "train" if i % 7 else "test"] for i in range(200)]
+    chosen = pairs_per_object(pairs, "train", 3)
+    assert chosen == pairs_per_object(pairs, "train", 3)  # seeded
+    objects = [pairs[i][0] for i in chosen]
+    assert all(pairs[i][2] == "train" for i in chosen)
+    assert sorted(set(objects)) == [f"obj_{i}" for i in range(5)]
+    assert max(objects.count(o) for o in set(objects)) == 3
+
+
+def test_several_data_folders_train_as_one_with_the_same_validation_objects(tmp_path):
+    """``--data A,B`` (e.g. more views of the same pairs): one dataset, and an object held out
+    for validation is held out of every folder."""
+    from omnihang_jax import data as data_lib
+
+    pool = data_lib.synthetic_batch(jax.random.key(0), 40, 32)
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        for i in range(40):
+            sample = jax.tree.map(lambda x, i=i: np.asarray(x[i]), pool)
+            np.savez(tmp_path / folder / f"{i:05d}_obj_{i % 20:04d}__hook_0000.npz",
+                     **sample._asdict())  # fmt: skip
+    fit, val = train.make_dataset(f"{tmp_path / 'a'},{tmp_path / 'b'}", train.WHERE_TINY)
+    assert len(fit) + len(val) == 80 and len(val) > 0
+    names = lambda ds: {data_lib.object_name_of(f) for f in ds.files}  # noqa: E731
+    assert not names(fit) & names(val)
+    assert {f.split("/")[-2] for f in val.files} == {"a", "b"}
