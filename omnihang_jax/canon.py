@@ -100,7 +100,8 @@ class CanonNet(nn.Module):
 
 class CanonNetwork(NamedTuple):
     """init(key) -> params; frames(params, points [B, N, 3] about the box centre) -> (rot
-    [B, H, 3, 3], shift [B, H, 3], score [B, H]), best score first is not implied."""
+    [B, H, 3, 3], shift [B, H, 3], score [B, H]): hypothesis h writes the object as the
+    library does, ``rot[h] p + shift[h]``; a higher score is a likelier winner."""
 
     init: Callable
     frames: Callable

@@ -76,7 +76,9 @@ class WhereConfig:
         if self.pipeline.num_proposals < 1:
             raise ValueError("WhereConfig.pipeline.num_proposals must be >= 1")
         if self.pipeline.canon and not self.canon:
-            raise ValueError("WhereConfig.pipeline.canon needs WhereConfig.canon (a weights folder)")
+            raise ValueError(
+                "WhereConfig.pipeline.canon needs WhereConfig.canon (a weights folder)"
+            )
 
 
 DEFAULT = WhereConfig()
@@ -170,7 +172,9 @@ def _load(config: WhereConfig, overrides) -> Where:
     if pipe.canon:
         from omnihang_jax import train
 
-        canon_nets, params["canon"], _ = train.restore_stage(os.path.join(config.canon, "stagecanon"))
+        canon_nets, params["canon"], _ = train.restore_stage(
+            os.path.join(config.canon, "stagecanon")
+        )
         canon_config = canon_nets.canon
     hang = pipeline.make_hang_pipeline(
         stage1_config, nets.stage2_config, value_config, pipe, rank_configs or None, canon_config

@@ -27,7 +27,7 @@ case ${1:-} in
         [ ! -s "$LIST" ] || { echo "already out ($LIST): run back first" >&2; exit 1; }
         case ${2:-} in
             where | bench) other="weights/nce weights/approach weights/approach_routes" ;;
-            paths) other="weights/stage12 weights/stage1_frames weights/value weights/rankers" ;;
+            paths) other="weights/stage12 weights/stage1_frames weights/canon weights/value weights/rankers" ;;
             *) echo "usage: $0 out where|paths" >&2; exit 2 ;;
         esac
         mkdir -p "$LEAN"
