@@ -19,6 +19,7 @@ import numpy as np
 
 from omnihang_jax import selection
 from omnihang_jax.poses import (
+    box_centre,
     pose6_to_pose7,
     quaternion_to_matrix,
     reframe,
@@ -138,9 +139,11 @@ def make_frame_starts(stage1_config, stage2_config, value, config: PipelineConfi
     def hypotheses(params, key, points):  # -> [B, M, 3, 3], [B, M, 3]
         b = points.shape[0]
         rots, shifts = [], []
-        if canon is not None:
-            rot, shift, _ = canon.frames(params["canon"], points)
+        if canon is not None:  # the network reads the cloud about its box centre c
+            centre = jax.vmap(box_centre)(points)
+            rot, shift, _ = canon.frames(params["canon"], points - centre[:, None])
             rots.append(rot.astype(points.dtype))
+            shift = shift - jnp.einsum("bhij,bj->bhi", rot, centre)  # R (p - c) + t
             shifts.append(shift.astype(points.dtype))
         if config.frames:
             fib = jnp.broadcast_to(frame_hypotheses(key, config.frames), (b, config.frames, 3, 3))
