@@ -20,6 +20,7 @@ import numpy as np
 from omnihang_jax import selection
 from omnihang_jax.poses import (
     box_centre,
+    move_origin,
     pose6_to_pose7,
     quaternion_to_matrix,
     reframe,
@@ -152,9 +153,7 @@ def make_frame_starts(stage1_config, stage2_config, value, config: PipelineConfi
         return jnp.concatenate(rots, 1), jnp.concatenate(shifts, 1)
 
     def back(pose7, rot, shift):  # poses of the cloud H p + s -> of the cloud p
-        q = quaternion_to_matrix(pose7[..., 3:])
-        moved = pose7.at[..., :3].add(jnp.einsum("...ij,...j->...i", q, shift))
-        return reframe(moved, rot)
+        return reframe(move_origin(pose7, shift), rot)
 
     def starts(params, key, clouds: PairClouds):
         kf, kp = jax.random.split(key)

@@ -84,10 +84,11 @@ def reframe(pose7: jax.Array, frames: jax.Array) -> jax.Array:
 
 def move_origin(pose7: jax.Array, offset: jax.Array) -> jax.Array:
     """Poses [..., 7] -> the same placements of the frame whose origin sits at ``offset`` [3]
-    in the object frame (points ``p - offset``): t + R offset, q unchanged
-    (``omnihang_jax.paths.move_origin`` on the host)."""
+    (or [..., 3], one per pose) in the object frame (points ``p - offset``): t + R offset, q
+    unchanged (``omnihang_jax.paths.move_origin`` on the host)."""
     rot = quaternion_to_matrix(pose7[..., 3:])
-    return jnp.concatenate([pose7[..., :3] + rot @ offset, pose7[..., 3:]], axis=-1)
+    moved = pose7[..., :3] + jnp.einsum("...ij,...j->...i", rot, offset)
+    return jnp.concatenate([moved, pose7[..., 3:]], axis=-1)
 
 
 def super_fibonacci(n: int) -> np.ndarray:
